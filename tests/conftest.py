@@ -1,0 +1,31 @@
+"""Shared fixtures. The Anny model is loaded once per session (its cache is costly; see notes/anny.md)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _single_thread():
+    # Measured on the 2-core CI machine: one intra-op thread is faster and steadier for our small ops.
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+@pytest.fixture(scope="session")
+def anny_model():
+    """The project's one Anny configuration, float64 (tests cast as needed)."""
+    from torch_diffavatar.body.anny_model import load_anny
+
+    return load_anny(dtype=torch.float64)
+
+
+@pytest.fixture(scope="session")
+def default_body(anny_model):
+    """(verts (Vb, 3) [m] world frame, faces (Fb, 3)) of the default draping body, float64."""
+    from torch_diffavatar.body.anny_model import default_body_mesh
+
+    return default_body_mesh(anny_model=anny_model)

@@ -1,0 +1,59 @@
+"""The `diffavatar` command. Each area registers its own sub-commands (see `_COMMAND_MODULES`)."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import sys
+
+from torch_diffavatar.errors import InputError, SimulationError
+
+# Each module defines `register(subparsers)`; its sub-commands set `func(args) -> int | dict`.
+_COMMAND_MODULES = (
+    "torch_diffavatar.pattern.commands",
+    "torch_diffavatar.sim.commands",
+    "torch_diffavatar.body.commands",
+    "torch_diffavatar.demo",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="diffavatar",
+        description="Simulation-ready avatars (body, sewing pattern, material) from a scan.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+    for name in _COMMAND_MODULES:
+        try:
+            module = importlib.import_module(name)
+        except ModuleNotFoundError as exc:
+            if exc.name != name:  # a real import error inside the module, not a missing area
+                raise
+            continue
+        module.register(sub)
+    return parser
+
+
+def emit_json(obj) -> None:
+    """Print one JSON object on one line (the CLI contract for `--json`)."""
+    print(json.dumps(obj, sort_keys=False))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        result = args.func(args)
+    except (InputError, FileNotFoundError, IsADirectoryError, PermissionError, SimulationError) as exc:
+        print(f"diffavatar {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    if isinstance(result, dict):
+        if getattr(args, "json", False):
+            emit_json(result)
+        return 0
+    return int(result or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
