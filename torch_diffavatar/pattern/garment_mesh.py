@@ -51,7 +51,7 @@ class GarmentMesh:
         panel_boundary: per panel, (Lp,) int64 panel-vertex indices of its outline in loop order.
         edge_vertices: ``(panel_name, edge_index) -> (n,) int64`` panel vertices along that pattern
             edge from its start to its end vertex, both corners included.
-        vert_labels: edge label (e.g. ``"lower_interface"``) -> (k,) int64 panel vertices on edges so labelled.
+        vert_labels: edge label (e.g. ``"lower_interface"``) -> (k,) int64 panel vertices on those edges.
         garment_type: template's garment type (``"dress"``, ``"tshirt"`` …) or None.
         spacing: target edge spacing [m] the mesh was built with.
     """
