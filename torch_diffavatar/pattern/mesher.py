@@ -1,0 +1,436 @@
+"""Meshing a sewing pattern into a `GarmentMesh`: resampled seams, quality triangulation, merged seams.
+
+Steps (`mesh_pattern`):
+
+1. Every edge is resampled at equal arc-length steps close to ``spacing``; the two edges of a stitch get
+   the same number of segments (the longer edge's count), corners are shared by the two edges meeting there.
+2. Each panel is triangulated with Shewchuk's Triangle (``p`` PSLG, ``q<min_angle>`` quality, ``a`` area
+   bound of an equilateral triangle of side ``spacing``, ``Y`` = no Steiner points on the boundary, so the
+   boundary samples stay exactly as resampled and stitched edges keep matching counts).
+3. Triangles take the orientation of their panel's edge loop (GarmentCode: counter-clockwise for front
+   panels, clockwise for back ones), so placed right-hand normals point out of the garment.
+4. Stitched vertex pairs are merged transitively (union-find) into sim vertices; the boundary edges of
+   the merged mesh are chained into loops and named by simple rules in the world frame.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import triangle
+
+from torch_diffavatar.errors import PatternError
+from torch_diffavatar.pattern.garment_mesh import BoundaryLoop, GarmentMesh
+from torch_diffavatar.pattern.spec import EdgeRef, Pattern, polygon_signed_area
+
+TOPS = ("dress", "tshirt", "longsleeve", "polo")
+BOTTOMS = ("skirt", "pants")
+
+
+GRADING = 0.4  # growth of the boundary sample spacing per unit arc length near short edges [m/m]
+
+
+def _graded_fractions(f0: float, f1: float, fmax: float, grading: float = GRADING) -> np.ndarray:
+    """Arc-length fractions (n + 1,) from 0 to 1 whose step is ~``f0`` at the start, ~``f1`` at the end
+    and at most ``fmax`` elsewhere, growing by at most ``grading`` per unit fraction (all in fractions of
+    the edge length)."""
+    grid = np.linspace(0.0, 1.0, 2049)
+    h = np.minimum(np.minimum(fmax, f0 + grading * grid), f1 + grading * (1.0 - grid))
+    inv = 1.0 / h
+    cum = np.concatenate([[0.0], np.cumsum(0.5 * (inv[1:] + inv[:-1]) * np.diff(grid))])
+    n = max(1, math.ceil(cum[-1] - 1e-6))
+    t = np.interp(np.arange(n + 1) * (cum[-1] / n), cum, grid)
+    t[0], t[-1] = 0.0, 1.0
+    return t
+
+
+def edge_sample_fractions(pattern: Pattern, spacing: float) -> dict[tuple[str, int], np.ndarray]:
+    """Arc-length fractions at which every edge is sampled, corners included.
+
+    Steps are at most ``spacing``; next to an edge shorter than ``spacing`` they shrink to that edge's
+    length and grow back gradually (so corner triangles can keep their quality without boundary Steiner
+    points). The two edges of a stitch get the same number of samples (set by the longer edge) at
+    matching fractions (mirrored for the default end-to-start seam).
+
+    Returns:
+        ``(panel_name, edge_index) -> (n + 1,) float64`` increasing fractions from 0 to 1.
+    """
+    lengths: dict[tuple[str, int], float] = {}
+    corner: dict[tuple[str, int], float] = {}  # target step [m] at each (panel, vertex) corner
+    ends: dict[tuple[str, int], tuple[tuple[str, int], tuple[str, int]]] = {}
+    for name, panel in pattern.panels.items():
+        m = len(panel.edges)
+        ls = [panel.edge_length(k) for k in range(m)]
+        for k, edge in enumerate(panel.edges):
+            lengths[(name, k)] = ls[k]
+            ends[(name, k)] = ((name, edge.start), (name, edge.end))
+            corner[(name, edge.start)] = min(spacing, ls[k], ls[k - 1])
+    # corners that seams sew together become one point of the garment: give them one step [m] (the
+    # smallest), propagated through chains of seams until nothing changes
+    for _ in range(len(corner) + 1):
+        changed = False
+        for s in pattern.stitches:
+            a, b = (s.a.panel, s.a.edge), (s.b.panel, s.b.edge)
+            (a0, a1), (b0, b1) = ends[a], ends[b]
+            for ca, cb in ((a0, b0), (a1, b1)) if s.right_wrong else ((a0, b1), (a1, b0)):
+                step = min(corner[ca], corner[cb])
+                if corner[ca] != step or corner[cb] != step:
+                    corner[ca] = corner[cb] = step
+                    changed = True
+        if not changed:
+            break
+    out: dict[tuple[str, int], np.ndarray] = {}
+    for s in pattern.stitches:
+        a, b = (s.a.panel, s.a.edge), (s.b.panel, s.b.edge)
+        la, lb = lengths[a], lengths[b]
+        (a0, a1), (b0, b1) = (corner[c] for c in ends[a]), (corner[c] for c in ends[b])
+        # fractions along A; B's start meets A's end (default) or A's start (right_wrong)
+        bs, be = (b0 / lb, b1 / lb) if s.right_wrong else (b1 / lb, b0 / lb)
+        t = _graded_fractions(min(a0 / la, bs), min(a1 / la, be), spacing / max(la, lb))
+        out[a] = t
+        out[b] = t if s.right_wrong else 1.0 - t[::-1]
+    for key, length in lengths.items():
+        if key not in out:
+            c0, c1 = (corner[c] for c in ends[key])
+            out[key] = _graded_fractions(c0 / length, c1 / length, spacing / length)
+    return out
+
+
+def _triangulate_panel(boundary: np.ndarray, spacing: float, min_angle: float, name: str, source) -> tuple:
+    """Quality-triangulate one closed outline (Lp, 2); returns (vertices (n, 2), triangles (f, 3))."""
+    n = len(boundary)
+    segments = np.stack([np.arange(n), (np.arange(n) + 1) % n], axis=1)
+    max_area = math.sqrt(3.0) / 4.0 * spacing**2
+    opts = f"pq{min_angle:g}a{max_area:.12f}YQ"
+    out = triangle.triangulate({"vertices": boundary, "segments": segments}, opts)
+    verts, tris = out.get("vertices"), out.get("triangles")
+    where = f"{source}: " if source else ""
+    if tris is None or len(tris) == 0:
+        raise PatternError(f"{where}panel {name!r} could not be triangulated (degenerate outline?)")
+    if len(verts) < n or not np.allclose(verts[:n], boundary):
+        raise PatternError(f"{where}panel {name!r}: the triangulator moved boundary vertices")
+    # with `Y` no Steiner point may land on the boundary: every boundary edge must be an input segment
+    e = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1)
+    uniq, cnt = np.unique(e, axis=0, return_counts=True)
+    if int((cnt == 1).sum()) != n:
+        raise PatternError(
+            f"{where}panel {name!r}: triangulation boundary does not match the resampled outline "
+            "(the outline may touch itself)"
+        )
+    return verts, tris.astype(np.int64)
+
+
+class _UnionFind:
+    def __init__(self, n: int):
+        self.parent = np.arange(n)
+
+    def find(self, i: int) -> int:
+        root = i
+        while self.parent[root] != root:
+            root = self.parent[root]
+        while self.parent[i] != root:
+            self.parent[i], i = root, self.parent[i]
+        return int(root)
+
+    def union(self, i: int, j: int) -> None:
+        ri, rj = self.find(i), self.find(j)
+        if ri != rj:
+            self.parent[max(ri, rj)] = min(ri, rj)
+
+
+def stitch_vertex_pairs(a: np.ndarray, b: np.ndarray, right_wrong: bool) -> np.ndarray:
+    """(n, 2) vertex pairs joined by a stitch of two edges with equal vertex counts.
+
+    Args:
+        a, b: (n,) vertex indices along edge A and edge B, each from its start to its end.
+        right_wrong: start joins start; otherwise (the default seam) the END of A joins the START of B.
+    """
+    a = np.asarray(a)
+    return np.stack([a if right_wrong else a[::-1], np.asarray(b)], axis=1)
+
+
+def _chain_boundary_loops(sim_faces: np.ndarray) -> list[np.ndarray]:
+    """Boundary edges (used by one face) chained into closed loops of sim vertices.
+
+    Loops follow the faces' orientation where it is consistent (directed boundary half-edges first).
+    """
+    half = np.concatenate([sim_faces[:, [0, 1]], sim_faces[:, [1, 2]], sim_faces[:, [2, 0]]])
+    key = np.sort(half, axis=1)
+    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    boundary = half[counts[inverse.ravel()] == 1]
+    out_edges: dict[int, list[int]] = {}
+    adjacency: dict[int, list[int]] = {}
+    for u, v in boundary.tolist():
+        out_edges.setdefault(u, []).append(v)
+        adjacency.setdefault(u, []).append(v)
+        adjacency.setdefault(v, []).append(u)
+    used: set[tuple[int, int]] = set()
+    loops = []
+    for u0, v0 in boundary.tolist():
+        if (min(u0, v0), max(u0, v0)) in used:
+            continue
+        loop = [u0]
+        used.add((min(u0, v0), max(u0, v0)))
+        prev, cur = u0, v0
+        while cur != u0:
+            loop.append(cur)
+            nxt = None
+            for cand in out_edges.get(cur, []) + adjacency.get(cur, []):
+                if (min(cur, cand), max(cur, cand)) not in used:
+                    nxt = cand
+                    break
+            if nxt is None:  # open chain (non-manifold input); stop here
+                break
+            used.add((min(cur, nxt), max(cur, nxt)))
+            prev, cur = cur, nxt
+        del prev
+        loops.append(np.asarray(loop, dtype=np.int64))
+    return loops
+
+
+def name_boundary_loops(
+    loops: list[np.ndarray],
+    sim_pos: np.ndarray,
+    garment_type: str | None,
+    lower_interface: set[int],
+) -> list[BoundaryLoop]:
+    """Order loops top to bottom and name them by simple rules in the world frame (Y up, facing +Z).
+
+    Tops and dresses: the highest loop is ``neck``, the lowest ``hem``; of the others, a loop lying on
+    one side of the garment's centre plane and far out (centroid beyond half the garment's half-width)
+    is ``cuff_left`` (x > centre) or ``cuff_right``. Skirts and pants: the loop holding the most
+    ``lower_interface`` vertices (else the highest) is ``waist``; a single other loop is ``hem``, else the
+    two lowest are ``hem_left`` / ``hem_right``. Anything else is ``opening_<k>`` (k = position in the list).
+    When ``garment_type`` is None the garment counts as a bottom if its highest loop holds
+    ``lower_interface`` vertices.
+
+    Args:
+        loops: closed loops of sim-vertex indices.
+        sim_pos: (Vs, 3) sim-vertex positions [m].
+        garment_type: see ``GARMENT_TYPES``, or None.
+        lower_interface: sim vertices on ``lower_interface`` edges.
+    """
+    if not loops:
+        return []
+    centroids = np.stack([sim_pos[lp].mean(axis=0) for lp in loops])
+    order = np.argsort(-centroids[:, 1], kind="stable")
+    loops = [loops[i] for i in order]
+    centroids = centroids[order]
+    names: list[str | None] = [None] * len(loops)
+    li_count = [sum(int(v) in lower_interface for v in lp) for lp in loops]
+    bottom = garment_type in BOTTOMS if garment_type is not None else li_count[0] > 0
+    if bottom:
+        waist = int(np.argmax(li_count)) if max(li_count) > 0 else 0
+        names[waist] = "waist"
+        rest = [i for i in range(len(loops)) if i != waist]
+        if len(rest) == 1:
+            names[rest[0]] = "hem"
+        elif len(rest) >= 2:
+            low = sorted(rest, key=lambda i: centroids[i, 1])[:2]
+            left, right = sorted(low, key=lambda i: -centroids[i, 0])
+            names[left], names[right] = "hem_left", "hem_right"
+    else:
+        names[0] = "neck"
+        if len(loops) > 1:
+            names[-1] = "hem"
+        xc = 0.5 * (sim_pos[:, 0].max() + sim_pos[:, 0].min())
+        half_width = 0.5 * (sim_pos[:, 0].max() - sim_pos[:, 0].min())
+        for side, name in ((1.0, "cuff_left"), (-1.0, "cuff_right")):
+            cands = [
+                i
+                for i in range(1, len(loops) - 1)
+                if np.all(side * (sim_pos[loops[i], 0] - xc) > 0)
+                and side * (centroids[i, 0] - xc) > 0.5 * half_width
+            ]
+            if cands:
+                names[max(cands, key=lambda i: side * centroids[i, 0])] = name
+    return [
+        BoundaryLoop(n if n is not None else f"opening_{k}", torch.as_tensor(lp, dtype=torch.int64))
+        for k, (n, lp) in enumerate(zip(names, loops))
+    ]
+
+
+def mesh_pattern(pattern: Pattern, spacing: float = 0.015, min_angle: float = 25.0) -> GarmentMesh:
+    """Triangulate a sewing pattern into a placed, seam-merged `GarmentMesh`.
+
+    Args:
+        pattern: the sewing pattern (metres); `Pattern.validate` is run first.
+        spacing: target edge length [m] along the boundary and inside panels (> 0).
+        min_angle: minimum triangle angle [deg] asked of Triangle (0 < min_angle <= 34).
+
+    Returns:
+        the `GarmentMesh` (float64 / int64 on the CPU), see its docstring for every field.
+
+    Raises:
+        PatternError: a self-intersecting panel, a panel that cannot be triangulated, or seams that
+            collapse a triangle when merged.
+    """
+    if not (isinstance(spacing, int | float) and math.isfinite(spacing) and spacing > 0):
+        raise ValueError(f"spacing must be a positive length in metres, got {spacing!r}")
+    if not (0 < min_angle <= 34):
+        raise ValueError(
+            f"min_angle must be in (0, 34] degrees (Triangle's guaranteed range), got {min_angle!r}"
+        )
+    pattern.validate()
+    source = pattern.source
+    fractions = edge_sample_fractions(pattern, spacing)
+
+    panel_names = list(pattern.panels)
+    uv_parts, pos_parts, panel_ids, tri_parts = [], [], [], []
+    panel_boundary: list[torch.Tensor] = []
+    edge_vertices: dict[tuple[str, int], torch.Tensor] = {}
+    offset = 0
+    for pid, name in enumerate(panel_names):
+        panel = pattern.panels[name]
+        pts, starts = [], []
+        for k in range(len(panel.edges)):
+            starts.append(sum(len(p) for p in pts))
+            pts.append(panel.sample_edge(k, fractions[(name, k)][:-1]))
+        boundary = np.concatenate(pts, axis=0)
+        lp = len(boundary)
+        verts, tris = _triangulate_panel(boundary, spacing, min_angle, name, source)
+        # orient triangles like the panel's edge loop
+        loop_sign = np.sign(polygon_signed_area(boundary))
+        a, b, c = verts[tris[:, 0]], verts[tris[:, 1]], verts[tris[:, 2]]
+        tri_sign = np.sign(
+            (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+        )
+        flip = tri_sign != loop_sign
+        tris[flip] = tris[flip][:, [0, 2, 1]]
+        for k in range(len(panel.edges)):
+            idx = (starts[k] + np.arange(len(fractions[(name, k)]))) % lp + offset
+            edge_vertices[(name, k)] = torch.as_tensor(idx, dtype=torch.int64)
+        panel_boundary.append(torch.arange(offset, offset + lp, dtype=torch.int64))
+        uv_parts.append(verts)
+        pos_parts.append(panel.to_world(verts))
+        panel_ids.append(np.full(len(verts), pid))
+        tri_parts.append(tris + offset)
+        offset += len(verts)
+
+    vert_uv = np.concatenate(uv_parts)
+    vert_count = len(vert_uv)
+    tri_vertices = np.concatenate(tri_parts)
+
+    pairs = []
+    for s in pattern.stitches:
+        va = edge_vertices[(s.a.panel, s.a.edge)].numpy()
+        vb = edge_vertices[(s.b.panel, s.b.edge)].numpy()
+        p = stitch_vertex_pairs(va, vb, s.right_wrong)
+        pairs.append(p[p[:, 0] != p[:, 1]])  # a dart tip joins itself
+    stitch_pairs = np.concatenate(pairs) if pairs else np.zeros((0, 2), dtype=np.int64)
+
+    uf = _UnionFind(vert_count)
+    for i, j in stitch_pairs.tolist():
+        uf.union(i, j)
+    roots = np.array([uf.find(i) for i in range(vert_count)])
+    _, first, vert_to_sim = np.unique(roots, return_index=True, return_inverse=True)
+    # renumber sim vertices in order of first appearance (panel order, then position in panel)
+    rank = np.empty(len(first), dtype=np.int64)
+    rank[np.argsort(first, kind="stable")] = np.arange(len(first))
+    vert_to_sim = rank[vert_to_sim.ravel()]
+    sim_count = len(first)
+
+    sim_faces = vert_to_sim[tri_vertices]
+    collapsed = (
+        (sim_faces[:, 0] == sim_faces[:, 1])
+        | (sim_faces[:, 1] == sim_faces[:, 2])
+        | (sim_faces[:, 0] == sim_faces[:, 2])
+    )
+    if collapsed.any():
+        pid = np.concatenate(panel_ids)[tri_vertices[collapsed][0, 0]]
+        where = f"{source}: " if source else ""
+        raise PatternError(
+            f"{where}{int(collapsed.sum())} triangle(s) collapse when the seams are merged (first in panel "
+            f"{panel_names[pid]!r}); check the stitches of that panel"
+        )
+
+    vert_pos = np.concatenate(pos_parts)
+    vert_labels: dict[str, torch.Tensor] = {}
+    labels = sorted({e.label for p in pattern.panels.values() for e in p.edges if e.label is not None})
+    for label in labels:
+        refs: list[EdgeRef] = pattern.edges_with_label(label)
+        idx = np.unique(np.concatenate([edge_vertices[(r.panel, r.edge)].numpy() for r in refs]))
+        vert_labels[label] = torch.as_tensor(idx, dtype=torch.int64)
+
+    sim_pos = np.zeros((sim_count, 3))
+    np.add.at(sim_pos, vert_to_sim, vert_pos)
+    sim_pos /= np.bincount(vert_to_sim, minlength=sim_count)[:, None]
+    lower = (
+        set(vert_to_sim[vert_labels["lower_interface"].numpy()].tolist())
+        if "lower_interface" in vert_labels
+        else set()
+    )
+    loops = name_boundary_loops(_chain_boundary_loops(sim_faces), sim_pos, pattern.garment_type, lower)
+
+    return GarmentMesh(
+        panel_names=panel_names,
+        vert_uv=torch.as_tensor(vert_uv, dtype=torch.float64),
+        vert_panel=torch.as_tensor(np.concatenate(panel_ids), dtype=torch.int64),
+        vert_pos=torch.as_tensor(vert_pos, dtype=torch.float64),
+        tri_vertices=torch.as_tensor(tri_vertices, dtype=torch.int64),
+        stitch_pairs=torch.as_tensor(stitch_pairs, dtype=torch.int64).reshape(-1, 2),
+        vert_to_sim=torch.as_tensor(vert_to_sim, dtype=torch.int64),
+        sim_vert_count=int(sim_count),
+        boundary_loops=loops,
+        panel_boundary=panel_boundary,
+        edge_vertices=edge_vertices,
+        vert_labels=vert_labels,
+        garment_type=pattern.garment_type,
+        spacing=float(spacing),
+    )
+
+
+@dataclass
+class MeshReport:
+    """Checks of a meshed pattern (see `mesh_report`).
+
+    Attributes:
+        max_stitch_count_mismatch: largest |vertices on edge A − vertices on edge B| (0 = equal).
+        unmerged_stitch_pairs: stitch pairs whose two panel vertices did not become one sim vertex.
+        seam_edges: sim edges that lie on a seam (between consecutive stitched vertices).
+        open_seam_edges: seam edges that do not have exactly two triangles (0 = watertight seams).
+        nonmanifold_edges: sim edges with more than two triangles.
+        collapsed_faces: triangles with a repeated sim vertex.
+    """
+
+    max_stitch_count_mismatch: int
+    unmerged_stitch_pairs: int
+    seam_edges: int
+    open_seam_edges: int
+    nonmanifold_edges: int
+    collapsed_faces: int
+
+
+def mesh_report(pattern: Pattern, garment: GarmentMesh) -> MeshReport:
+    """Measure seam consistency of ``garment`` (meshed from ``pattern``)."""
+    mismatch = 0
+    seam = set()
+    v2s = garment.vert_to_sim
+    for s in pattern.stitches:
+        va = garment.edge_vertices[(s.a.panel, s.a.edge)]
+        vb = garment.edge_vertices[(s.b.panel, s.b.edge)]
+        mismatch = max(mismatch, abs(len(va) - len(vb)))
+        for ev in (va, vb):
+            sv = v2s[ev].tolist()
+            seam.update((min(x, y), max(x, y)) for x, y in zip(sv[:-1], sv[1:]) if x != y)
+    pairs = garment.stitch_pairs
+    unmerged = int((v2s[pairs[:, 0]] != v2s[pairs[:, 1]]).sum()) if len(pairs) else 0
+    faces = garment.sim_faces
+    collapsed = int(
+        ((faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 0] == faces[:, 2])).sum()
+    )
+    e = torch.cat([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).sort(dim=1).values
+    uniq, counts = torch.unique(e, dim=0, return_counts=True)
+    count_of = {(int(a), int(b)): int(c) for (a, b), c in zip(uniq.tolist(), counts.tolist())}
+    open_seam = sum(1 for key in seam if count_of.get(key, 0) != 2)
+    return MeshReport(
+        max_stitch_count_mismatch=int(mismatch),
+        unmerged_stitch_pairs=unmerged,
+        seam_edges=len(seam),
+        open_seam_edges=int(open_seam),
+        nonmanifold_edges=int((counts > 2).sum()),
+        collapsed_faces=collapsed,
+    )
