@@ -24,7 +24,7 @@ def _extensions():
     ext = CppExtension(
         name="torch_diffavatar._C",
         sources=sources,
-        extra_compile_args=["-O3", "-fopenmp", "-std=c++17"],
+        extra_compile_args=["-O3", "-fopenmp", "-std=c++20"],
         extra_link_args=["-fopenmp"],
         py_limited_api=False,
     )

@@ -7,13 +7,21 @@ exactly one: the single watertight component (no eyes, no tongue). The cache goe
 
 from __future__ import annotations
 
-import os
-
 import torch
 
 from torch_diffavatar.body.frames import anny_to_world
 
 ANNY_TOPOLOGY = "anny-noeyes-notongue"
+
+
+def _quiet_warp() -> None:
+    """Warp (Anny's skinning backend) prints its banner on stdout at init, which would break the
+    one-line ``--json`` output of our commands; warnings still reach stderr."""
+    try:
+        import warp
+    except ImportError:
+        return
+    warp.config.log_level = warp.LOG_WARNING
 
 
 def load_anny(dtype: torch.dtype = torch.float64, device: torch.device | str | None = None):
@@ -22,8 +30,7 @@ def load_anny(dtype: torch.dtype = torch.float64, device: torch.device | str | N
     Returns:
         an ``anny.Anny`` module (13,348 vertices, 26,692 triangles, 104 bones) on ``device``/``dtype``.
     """
-    # Warp (Anny's skinning backend) prints a banner and a CUDA notice on init; keep logs quiet.
-    os.environ.setdefault("WARP_LOG_LEVEL", "warning")
+    _quiet_warp()
     import anny
 
     model = anny.Anny(topology=ANNY_TOPOLOGY)

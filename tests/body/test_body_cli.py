@@ -1,0 +1,93 @@
+import json
+
+import pytest
+
+from torch_diffavatar.cli import main
+from torch_diffavatar.scan import save_ply
+
+pytestmark = pytest.mark.anny
+
+
+def _run(capsys, argv):
+    code = main(argv)
+    out = capsys.readouterr()
+    return code, out.out.strip(), out.err.strip()
+
+
+@pytest.fixture(scope="module")
+def dressed_scan(anny_model, tmp_path_factory):
+    from torch_diffavatar.body.synthetic import make_scan
+
+    scan = make_scan(anny_model, seed=5, point_count=8000, garment="tshirt")
+    path = tmp_path_factory.mktemp("scan") / "scan.ply"
+    save_ply(path, scan.points * 1000.0, colors=scan.colors)  # stored in millimetres
+    return scan, path
+
+
+def test_fit_body_cli_contract(capsys, tmp_path, dressed_scan, monkeypatch):
+    # The fit's accuracy is tested in test_body_fit.py; here a short schedule checks the plumbing.
+    import torch_diffavatar.body.fit as fit_module
+
+    short = fit_module.BodyFitConfig(placement_iters=3, shape_iters=3, pose_iters=3, all_iters=3)
+    original = fit_module.fit_body
+    monkeypatch.setattr(fit_module, "fit_body", lambda pts, **kw: original(pts, config=short, **kw))
+    scan, path = dressed_scan
+    code, out, _ = _run(capsys, ["fit-body", str(path), "--units", "mm", "--out", str(tmp_path), "--json"])
+    assert code == 0
+    summary = json.loads(out)
+    assert list(summary) == ["points", "seconds", "chamfer_m", "height_m", "phenotypes"]
+    assert summary["points"] > 0.9 * len(scan.points)
+    assert set(summary["phenotypes"]) == {"gender", "age", "muscle", "weight", "height", "proportions"}
+    assert 1.0 < summary["height_m"] < 2.3
+    params = json.loads((tmp_path / "body.json").read_text())
+    assert len(params["pose_axis_angle"][0]) == len(params["pose_bones"])
+    obj = (tmp_path / "body.obj").read_text().splitlines()
+    assert sum(line.startswith("f ") for line in obj) == 26692
+
+
+def test_segment_cli_with_a_body_dir(capsys, tmp_path, dressed_scan, anny_model):
+    scan, path = dressed_scan
+    anny_faces = anny_model.faces.numpy()
+    body_dir = tmp_path / "body"
+    body_dir.mkdir()
+    from torch_diffavatar.body.commands import _write_obj
+
+    _write_obj(body_dir / "body.obj", scan.body_vertices, anny_faces)
+    out_ply = tmp_path / "garment.ply"
+    argv = ["segment", str(path), "--units", "mm", "--garment", "T-shirt", "--body", str(body_dir)]
+    code, out, _ = _run(capsys, argv + ["--out", str(out_ply), "--json"])
+    assert code == 0
+    summary = json.loads(out)
+    assert list(summary) == ["points", "garment_points", "boundary_loops"]
+    assert abs(summary["garment_points"] - int(scan.labels.sum())) < 0.1 * scan.labels.sum()
+    assert {loop["name"] for loop in summary["boundary_loops"]} >= {"neck", "cuff.L", "cuff.R"}
+    from torch_diffavatar.scan import load_scan
+
+    garment = load_scan(out_ply, check=False)
+    assert garment.point_count == summary["garment_points"]
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [("", "empty"), ("v 0 0 0\nv nan 1 0\nv 0 1 0\nf 1 2 3\n", "NaN")],
+)
+def test_bad_scans_give_one_line_and_exit_2(capsys, tmp_path, content, message):
+    path = tmp_path / "scan.obj"
+    path.write_text(content)
+    code, out, err = _run(capsys, ["fit-body", str(path), "--out", str(tmp_path / "o"), "--json"])
+    assert code == 2 and out == ""
+    assert len(err.splitlines()) == 1 and message in err and err.startswith("diffavatar fit-body: error:")
+
+
+def test_unknown_garment_and_faceless_body(capsys, tmp_path, dressed_scan):
+    _, path = dressed_scan
+    code, _, err = _run(
+        capsys, ["segment", str(path), "--garment", "kimono", "--out", str(tmp_path / "g.ply")]
+    )
+    assert code == 2 and len(err.splitlines()) == 1 and "unknown garment type 'kimono'" in err
+    body_dir = tmp_path / "body"
+    body_dir.mkdir()
+    (body_dir / "body.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\n")
+    argv = ["segment", str(path), "--units", "mm", "--garment", "dress", "--body", str(body_dir)]
+    code, _, err = _run(capsys, argv + ["--out", str(tmp_path / "g.ply")])
+    assert code == 2 and len(err.splitlines()) == 1 and "no faces" in err

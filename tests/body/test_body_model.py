@@ -1,0 +1,105 @@
+import pytest
+import torch
+
+from torch_diffavatar.body.model import POSE_BONES, BodyModel
+from torch_diffavatar.body.priors import joint_limit_penalty, pose_prior, self_penetration_penalty
+
+pytestmark = pytest.mark.anny
+
+
+@pytest.fixture(scope="module")
+def body(anny_model):
+    return BodyModel(anny_model=anny_model, dtype=torch.float32)
+
+
+def test_outputs_in_world_frame(body, anny_model):
+    out = body()
+    assert out.vertices.shape == (1, anny_model.template_vertices.shape[0], 3)
+    assert out.faces.shape == (26692, 3) and out.faces.dtype == torch.int64
+    assert out.joints.shape == (1, 104, 3)
+    v = out.vertices[0].detach()
+    assert abs(float(v[:, 1].max() - v[:, 1].min()) - 1.625) < 0.01  # default Anny is 1.625 m tall, Y up
+    head = v[v[:, 1] > v[:, 1].max() - 0.25]
+    assert head[:, 2].max() > 0.08  # the face points to +Z
+    assert abs(float(body.standing_height()[0]) - 1.625) < 0.01
+    # the shared float64 fixture was not cast in place
+    assert anny_model.template_vertices.dtype == torch.float64
+
+
+def test_placement_is_applied_in_world_frame(body):
+    base = body().vertices
+    t = torch.tensor([[0.1, -0.2, 0.3]])
+    torch.testing.assert_close(body(translation=t).vertices, base + t[:, None])
+    rot = torch.tensor([[0.0, torch.pi / 2, 0.0]])  # 90° about world +Y: +Z -> +X
+    turned = body(global_orient=rot).vertices
+    torch.testing.assert_close(turned[..., 0], base[..., 2], atol=1e-5, rtol=0)
+    torch.testing.assert_close(turned[..., 1], base[..., 1], atol=1e-5, rtol=0)
+    scaled = body(scale=torch.tensor([2.0])).vertices
+    torch.testing.assert_close(scaled, 2 * base)
+
+
+def test_batch_and_dtype(anny_model):
+    b = BodyModel(anny_model=anny_model, batch_size=2)  # keeps the fixture's float64
+    assert b.pose.dtype == torch.float64
+    b.set_phenotypes(torch.tensor([[0.5] * 6, [0.5, 0.5, 0.5, 0.5, 0.9, 0.5]], dtype=torch.float64))
+    h = b.standing_height()
+    assert h.shape == (2,) and h[1] > h[0] + 0.2
+    pose = torch.zeros(2, len(POSE_BONES), 3, dtype=torch.float64)
+    pose[1, POSE_BONES.index("lowerleg01.L"), 0] = 1.0  # bend the left knee of the second body
+    out = b(pose=pose)
+    assert out.vertices.shape[0] == 2 and out.joints.shape[0] == 2
+    foot = anny_model.bone_labels.index("foot.L")
+    assert out.joints[1, foot, 2] < out.joints[0, foot, 2] - 0.2  # the foot swings backward (−Z)
+
+
+def test_phenotypes_stay_in_range_and_round_trip(body):
+    with torch.no_grad():
+        body.phenotype_logits.fill_(50.0)
+    assert float(body.phenotypes.max()) <= 1.0
+    body.set_phenotypes({"height": 0.3, "weight": 0.7})
+    params = body.parameters_dict()
+    i = body.phenotype_labels.index("height")
+    assert abs(params["phenotypes"][0][i] - 0.3) < 1e-5
+    other = BodyModel(anny_model=body.anny)
+    other.load_parameters_dict(params)
+    torch.testing.assert_close(other().vertices, body().vertices)
+    body.set_phenotypes(torch.full((1, 6), 0.5))
+    with pytest.raises(ValueError, match="unknown phenotypes"):
+        body.set_phenotypes({"hight": 0.5})
+
+
+def test_gradients_reach_every_parameter(anny_model):
+    b = BodyModel(anny_model=anny_model, dtype=torch.float32)
+    with torch.no_grad():
+        b.pose.normal_(0.0, 0.05)
+    out = b()
+    (out.vertices.square().sum() + out.joints.sum()).backward()
+    for name in ("phenotype_logits", "pose", "global_orient", "translation", "log_scale"):
+        g = getattr(b, name).grad
+        assert g is not None and torch.isfinite(g).all() and g.abs().sum() > 0, name
+
+
+def test_priors_values_and_gradcheck():
+    lo = torch.tensor([[-0.5, -0.5, -0.5], [-0.1, -0.2, -0.2]], dtype=torch.float64)
+    hi = -lo
+    inside = torch.zeros(1, 2, 3, dtype=torch.float64)
+    assert joint_limit_penalty(inside, lo, hi).item() == 0
+    pose = torch.tensor([[[0.7, 0.0, 0.0], [0.0, -0.3, 0.1]]], dtype=torch.float64, requires_grad=True)
+    torch.testing.assert_close(
+        joint_limit_penalty(pose, lo, hi), torch.tensor([0.2**2 + 0.1**2], dtype=torch.float64)
+    )
+    assert torch.autograd.gradcheck(lambda p: joint_limit_penalty(p, lo, hi), (pose,))
+    assert torch.autograd.gradcheck(lambda p: pose_prior(p, torch.tensor([1.0, 2.0], dtype=p.dtype)), (pose,))
+    verts = torch.tensor([[[0, 0, 0], [0.004, 0, 0], [1, 0, 0], [0, 0.03, 0]]], dtype=torch.float64)
+    verts.requires_grad_()
+    pairs = [(torch.tensor([0]), torch.tensor([1, 2, 3]))]
+    pen = self_penetration_penalty(verts, pairs, margin=0.01)
+    torch.testing.assert_close(pen, torch.tensor([0.006**2], dtype=torch.float64))
+    assert torch.autograd.gradcheck(lambda v: self_penetration_penalty(v, pairs, 0.01), (verts,))
+
+
+def test_bad_constructor_arguments(anny_model):
+    with pytest.raises(ValueError, match="pose_bones"):
+        BodyModel(anny_model=anny_model, pose_bones=("spine05", "tail"))
+    with pytest.raises(ValueError, match="local_changes"):
+        BodyModel(anny_model=anny_model, local_changes=True)

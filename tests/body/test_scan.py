@@ -1,0 +1,126 @@
+import warnings
+
+import numpy as np
+import pytest
+
+from torch_diffavatar.errors import ScanError
+from torch_diffavatar.scan import (
+    ScanWarning,
+    check_scan_frame,
+    load_scan,
+    remove_floor,
+    remove_outliers,
+    save_ply,
+)
+
+
+def _person(n=4000, seed=0):
+    """A crude standing 'person' point cloud in metres, Y up: two legs, a torso, a head."""
+    rng = np.random.default_rng(seed)
+    parts = []
+    for cx, lo, hi, r in (
+        (-0.1, 0.0, 0.8, 0.07),
+        (0.1, 0.0, 0.8, 0.07),
+        (0.0, 0.8, 1.45, 0.16),
+        (0.0, 1.5, 1.72, 0.09),
+    ):
+        m = n // 4
+        t = rng.random(m) * 2 * np.pi
+        parts.append(np.stack([cx + r * np.cos(t), lo + (hi - lo) * rng.random(m), r * np.sin(t)], 1))
+    return np.concatenate(parts)
+
+
+def test_ply_with_labels_colours_units_and_up(tmp_path):
+    pts = _person()
+    colors = np.tile(np.array([[10, 20, 30]], dtype=np.uint8), (len(pts), 1))
+    labels = (pts[:, 1] > 0.8).astype(np.int64)
+    # Stored in cm with Z up (Anny-like: facing −Y).
+    stored = np.stack([pts[:, 0], -pts[:, 2], pts[:, 1]], 1) * 100.0
+    path = tmp_path / "scan.ply"
+    save_ply(path, stored, colors=colors, int_properties={"label": labels})
+    scan = load_scan(path, units="cm", up="z")
+    np.testing.assert_allclose(scan.points, pts, atol=1e-5)
+    np.testing.assert_array_equal(scan.labels, labels)
+    np.testing.assert_array_equal(scan.colors, colors)
+    assert scan.faces is None and scan.warnings == []
+    side = tmp_path / "labels.txt"
+    np.savetxt(side, 1 - labels, fmt="%d")
+    np.testing.assert_array_equal(load_scan(path, units="cm", up="z", labels=side).labels, 1 - labels)
+
+
+def test_obj_mesh_and_faces(tmp_path):
+    path = tmp_path / "tri.obj"
+    path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 3 4\n")
+    scan = load_scan(path, check=False)
+    assert scan.faces.shape == (2, 3)
+    kept = scan.subset(np.array([True, True, True, False]))
+    assert kept.faces.shape == (1, 3)
+
+
+@pytest.mark.anny
+def test_frame_warnings(default_body):
+    from torch_diffavatar.body.synthetic import sample_surface
+
+    verts, faces = default_body
+    pts, _, _ = sample_surface(verts.numpy(), faces.numpy(), 20000, np.random.default_rng(0))
+    assert check_scan_frame(pts) == []
+    assert any("mm" in w for w in check_scan_frame(pts * 1000))
+    assert any("--up" in w for w in check_scan_frame(pts[:, [1, 0, 2]]))  # lying along X
+    assert any("upside down" in w for w in check_scan_frame(pts * np.array([1, -1, 1])))
+
+
+def test_loader_warns_on_millimetres(tmp_path):
+    path = tmp_path / "mm.ply"
+    save_ply(path, _person() * 1000)
+    with pytest.warns(ScanWarning, match="mm"):
+        load_scan(path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_scan(path, units="mm")
+
+
+def test_floor_and_outlier_removal():
+    rng = np.random.default_rng(1)
+    pts = _person()
+    floor = np.stack([rng.uniform(-1, 1, 3000), rng.normal(0, 0.002, 3000), rng.uniform(-1, 1, 3000)], 1)
+    outliers = rng.uniform(-1, 1, (20, 3)) + np.array([0, 3.0, 0])
+    from torch_diffavatar.scan import Scan
+
+    scan = Scan(points=np.concatenate([pts + [0, 0.02, 0], floor, outliers]))
+    cleaned, removed = remove_floor(scan)
+    assert removed >= 2900 and cleaned.point_count >= len(pts) * 0.95
+    assert remove_floor(Scan(points=pts))[1] == 0  # no floor: nothing removed
+    cleaned, removed = remove_outliers(cleaned)
+    assert cleaned.points[:, 1].max() < 1.8 and removed >= 20
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        ("", "empty"),
+        ("v 0 0 0\nv nan 0 0\nv 0 1 0\nf 1 2 3\n", "NaN"),
+        ("not a mesh", "no geometry|no points"),
+    ],
+)
+def test_bad_files_raise_scan_error(tmp_path, content, message):
+    path = tmp_path / "bad.obj"
+    path.write_text(content)
+    with pytest.raises(ScanError, match=message):
+        load_scan(path)
+
+
+def test_missing_faces_and_bad_options(tmp_path):
+    path = tmp_path / "cloud.obj"
+    path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\n")
+    with pytest.raises(ScanError, match="no faces"):
+        load_scan(path, require_faces=True, check=False)
+    with pytest.raises(ScanError, match="units"):
+        load_scan(path, units="inch")
+    with pytest.raises(ScanError, match="up axis"):
+        load_scan(path, up="x")
+    with pytest.raises(ScanError, match="not found"):
+        load_scan(tmp_path / "missing.ply")
+    with pytest.raises(ScanError, match="labels for a scan"):
+        side = tmp_path / "l.txt"
+        side.write_text("1\n0\n")
+        load_scan(path, labels=side, check=False)

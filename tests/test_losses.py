@@ -1,0 +1,244 @@
+"""Fit losses: boundary and interior feature terms, seam-length and curvature regularizers."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from test_cage import template_mesh, tube
+
+from torch_diffavatar.cage import seam_segments, stitched_edges
+from torch_diffavatar.losses import (
+    boundary_loss,
+    boundary_triplets,
+    curvature_loss,
+    interior_loss,
+    seam_length_loss,
+)
+from torch_diffavatar.pattern import BoundaryLoop
+from torch_diffavatar.pattern.mesher import mesh_pattern
+
+F64 = torch.float64
+
+
+def _rot(theta: float, scale: float = 1.0) -> torch.Tensor:
+    c, s = math.cos(theta), math.sin(theta)
+    return scale * torch.tensor([[c, -s], [s, c]], dtype=F64)
+
+
+def _transform_panel(uv: torch.Tensor, garment, pid: int, A: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    out = uv.clone()
+    sel = garment.vert_panel == pid
+    out[sel] = uv[sel] @ A.T + b
+    return out
+
+
+@pytest.fixture(scope="module")
+def sewn_tube():
+    return mesh_pattern(tube(spacing=0.05))
+
+
+def test_reduction_is_checked_up_front(sewn_tube):
+    g = sewn_tube
+    x = g.sim_positions()
+    for call in (
+        lambda r: boundary_loss(x, g.boundary_loops, {"hem": x[:3]}, reduction=r),
+        lambda r: interior_loss(x, x, reduction=r),
+        lambda r: seam_length_loss(g.vert_uv, g, reduction=r),
+        lambda r: curvature_loss(g.vert_uv, g.vert_uv, g, reduction=r),
+    ):
+        with pytest.raises(ValueError, match="reduction must be one of"):
+            call("avg")
+    with pytest.raises(ValueError, match="rest_uv must have shape"):
+        seam_length_loss(g.vert_uv[:-1], g)
+    with pytest.raises(ValueError, match="garment_x must be"):
+        interior_loss(x[:, :2], x)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# seam length (eq. 7)
+
+
+def test_seam_length_zero_for_equal_seams_positive_otherwise(sewn_tube):
+    g = sewn_tube
+    seg = seam_segments(g)
+    assert len(seg) == sum(len(s.a) - 1 for s in stitched_edges(g)) > 0
+    assert seam_length_loss(g.vert_uv, g).item() < 1e-24  # equal straight sides, equal samples
+    # stretching the front panel vertically lengthens its side seams only
+    stretched = _transform_panel(
+        g.vert_uv, g, 0, torch.diag(torch.tensor([1.0, 1.2], dtype=F64)), torch.zeros(2)
+    )
+    per_segment = seam_length_loss(stretched, g, segments=seg, reduction="none")
+    p = g.vert_uv[seg]  # (K, 4, 2): both sides have the same length l_k on the template
+    l2 = ((p[:, 1] - p[:, 0]) ** 2).sum(-1)
+    torch.testing.assert_close(per_segment, (1.44 * l2 - l2) ** 2)
+    torch.testing.assert_close(seam_length_loss(stretched, g, reduction="sum"), per_segment.sum())
+    w = torch.linspace(0.5, 2.0, len(seg), dtype=F64)
+    torch.testing.assert_close(
+        seam_length_loss(stretched, g, weights=w), (w * per_segment).sum() / w.sum(), rtol=1e-12, atol=0
+    )
+    # rigid motions of a panel keep the seam lengths
+    moved = _transform_panel(g.vert_uv, g, 1, _rot(0.7), torch.tensor([0.3, -0.1], dtype=F64))
+    assert seam_length_loss(moved, g).item() < 1e-24
+    # batched input: one value per batch element
+    both = torch.stack([g.vert_uv, stretched])
+    torch.testing.assert_close(
+        seam_length_loss(both, g), torch.stack([torch.zeros((), dtype=F64), per_segment.mean()])
+    )
+
+
+def test_seam_length_on_templates_is_small_but_sees_the_seams():
+    _, g = template_mesh("tshirt")
+    base = seam_length_loss(g.vert_uv, g)
+    # the template's two sides differ only by sampling of curves of equal arc length
+    bigger = _transform_panel(g.vert_uv, g, 0, 1.1 * torch.eye(2, dtype=F64), torch.zeros(2))
+    assert seam_length_loss(bigger, g) > 10 * base
+
+
+def test_seam_length_gradcheck(sewn_tube):
+    g = sewn_tube
+    seg = seam_segments(g)
+    gen = torch.Generator().manual_seed(0)
+    uv = (g.vert_uv + 0.01 * torch.randn(g.vert_uv.shape, generator=gen, dtype=F64)).requires_grad_()
+    assert torch.autograd.gradcheck(lambda u: seam_length_loss(u, g, segments=seg), (uv,))
+
+
+# ---------------------------------------------------------------------------------------------------------
+# curvature (eq. 8)
+
+
+def test_curvature_zero_at_template_and_similarity_invariant():
+    _, g = template_mesh("tshirt")
+    uv0 = g.vert_uv
+    assert curvature_loss(uv0, uv0, g).item() < 1e-28
+    # a similarity transform of one panel (rotation, scale, shift) keeps it at zero
+    sim = _transform_panel(uv0, g, 2, _rot(0.9, 1.3), torch.tensor([0.2, 0.5], dtype=F64))
+    assert curvature_loss(sim, uv0, g).item() < 1e-26
+    # a shear is not a similarity: positive
+    shear = torch.tensor([[1.0, 0.3], [0.0, 1.0]], dtype=F64)
+    deformed = _transform_panel(uv0, g, 2, shear, torch.zeros(2))
+    value = curvature_loss(deformed, uv0, g)
+    assert value > 1e-8
+    # of the deformed panel, a rigid motion changes nothing and a uniform scale s multiplies by s²
+    moved = _transform_panel(deformed, g, 2, _rot(-0.4), torch.tensor([0.1, 0.1], dtype=F64))
+    torch.testing.assert_close(curvature_loss(moved, uv0, g), value, rtol=1e-10, atol=0)
+    scaled = _transform_panel(deformed, g, 2, _rot(0.0, 1.5), torch.zeros(2))
+    torch.testing.assert_close(curvature_loss(scaled, uv0, g), 1.5**2 * value, rtol=1e-10, atol=0)
+
+
+def test_curvature_similarity_is_the_least_squares_fit(sewn_tube):
+    g = sewn_tube
+    gen = torch.Generator().manual_seed(1)
+    uv0 = g.vert_uv
+    uv = uv0 + 0.01 * torch.randn(uv0.shape, generator=gen, dtype=F64)
+    tri = boundary_triplets(g)
+    assert len(tri) == sum(len(b) for b in g.panel_boundary)
+    expected = []
+    for prev, i, nxt in tri.tolist():
+        e = torch.stack([uv[nxt] - uv[i], uv[prev] - uv[i]])  # (2, 2) rows e1, e2
+        t = torch.stack([uv0[nxt] - uv0[i], uv0[prev] - uv0[i]])
+        # unknowns (a, b) of T = [[a, -b], [b, a]]: T t = a t + b t_perp, stacked over both edges
+        t_perp = torch.stack([-t[:, 1], t[:, 0]], dim=1)
+        M = torch.stack([t.reshape(-1), t_perp.reshape(-1)], dim=1)  # (4, 2)
+        ab = torch.linalg.lstsq(M, e.reshape(-1, 1)).solution.flatten()
+        fitted = (M @ ab).reshape(2, 2)
+        expected.append(((e - fitted).sum(0) ** 2).sum())
+    got = curvature_loss(uv, uv0, g, reduction="none")
+    torch.testing.assert_close(got, torch.stack(expected), rtol=1e-9, atol=1e-20)
+    w = torch.rand(len(tri), generator=gen, dtype=F64)
+    torch.testing.assert_close(curvature_loss(uv, uv0, g, weights=w, reduction="sum"), (w * got).sum())
+
+
+def test_curvature_gradcheck(sewn_tube):
+    g = mesh_pattern(tube(spacing=0.1))
+    gen = torch.Generator().manual_seed(2)
+    uv = (g.vert_uv + 0.01 * torch.randn(g.vert_uv.shape, generator=gen, dtype=F64)).requires_grad_()
+    assert torch.autograd.gradcheck(lambda u: curvature_loss(u, g.vert_uv, g), (uv,))
+
+
+# ---------------------------------------------------------------------------------------------------------
+# boundary and interior feature terms
+
+
+def test_boundary_loss_values_matching_and_weights(sewn_tube):
+    g = sewn_tube
+    x = g.sim_positions()
+    names = [lp.name for lp in g.boundary_loops]
+    assert names == ["neck", "hem"]
+    scan = {lp.name: x[lp.vertices] for lp in g.boundary_loops}
+    assert boundary_loss(x, g.boundary_loops, scan).item() == 0.0
+    # a shift much smaller than the vertex spacing: every nearest neighbour is the shifted twin
+    delta = torch.tensor([0.0, 0.0, 0.003], dtype=F64)
+    shifted = {k: v + delta for k, v in scan.items()}
+    per_loop = boundary_loss(x, g.boundary_loops, shifted, reduction="none")
+    torch.testing.assert_close(per_loop, torch.full((2,), 2 * 0.003**2, dtype=F64))
+    # only the openings present on both sides count; extra scan openings are ignored
+    only_hem = {"hem": shifted["hem"], "cuff_left": shifted["neck"]}
+    assert boundary_loss(x, g.boundary_loops, only_hem, reduction="none").shape == (1,)
+    w = torch.tensor([3.0, 1.0], dtype=F64)
+    torch.testing.assert_close(boundary_loss(x, g.boundary_loops, only_hem, weights=w), per_loop[1])
+    with pytest.raises(ValueError, match="no garment opening matches"):
+        boundary_loss(x, g.boundary_loops, {"waist": x[:4]})
+    # denser garment samples: a scan loop equal to the edge midpoints is matched exactly
+    loop = g.boundary_loops[1]
+    ring = x[loop.vertices]
+    mids = 0.5 * (ring + torch.roll(ring, -1, 0))
+    dense_scan = {"hem": torch.cat([ring, mids])}
+    assert boundary_loss(x, [loop], dense_scan, samples_per_edge=2).item() < 1e-30
+    assert boundary_loss(x, [loop], dense_scan, samples_per_edge=1).item() > 1e-6
+
+
+def test_boundary_loss_gradcheck():
+    g = mesh_pattern(tube(spacing=0.1))
+    gen = torch.Generator().manual_seed(3)
+    x = g.sim_positions()
+    scan = {
+        lp.name: x[lp.vertices] + 0.004 * torch.randn(len(lp.vertices), 3, generator=gen, dtype=F64)
+        for lp in g.boundary_loops
+    }
+    loops = [BoundaryLoop(lp.name, lp.vertices) for lp in g.boundary_loops]
+    hem = loops[1].vertices
+
+    def f(hem_x):  # perturb the hem vertices only (keeps gradcheck's finite differences few)
+        return boundary_loss(x.index_copy(0, hem, hem_x), loops, scan, samples_per_edge=2)
+
+    assert torch.autograd.gradcheck(f, (x[hem].clone().requires_grad_(),))
+
+
+def _brute_chamfer(x, y):
+    d = torch.cdist(x, y) ** 2
+    return d.min(1).values.mean() + d.min(0).values.mean()
+
+
+def test_interior_loss_matches_brute_force_values_and_gradients():
+    gen = torch.Generator().manual_seed(4)
+    x = torch.randn(300, 3, generator=gen, dtype=F64).requires_grad_()
+    y = torch.randn(500, 3, generator=gen, dtype=F64)
+    ours = interior_loss(x, y)
+    (g_ours,) = torch.autograd.grad(ours, x)
+    ref = _brute_chamfer(x, y)
+    (g_ref,) = torch.autograd.grad(ref, x)
+    torch.testing.assert_close(ours, ref)
+    torch.testing.assert_close(g_ours, g_ref)
+    one = interior_loss(x, y, two_sided=False)
+    torch.testing.assert_close(one, (torch.cdist(x, y) ** 2).min(1).values.mean())
+    a, b = interior_loss(x, y, reduction="none")
+    assert a.shape == (300,) and b.shape == (500,)
+    torch.testing.assert_close(a.mean() + b.mean(), ours)
+    assert interior_loss(x, y, two_sided=False, reduction="none").shape == (300,)
+    w = torch.rand(300, generator=gen, dtype=F64)
+    torch.testing.assert_close(
+        interior_loss(x, y, two_sided=False, weights=w), (w * a).sum() / w.sum(), rtol=1e-12, atol=0
+    )
+    # a robust kernel caps the pull of far outliers
+    far = torch.cat([y, torch.full((5, 3), 50.0, dtype=F64)])
+    assert interior_loss(x, far, robust="geman_mcclure", scale=0.05) < 2 * 0.05**2
+    assert interior_loss(x, far) > 50.0  # 5 of 505 points ~87 m away
+
+
+def test_interior_loss_gradcheck():
+    gen = torch.Generator().manual_seed(5)
+    x = torch.randn(30, 3, generator=gen, dtype=F64).requires_grad_()
+    y = torch.randn(40, 3, generator=gen, dtype=F64)
+    assert torch.autograd.gradcheck(lambda p: interior_loss(p, y, robust="huber", scale=0.5), (x,))

@@ -1,0 +1,257 @@
+"""Garment segmentation of an unlabelled scan using the fitted body, and the garment's open boundaries.
+
+Per scan point we use (1) the body part of its nearest body vertex (parts from skinning weights), which
+limits where a garment of the requested type may be; (2) its signed offset from the body surface along
+the body normal, averaged over its scan neighbours (cloth lies outside the skin); (3) its colour, when
+present, through a two-class colour model re-estimated from the current labels. The result is smoothed by
+a neighbour majority vote.
+
+Boundaries (hem, cuffs, neck, waist) are found on the body, not in the noisy scan: every body vertex takes
+the label of its nearest scan point (so holes in the scan inherit their rim's label), the covered faces'
+boundary edges are chained into loops, each loop is named from the body part just outside it, and the
+garment points near it are returned in loop order.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from torch_diffavatar.body.parts import PART_NAMES
+from torch_diffavatar.errors import InputError
+
+# Body parts a garment of each type may cover (a dilated region: where the garment ends inside it is
+# decided by offset and colour).
+GARMENT_REGIONS: dict[str, tuple[str, ...]] = {
+    "dress": ("torso", "hips", "thigh.L", "thigh.R", "shin.L", "shin.R", "upperarm.L", "upperarm.R"),
+    "shirt": ("torso", "hips", "upperarm.L", "upperarm.R", "forearm.L", "forearm.R", "thigh.L", "thigh.R"),
+    "tshirt": ("torso", "hips", "upperarm.L", "upperarm.R", "forearm.L", "forearm.R", "thigh.L", "thigh.R"),
+    "polo": ("torso", "hips", "upperarm.L", "upperarm.R", "forearm.L", "forearm.R", "thigh.L", "thigh.R"),
+    "skirt": ("torso", "hips", "thigh.L", "thigh.R", "shin.L", "shin.R"),
+    "pants": ("torso", "hips", "thigh.L", "thigh.R", "shin.L", "shin.R", "foot.L", "foot.R"),
+}
+GARMENT_ALIASES = {"t-shirt": "tshirt", "tee": "tshirt", "trousers": "pants", "shirt-long": "shirt"}
+GARMENT_TYPES = tuple(GARMENT_REGIONS)
+_SLEEVED = ("shirt", "tshirt", "polo")
+
+
+def garment_type(name: str) -> str:
+    """Canonical garment type for ``name`` (case-insensitive, aliases accepted); InputError if unknown."""
+    key = GARMENT_ALIASES.get(name.lower(), name.lower())
+    if key not in GARMENT_REGIONS:
+        raise InputError(f"unknown garment type {name!r}; use one of {', '.join(GARMENT_TYPES)}")
+    return key
+
+
+@dataclass
+class BoundaryLoop:
+    """An open boundary of the garment.
+
+    Attributes:
+        name: "neck", "waist", "hem", "cuff.L"/"cuff.R" (sleeve ends), "armhole.L"/"armhole.R"
+            (sleeveless), "leg.L"/"leg.R" (trouser legs).
+        point_indices: (M,) int64 indices into the garment points, ordered around the loop.
+        body_vertices: (K,) int64 body vertices along the loop, in order (one cycle of boundary edges).
+    """
+
+    name: str
+    point_indices: np.ndarray
+    body_vertices: np.ndarray
+
+
+@dataclass
+class Segmentation:
+    """Result of `segment_garment`.
+
+    Attributes:
+        labels: (N,) bool, True for the garment's scan points.
+        garment_indices: (G,) int64 indices of the garment points in the scan.
+        loops: the garment's open boundaries (indices into the garment points).
+        offsets: (N,) smoothed signed offset of each scan point from the body [m].
+    """
+
+    labels: np.ndarray
+    garment_indices: np.ndarray
+    loops: list[BoundaryLoop]
+    offsets: np.ndarray
+
+
+def _vertex_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    tri = verts[faces]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    vn = np.zeros_like(verts)
+    for k in range(3):
+        np.add.at(vn, faces[:, k], fn)
+    return vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-12)
+
+
+def _colour_evidence(colors: np.ndarray, labels: np.ndarray, region: np.ndarray) -> np.ndarray | None:
+    """Log-likelihood ratio (garment vs not) of each colour under two isotropic Gaussians fit to labels."""
+    c = colors.astype(np.float64)
+    pos, neg = labels & region, ~labels
+    if pos.sum() < 20 or neg.sum() < 20:
+        return None
+    mu_p, mu_n = c[pos].mean(0), c[neg].mean(0)
+    var = max(0.5 * (c[pos].var(0).sum() + c[neg].var(0).sum()) / 3.0, 25.0)
+    gap = ((mu_p - mu_n) ** 2).sum() / var
+    if gap < 4.0:  # the two classes do not differ in colour: no colour evidence
+        return None
+    llr = (((c - mu_n) ** 2).sum(1) - ((c - mu_p) ** 2).sum(1)) / (2.0 * var)
+    return np.clip(llr, -6.0, 6.0)
+
+
+def _smooth(values: np.ndarray, nbr: np.ndarray) -> np.ndarray:
+    return values[nbr].mean(1)
+
+
+def segment_garment(
+    points: np.ndarray,
+    garment: str,
+    body_vertices: np.ndarray,
+    body_faces: np.ndarray,
+    vertex_parts: np.ndarray,
+    *,
+    colors: np.ndarray | None = None,
+    offset_threshold: float = 0.006,
+    offset_scale: float = 0.003,
+    neighbors: int = 16,
+) -> Segmentation:
+    """Label the scan points of one garment using a fitted body.
+
+    Args:
+        points: (N, 3) scan points [m], world frame, in the same frame as the body.
+        garment: a garment type (`GARMENT_TYPES`, aliases such as "t-shirt" accepted).
+        body_vertices: (Vb, 3) fitted body [m]; body_faces: (Fb, 3) int, outward-facing, closed.
+        vertex_parts: (Vb,) int index into `PART_NAMES` of each body vertex (`BodyModel.vertex_parts`).
+        colors: optional (N, 3) uint8 RGB.
+        offset_threshold: smoothed outward offset [m] above which a point is more likely cloth than skin.
+        offset_scale: softness [m] of that threshold (offset evidence = (offset − threshold) / scale).
+        neighbors: scan neighbours used for smoothing.
+
+    Returns:
+        a `Segmentation`.
+    """
+    kind = garment_type(garment)
+    points = np.asarray(points, dtype=np.float64)
+    body_vertices = np.asarray(body_vertices, dtype=np.float64)
+    body_faces = np.asarray(body_faces, dtype=np.int64)
+    vertex_parts = np.asarray(vertex_parts, dtype=np.int64)
+    normals = _vertex_normals(body_vertices, body_faces)
+    _, near = cKDTree(body_vertices).query(points)  # (N,) nearest body vertex
+    offset = ((points - body_vertices[near]) * normals[near]).sum(1)  # (N,) signed [m]
+    region_parts = [PART_NAMES.index(p) for p in GARMENT_REGIONS[kind]]
+    region = np.isin(vertex_parts[near], region_parts)
+    k = min(neighbors, len(points))
+    _, nbr = cKDTree(points).query(points, k=k)
+    nbr = nbr.reshape(len(points), -1)
+    offset_s = _smooth(offset, nbr)
+    evidence = (offset_s - offset_threshold) / offset_scale
+    labels = region & (evidence > 0)
+    if colors is not None:
+        for _ in range(2):  # re-estimate the colour model from the current labels
+            colour = _colour_evidence(np.asarray(colors), labels, region)
+            if colour is None:
+                break
+            total = np.clip(evidence, -6.0, 6.0) + 2.0 * _smooth(colour, nbr[:, : max(k // 2, 1)])
+            labels = region & (total > 0)
+    for _ in range(2):  # neighbour majority vote
+        labels = region & (_smooth(labels.astype(np.float64), nbr) > 0.5)
+    loops = _boundary_loops(points, labels, near, body_vertices, body_faces, vertex_parts, kind)
+    return Segmentation(labels=labels, garment_indices=np.flatnonzero(labels), loops=loops, offsets=offset_s)
+
+
+def _edge_cycles(edges: np.ndarray) -> list[list[int]]:
+    """Chain undirected boundary edges (E, 2) into vertex cycles (open chains are returned as well)."""
+    adj = defaultdict(list)
+    for a, b in edges:
+        adj[int(a)].append(int(b))
+        adj[int(b)].append(int(a))
+    seen_edges: set[tuple[int, int]] = set()
+    cycles = []
+    for start in list(adj):
+        for nxt in adj[start]:
+            if (min(start, nxt), max(start, nxt)) in seen_edges:
+                continue
+            cycle, prev, cur = [start], start, nxt
+            seen_edges.add((min(start, nxt), max(start, nxt)))
+            while cur != start:
+                cycle.append(cur)
+                options = [v for v in adj[cur] if (min(cur, v), max(cur, v)) not in seen_edges]
+                if not options:
+                    break
+                prev, cur = cur, options[0]
+                seen_edges.add((min(prev, cur), max(prev, cur)))
+            cycles.append(cycle)
+    return cycles
+
+
+def _loop_name(outside_part: str, kind: str) -> str:
+    side = outside_part[-2:] if outside_part.endswith((".L", ".R")) else ""
+    if outside_part == "head":
+        return "neck"
+    if outside_part.startswith(("upperarm", "forearm", "hand")):
+        return ("cuff" if kind in _SLEEVED else "armhole") + side
+    if outside_part == "torso":
+        return "waist"
+    if outside_part == "hips":
+        return "waist" if kind in ("pants", "skirt") else "hem"
+    return ("leg" + side) if kind == "pants" else "hem"
+
+
+def _boundary_loops(
+    points: np.ndarray,
+    labels: np.ndarray,
+    near: np.ndarray,
+    body_vertices: np.ndarray,
+    body_faces: np.ndarray,
+    vertex_parts: np.ndarray,
+    kind: str,
+    min_edges: int = 12,
+    outside_rings: int = 4,
+) -> list[BoundaryLoop]:
+    if labels.sum() == 0:
+        return []
+    _, nearest_point = cKDTree(points).query(body_vertices)
+    covered = labels[nearest_point]  # (Vb,) body vertex under the garment
+    face_in = covered[body_faces].all(1)
+    fin = body_faces[face_in]
+    edges = np.sort(np.concatenate([fin[:, [0, 1]], fin[:, [1, 2]], fin[:, [2, 0]]]), axis=1)
+    uniq, counts = np.unique(edges, axis=0, return_counts=True)
+    boundary = uniq[counts == 1]
+    uncovered_faces = body_faces[~face_in]
+    garment_idx = np.flatnonzero(labels)
+    g_near = near[garment_idx]  # nearest body vertex of each garment point
+    grouped: dict[str, list[int]] = {}
+    for cycle in _edge_cycles(boundary):
+        if len(cycle) < min_edges:
+            continue
+        # The body part a few rings outside the loop names it (the loop itself may lie on a part border).
+        band = np.zeros(len(body_vertices), dtype=bool)
+        band[cycle] = True
+        for _ in range(outside_rings):
+            band[uncovered_faces[band[uncovered_faces].any(1)].reshape(-1)] = True
+        outside = np.flatnonzero(band & ~covered)
+        if len(outside) == 0:
+            continue
+        part = PART_NAMES[np.bincount(vertex_parts[outside], minlength=len(PART_NAMES)).argmax()]
+        grouped.setdefault(_loop_name(part, kind), []).extend(cycle)
+    loops = []
+    for name, verts in grouped.items():
+        ring = set(verts)
+        # grow the loop by two rings on the covered side so that points near the edge are caught
+        for _ in range(2):
+            grow = body_faces[np.isin(body_faces, list(ring)).any(1) & face_in]
+            ring |= set(grow.reshape(-1).tolist())
+        sel = np.flatnonzero(np.isin(g_near, list(ring)))
+        if len(sel) == 0:
+            continue
+        p = points[garment_idx[sel]]
+        centre = p.mean(0)
+        _, _, vt = np.linalg.svd(p - centre, full_matrices=False)
+        uv = (p - centre) @ vt[:2].T
+        order = np.argsort(np.arctan2(uv[:, 1], uv[:, 0]))
+        loops.append(BoundaryLoop(name=name, point_indices=sel[order], body_vertices=np.asarray(verts)))
+    return sorted(loops, key=lambda loop: loop.name)

@@ -1,0 +1,294 @@
+"""Fit losses (paper §4.2.5): feature terms against the scan and regularizers of the 2D pattern.
+
+* `boundary_loss`: the garment's labelled openings (hem, cuffs, neck, waist) vs the scan's [m²].
+* `interior_loss`: Chamfer distance between the draped garment and the segmented scan garment [m²].
+* `seam_length_loss`: the two sides of every seam keep equal segment lengths (eq. 7) [m⁴].
+* `curvature_loss`: boundary curvature kept up to a per-vertex similarity transform (eq. 8) [m²].
+
+All are pure, differentiable functions in the style of pytorch3d's losses: ``reduction`` is one of
+``"mean"``, ``"sum"``, ``"none"`` (checked up front) and optional per-item ``weights`` scale the items
+being reduced. Nearest neighbours come from `torch_diffavatar.chamfer` (KD-tree on detached copies;
+the distances are recomputed in torch, so gradients flow through the gathered points).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import torch
+
+from torch_diffavatar.cage import seam_segments
+from torch_diffavatar.chamfer import REDUCTIONS, chamfer_distance, one_sided_chamfer
+from torch_diffavatar.pattern.garment_mesh import BoundaryLoop, GarmentMesh
+
+
+def _check_reduction(reduction: str) -> None:
+    if reduction not in REDUCTIONS:
+        raise ValueError(f"reduction must be one of {REDUCTIONS}, got {reduction!r}")
+
+
+def _reduce(values: torch.Tensor, weights: torch.Tensor | None, reduction: str) -> torch.Tensor:
+    """Reduce (…, K) item values with optional (K,) weights: weighted mean / weighted sum / as is."""
+    if weights is not None:
+        if weights.shape != values.shape[-1:]:
+            raise ValueError(f"weights must have shape ({values.shape[-1]},), got {tuple(weights.shape)}")
+        values = values * weights.to(values)
+    if reduction == "none":
+        return values
+    if reduction == "sum":
+        return values.sum(-1)
+    if weights is None:
+        return values.mean(-1)
+    return values.sum(-1) / weights.to(values).sum().clamp_min(1e-12)
+
+
+def _check_points(x: torch.Tensor, name: str, dim: int = 3) -> None:
+    if not isinstance(x, torch.Tensor) or x.dim() != 2 or x.shape[-1] != dim or not x.is_floating_point():
+        shape = tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
+        raise ValueError(f"{name} must be a float tensor of shape (N, {dim}), got {shape}")
+
+
+def _check_rest_uv(rest_uv: torch.Tensor, garment: GarmentMesh) -> None:
+    if (
+        not isinstance(rest_uv, torch.Tensor)
+        or rest_uv.dim() < 2
+        or rest_uv.shape[-2:]
+        != (
+            garment.vert_count,
+            2,
+        )
+    ):
+        shape = tuple(rest_uv.shape) if isinstance(rest_uv, torch.Tensor) else type(rest_uv).__name__
+        raise ValueError(
+            f"rest_uv must have shape ({garment.vert_count}, 2) or (B, {garment.vert_count}, 2) "
+            f"(one 2D rest coordinate per panel vertex), got {shape}"
+        )
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Feature terms
+
+
+def _resample_loop(x: torch.Tensor, samples_per_edge: int) -> torch.Tensor:
+    """(L, 3) closed loop -> (L·k, 3) points at fractions j/k along every loop edge."""
+    if samples_per_edge == 1:
+        return x
+    t = torch.arange(samples_per_edge, dtype=x.dtype, device=x.device) / samples_per_edge  # (k,)
+    nxt = torch.roll(x, -1, dims=0)
+    return (x[:, None] + t[None, :, None] * (nxt - x)[:, None]).reshape(-1, 3)
+
+
+def boundary_loss(
+    garment_x: torch.Tensor,
+    loops: Sequence[BoundaryLoop],
+    scan_boundaries: Mapping[str, torch.Tensor],
+    *,
+    samples_per_edge: int = 1,
+    weights: torch.Tensor | None = None,
+    reduction: str = "mean",
+) -> torch.Tensor:
+    """Boundary feature matching: each named garment opening vs the scan's opening of the same name.
+
+    For every loop whose name is a key of ``scan_boundaries`` (``"neck"``, ``"hem"``, ``"cuff_left"``,
+    ``"waist"`` …), the symmetric Chamfer distance (mean squared nearest-neighbour distance garment →
+    scan plus scan → garment) between the loop's points and the scan boundary points. Loops without a
+    scan counterpart (and scan boundaries without a garment loop) are skipped.
+
+    Args:
+        garment_x: (Vs, 3) sim-vertex positions [m] (e.g. the drape).
+        loops: the garment's openings (``GarmentMesh.boundary_loops``), on sim vertices.
+        scan_boundaries: opening name -> (P, 3) scan boundary points [m], P >= 1.
+        samples_per_edge: k >= 1 points per loop edge at fractions 0, 1/k, … (1 = the loop vertices
+            only); more samples make the garment side denser than its vertex spacing.
+        weights: optional (len(loops),) per-loop weights, aligned with ``loops``.
+        reduction: ``"mean"`` (weighted mean over matched loops), ``"sum"`` or ``"none"`` ((K,) one value
+            per matched loop, in the order of ``loops``).
+
+    Returns:
+        scalar, or (K,) for ``"none"`` [m²].
+
+    Raises:
+        ValueError: bad shapes, or no loop name occurs in ``scan_boundaries`` (a likely naming mismatch).
+    """
+    _check_reduction(reduction)
+    _check_points(garment_x, "garment_x")
+    if not (isinstance(samples_per_edge, int) and samples_per_edge >= 1):
+        raise ValueError(f"samples_per_edge must be an integer >= 1, got {samples_per_edge!r}")
+    for name, pts in scan_boundaries.items():
+        _check_points(pts, f"scan_boundaries[{name!r}]")
+    matched = [k for k, loop in enumerate(loops) if loop.name in scan_boundaries]
+    if not matched:
+        raise ValueError(
+            f"no garment opening matches a scan boundary: garment has {[lp.name for lp in loops]}, "
+            f"scan has {sorted(scan_boundaries)}"
+        )
+    values = []
+    for k in matched:
+        loop = loops[k]
+        x = _resample_loop(garment_x[loop.vertices.to(garment_x.device)], samples_per_edge)
+        y = scan_boundaries[loop.name].to(garment_x)
+        values.append(chamfer_distance(x, y, reduction="mean"))
+    values = torch.stack(values)  # (K,)
+    if weights is not None:
+        if weights.shape != (len(loops),):
+            raise ValueError(
+                f"weights must have shape ({len(loops)},) (one per loop), got {tuple(weights.shape)}"
+            )
+        weights = weights[torch.as_tensor(matched, device=weights.device)]
+    return _reduce(values, weights, reduction)
+
+
+def interior_loss(
+    garment_x: torch.Tensor,
+    scan_points: torch.Tensor,
+    *,
+    two_sided: bool = True,
+    robust: str | None = None,
+    scale: float = 0.01,
+    weights: torch.Tensor | None = None,
+    reduction: str = "mean",
+) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+    """Interior feature matching: Chamfer distance between the garment and the segmented scan garment.
+
+    Nearest neighbours come from a KD-tree (`torch_diffavatar.chamfer`); the distances are recomputed
+    in torch from the gathered points, so gradients flow to ``garment_x`` (and to ``scan_points`` if it
+    requires grad), never through the neighbour assignment.
+
+    Args:
+        garment_x: (Vs, 3) sim-vertex positions [m].
+        scan_points: (P, 3) points of the scan's garment segment [m].
+        two_sided: add the scan → garment direction (catches garment parts missing from the scan fit);
+            False gives garment → scan only.
+        robust: None or ``"l2"`` (squared distances), ``"geman_mcclure"`` or ``"huber"`` (see
+            `torch_diffavatar.chamfer.robust_penalty`) to damp scan outliers.
+        scale: robust kernel scale [m].
+        weights: optional (Vs,) per-garment-vertex weights (garment → scan direction).
+        reduction: ``"mean"`` (sum over directions of the (weighted) mean over points), ``"sum"`` (sum
+            over directions and points) or ``"none"`` (per-point penalties: (Vs,), or the tuple
+            ``((Vs,), (P,))`` when two-sided).
+
+    Returns:
+        scalar [m²] (or per-point penalties for ``"none"``).
+    """
+    _check_reduction(reduction)
+    _check_points(garment_x, "garment_x")
+    _check_points(scan_points, "scan_points")
+    if weights is not None and weights.shape != garment_x.shape[:1]:
+        raise ValueError(f"weights must have shape ({garment_x.shape[0]},), got {tuple(weights.shape)}")
+    kw = dict(robust="l2" if robust is None else robust, scale=scale, reduction=reduction)
+    y = scan_points.to(garment_x)
+    if two_sided:
+        out = chamfer_distance(garment_x, y, x_weights=weights, **kw)
+        return (out[0][0], out[1][0]) if reduction == "none" else out
+    out = one_sided_chamfer(garment_x, y, x_weights=weights, **kw)
+    return out[0] if reduction == "none" else out
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Pattern regularizers
+
+
+def seam_length_loss(
+    rest_uv: torch.Tensor,
+    garment: GarmentMesh,
+    *,
+    segments: torch.Tensor | None = None,
+    weights: torch.Tensor | None = None,
+    reduction: str = "mean",
+) -> torch.Tensor:
+    """Seam-length regularizer (paper eq. 7): sewn segments keep equal lengths on both sides.
+
+    For every seam joining edge A (points ``p_i``) and edge B (points ``p'_i``, aligned so ``p_i`` is
+    sewn to ``p'_i``) the paper sums ``‖p_i − p_{i+1}‖² − ‖p'_i − p'_{i+1}‖²`` over the segments; that
+    sum can be negative and lets long and short segments cancel, so here each segment's difference is
+    **squared**: ``(‖p_i − p_{i+1}‖² − ‖p'_i − p'_{i+1}‖²)²`` >= 0, zero iff every sewn segment pair has
+    equal length. Darts count as seams.
+
+    Args:
+        rest_uv: (V, 2) or (B, V, 2) rest coordinates [m] of the panel vertices.
+        garment: the garment the coordinates belong to (its seams are read with `stitched_edges`).
+        segments: optional (K, 4) int64 ``(a_i, a_{i+1}, b_i, b_{i+1})`` from
+            `torch_diffavatar.cage.seam_segments` (computed from ``garment`` when None; pass it to skip
+            that work in a loop).
+        weights: optional (K,) per-segment weights.
+        reduction: ``"mean"`` / ``"sum"`` over segments, or ``"none"`` → (…, K) per segment.
+
+    Returns:
+        () or (B,) [m⁴] (or (…, K) for ``"none"``); zero when the garment has no seams.
+    """
+    _check_reduction(reduction)
+    _check_rest_uv(rest_uv, garment)
+    seg = seam_segments(garment) if segments is None else segments
+    if seg.dim() != 2 or seg.shape[-1] != 4:
+        raise ValueError(f"segments must have shape (K, 4), got {tuple(seg.shape)}")
+    seg = seg.to(rest_uv.device)
+    if len(seg) == 0:
+        return (
+            rest_uv.sum((-2, -1)) * 0.0 if reduction != "none" else rest_uv.new_zeros(*rest_uv.shape[:-2], 0)
+        )
+    p = rest_uv[..., seg, :]  # (…, K, 4, 2)
+    len_a = ((p[..., 1, :] - p[..., 0, :]) ** 2).sum(-1)
+    len_b = ((p[..., 3, :] - p[..., 2, :]) ** 2).sum(-1)
+    return _reduce((len_a - len_b) ** 2, weights, reduction)
+
+
+def boundary_triplets(garment: GarmentMesh) -> torch.Tensor:
+    """(Nb, 3) int64 ``(previous, vertex, next)`` panel vertices around every panel's boundary loop."""
+    parts = [
+        torch.stack([torch.roll(b, 1), b, torch.roll(b, -1)], dim=1)
+        for b in garment.panel_boundary
+        if len(b) >= 3
+    ]
+    return torch.cat(parts) if parts else torch.zeros(0, 3, dtype=torch.int64)
+
+
+def curvature_loss(
+    rest_uv: torch.Tensor,
+    template_uv: torch.Tensor,
+    garment: GarmentMesh,
+    *,
+    weights: torch.Tensor | None = None,
+    reduction: str = "mean",
+) -> torch.Tensor:
+    """Boundary curvature regularizer (paper eq. 8): the outline keeps its template shape locally.
+
+    At every boundary vertex ``i`` of every panel (its loop from ``garment.panel_boundary``), with the
+    edges ``e_i1 = p_{i+1} − p_i`` and ``e_i2 = p_{i−1} − p_i`` (``ē`` the same on the template), the best
+    similarity ``T_i = s_i R_i`` (rotation and uniform scale, no reflection) mapping the template edges
+    to the current ones in the least-squares sense, ``min_T Σ_k ‖e_ik − T ē_ik‖²``, has the closed form
+    ``T = [[a, −b], [b, a]]`` with ``a = Σ_k e_k·ē_k / Σ_k ‖ē_k‖²`` and ``b = Σ_k e_k·ē_k^⊥ / Σ_k ‖ē_k‖²``
+    (``ē^⊥ = (−ē_y, ē_x)``; this is 2D Procrustes with scale). The loss per vertex is
+    ``w_i ‖(e_i1 − T_i ē_i1) + (e_i2 − T_i ē_i2)‖²``: the discrete Laplacian ``e_i1 + e_i2`` must be the
+    template's up to a local rotation and scale. Zero at the template and under any similarity transform
+    of a whole panel; rigid motions of a panel leave it unchanged and a uniform scale ``s`` scales it by
+    ``s²``.
+
+    Args:
+        rest_uv: (V, 2) or (B, V, 2) current rest coordinates [m].
+        template_uv: (V, 2) template rest coordinates [m] (e.g. ``garment.vert_uv``).
+        garment: the garment (for its panel boundary loops).
+        weights: optional (Nb,) per-boundary-vertex weights ``w_i`` (default 1), in the order of
+            `boundary_triplets` (panels in order, each loop in order).
+        reduction: ``"mean"`` / ``"sum"`` over boundary vertices, or ``"none"`` → (…, Nb).
+
+    Returns:
+        () or (B,) [m²] (or (…, Nb) for ``"none"``).
+    """
+    _check_reduction(reduction)
+    _check_rest_uv(rest_uv, garment)
+    if template_uv.shape != (garment.vert_count, 2):
+        raise ValueError(
+            f"template_uv must have shape ({garment.vert_count}, 2), got {tuple(template_uv.shape)}"
+        )
+    tri = boundary_triplets(garment).to(rest_uv.device)
+    p = rest_uv[..., tri, :]  # (…, Nb, 3, 2)
+    q = template_uv.to(rest_uv)[tri]  # (Nb, 3, 2)
+    e = torch.stack([p[..., 2, :] - p[..., 1, :], p[..., 0, :] - p[..., 1, :]], dim=-2)  # (…, Nb, 2, 2)
+    t = torch.stack([q[..., 2, :] - q[..., 1, :], q[..., 0, :] - q[..., 1, :]], dim=-2)  # (Nb, 2, 2)
+    t_perp = torch.stack([-t[..., 1], t[..., 0]], dim=-1)
+    norm = (t**2).sum((-2, -1)).clamp_min(torch.finfo(t.dtype).tiny)  # (Nb,)
+    a = (e * t).sum((-2, -1)) / norm  # (…, Nb)
+    b = (e * t_perp).sum((-2, -1)) / norm
+    fitted = a[..., None, None] * t + b[..., None, None] * t_perp  # T ē_k, (…, Nb, 2, 2)
+    residual = (e - fitted).sum(-2)  # (…, Nb, 2)
+    return _reduce((residual**2).sum(-1), weights, reduction)

@@ -1,0 +1,325 @@
+"""Scans in: meshes and point clouds (PLY, OBJ, GLB via trimesh), with optional per-vertex garment labels
+and colours, unit and up-axis conversion, sanity checks, and clean-up (floor, statistical outliers).
+
+Every loaded scan is in our world frame: Y up, metres (see DESIGN.md). Scans in other units or axes are
+converted by explicit options; `check_scan_frame` warns when the result still looks mis-scaled, lying
+down or upside down.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from torch_diffavatar.errors import ScanError
+
+UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}
+# Rotations taking a scan's axes to ours (Y up). "z": Z up and facing −Y (Anny/Blender-like) -> Y up,
+# facing +Z. "-y"/"-z" are the upside-down variants (a 180° turn about X from "y"/"z").
+UP_AXES = {
+    "y": np.eye(3),
+    "-y": np.diag([1.0, -1.0, -1.0]),
+    "z": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]),
+    "-z": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]),
+}
+LABEL_PROPERTIES = ("label", "labels", "garment", "segment", "segmentation", "class")
+SCAN_SUFFIXES = (".ply", ".obj", ".glb", ".gltf", ".off", ".stl", ".xyz")
+
+
+class ScanWarning(UserWarning):
+    """A scan that loads but looks wrong (units, up axis)."""
+
+
+@dataclass
+class Scan:
+    """A scan in the world frame.
+
+    Attributes:
+        points: (N, 3) float64 vertex / point positions [m], Y up.
+        faces: (F, 3) int64 triangles, or None for a point cloud.
+        colors: (N, 3) uint8 RGB, or None.
+        labels: (N,) int64 per-point garment labels (0 = not garment), or None.
+        source: the file it came from.
+        warnings: messages from `check_scan_frame` (also issued as `ScanWarning`).
+    """
+
+    points: np.ndarray
+    faces: np.ndarray | None = None
+    colors: np.ndarray | None = None
+    labels: np.ndarray | None = None
+    source: str = ""
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def point_count(self) -> int:
+        return len(self.points)
+
+    def subset(self, keep: np.ndarray) -> Scan:
+        """The scan restricted to the points where the (N,) bool ``keep`` is true (faces re-indexed)."""
+        faces = None
+        if self.faces is not None:
+            new_index = np.cumsum(keep) - 1
+            ok = keep[self.faces].all(1)
+            faces = new_index[self.faces[ok]]
+        return replace(
+            self,
+            points=self.points[keep],
+            faces=faces,
+            colors=None if self.colors is None else self.colors[keep],
+            labels=None if self.labels is None else self.labels[keep],
+        )
+
+
+def _read_geometry(path: Path):
+    import trimesh
+
+    if path.stat().st_size == 0:
+        raise ScanError(f"{path}: the file is empty")
+    try:
+        geom = trimesh.load(str(path), process=False)
+    except Exception as exc:  # trimesh raises many types for unreadable files
+        raise ScanError(f"{path}: cannot read it as a mesh or point cloud ({exc})") from exc
+    if isinstance(geom, trimesh.Scene):
+        parts = [g for g in geom.dump() if hasattr(g, "vertices")]
+        if not parts:
+            raise ScanError(f"{path}: the scene holds no geometry")
+        meshes = [g for g in parts if isinstance(g, trimesh.Trimesh)]
+        geom = trimesh.util.concatenate(meshes) if len(meshes) == len(parts) else parts[0]
+    return geom
+
+
+def _colors_of(geom, count: int) -> np.ndarray | None:
+    colors = None
+    visual = getattr(geom, "visual", None)
+    if visual is not None and getattr(visual, "kind", None) == "vertex":
+        colors = np.asarray(visual.vertex_colors)
+    elif getattr(geom, "colors", None) is not None and len(geom.colors) == count:
+        colors = np.asarray(geom.colors)
+    if colors is None or len(colors) != count:
+        return None
+    return colors[:, :3].astype(np.uint8)
+
+
+def _labels_of(geom, count: int, label_property: str | None, path: Path) -> np.ndarray | None:
+    raw = (
+        geom.metadata.get("_ply_raw", {}).get("vertex", {}).get("data") if hasattr(geom, "metadata") else None
+    )
+    if raw is None:
+        if label_property is not None:
+            raise ScanError(f"{path}: no per-vertex property {label_property!r} (only PLY files carry them)")
+        return None
+    names = list(raw.keys()) if isinstance(raw, dict) else list(raw.dtype.names or ())
+    wanted = (label_property,) if label_property else LABEL_PROPERTIES
+    for name in wanted:
+        if name in names:
+            values = np.asarray(raw[name]).reshape(-1)
+            if len(values) != count:
+                raise ScanError(f"{path}: property {name!r} has {len(values)} values for {count} vertices")
+            return values.astype(np.int64)
+    if label_property is not None:
+        raise ScanError(f"{path}: no vertex property {label_property!r}; found {names}")
+    return None
+
+
+def read_labels(path: str | Path, count: int) -> np.ndarray:
+    """Per-point labels from a side file: ``.npy`` or text with one integer per line. -> (count,) int64."""
+    path = Path(path)
+    if not path.exists():
+        raise ScanError(f"{path}: label file not found")
+    try:
+        values = np.load(path) if path.suffix == ".npy" else np.loadtxt(path, dtype=np.int64, ndmin=1)
+    except Exception as exc:
+        raise ScanError(f"{path}: cannot read labels ({exc})") from exc
+    values = np.asarray(values).reshape(-1)
+    if len(values) != count:
+        raise ScanError(f"{path}: {len(values)} labels for a scan of {count} points")
+    return values.astype(np.int64)
+
+
+def load_scan(
+    path: str | Path,
+    *,
+    units: str = "m",
+    up: str = "y",
+    labels: str | Path | None = None,
+    label_property: str | None = None,
+    require_faces: bool = False,
+    check: bool = True,
+) -> Scan:
+    """Load a scan mesh or point cloud into the world frame.
+
+    Args:
+        path: a PLY, OBJ, GLB/GLTF (or any format trimesh reads) file.
+        units: the file's length unit, one of ``UNITS`` ("m", "cm", "mm").
+        up: the file's up axis, one of ``UP_AXES`` ("y", "-y", "z", "-z").
+        labels: optional side file of per-point garment labels (see `read_labels`).
+        label_property: name of a PLY vertex property holding labels; by default the first of
+            ``LABEL_PROPERTIES`` present is used, if any.
+        require_faces: raise if the file has no triangles (a point cloud).
+        check: run `check_scan_frame` and issue `ScanWarning`s.
+
+    Returns:
+        a `Scan`.
+
+    Raises:
+        ScanError: empty or unreadable file, no points, NaN/inf coordinates, missing faces when required,
+            bad labels. ValueError for an unknown ``units``/``up``.
+    """
+    if units not in UNITS:
+        raise ScanError(f"unknown units {units!r}; use one of {sorted(UNITS)}")
+    if up not in UP_AXES:
+        raise ScanError(f"unknown up axis {up!r}; use one of {sorted(UP_AXES)}")
+    path = Path(path)
+    if not path.exists():
+        raise ScanError(f"{path}: file not found")
+    geom = _read_geometry(path)
+    points = np.asarray(getattr(geom, "vertices", np.zeros((0, 3))), dtype=np.float64)
+    if points.ndim != 2 or points.shape[0] == 0:
+        raise ScanError(f"{path}: the scan has no points")
+    if not np.isfinite(points).all():
+        bad = int((~np.isfinite(points)).any(1).sum())
+        raise ScanError(f"{path}: {bad} of {len(points)} points have NaN or infinite coordinates")
+    faces = np.asarray(geom.faces, dtype=np.int64) if hasattr(geom, "faces") else None
+    if faces is not None and len(faces) == 0:
+        faces = None
+    if require_faces and faces is None:
+        raise ScanError(f"{path}: the file has no faces (a point cloud), but a triangle mesh is needed here")
+    scan = Scan(
+        points=points @ UP_AXES[up].T * UNITS[units],
+        faces=faces,
+        colors=_colors_of(geom, len(points)),
+        labels=_labels_of(geom, len(points), label_property, path),
+        source=str(path),
+    )
+    if labels is not None:
+        scan.labels = read_labels(labels, len(points))
+    if check:
+        scan.warnings = check_scan_frame(scan.points)
+        for message in scan.warnings:
+            warnings.warn(f"{path}: {message}", ScanWarning, stacklevel=2)
+    return scan
+
+
+def _slab_spread(points: np.ndarray, lo: float, hi: float) -> float:
+    """RMS horizontal (x, z) distance to the slab centroid of points with lo <= y < hi [m]."""
+    sel = points[(points[:, 1] >= lo) & (points[:, 1] < hi)][:, [0, 2]]
+    if len(sel) < 10:
+        return float("nan")
+    return float(np.sqrt(((sel - sel.mean(0)) ** 2).sum(1).mean()))
+
+
+def check_scan_frame(points: np.ndarray) -> list[str]:
+    """Heuristic checks that a scan of a standing person is in metres, Y up and upright.
+
+    - height (Y extent) outside [0.5, 2.5] m: probably wrong units;
+    - a horizontal extent larger than 1.3 × the height: probably the wrong up axis;
+    - the slab at 88–98 % of the height (the head) more than 1.25× as wide as the slab at 5–20 % (the
+      lower legs): the person is probably upside down. On Anny bodies, bare or under a dress or pants,
+      the head slab's spread is 0.07–0.08 m and the lower-leg slab's 0.17–0.22 m.
+
+    Args:
+        points: (N, 3) [m] in the world frame.
+
+    Returns:
+        a list of human-readable warnings (empty when all looks fine).
+    """
+    out = []
+    lo = np.quantile(points, 0.001, axis=0)
+    hi = np.quantile(points, 0.999, axis=0)
+    extent = hi - lo
+    height = extent[1]
+    if height > 2.5:
+        guess = "mm" if height > 250 else "cm" if height > 25 else "a smaller unit"
+        out.append(f"the scan is {height:.3g} m tall; is it in {guess}? (pass --units)")
+    elif height < 0.5:
+        out.append(f"the scan is only {height:.3g} m tall; wrong --units?")
+    if max(extent[0], extent[2]) > 1.3 * height:
+        out.append(
+            f"the scan is wider ({max(extent[0], extent[2]):.3g}) than tall ({height:.3g}); wrong --up axis?"
+        )
+    elif height > 0:
+        low = _slab_spread(points, lo[1] + 0.05 * height, lo[1] + 0.2 * height)
+        top = _slab_spread(points, lo[1] + 0.88 * height, lo[1] + 0.98 * height)
+        if np.isfinite(low) and np.isfinite(top) and top > 1.25 * low:
+            out.append("the scan looks upside down (narrow at the bottom, wide at the top); try --up -y")
+    return out
+
+
+def remove_floor(scan: Scan, *, tolerance: float = 0.015, probe: float = 0.03) -> tuple[Scan, int]:
+    """Remove a horizontal floor plane under the person, if there is one.
+
+    A floor is detected when the points in the lowest ``probe`` [m] spread horizontally over more than
+    1.5× the spread of the body just above (10–50 cm up). Its level is the median height of those lowest
+    points; points less than ``tolerance`` [m] above it are removed.
+
+    Returns:
+        (the scan without the floor, number of points removed).
+    """
+    y = scan.points[:, 1]
+    y0 = float(np.quantile(y, 0.0005))
+    bottom = y < y0 + probe
+    body = _slab_spread(scan.points, y0 + 0.1, y0 + 0.5)
+    floor = _slab_spread(scan.points, y0 - 1e-9, y0 + probe)
+    if not (np.isfinite(body) and np.isfinite(floor)) or floor < 1.5 * body:
+        return scan, 0
+    level = float(np.median(y[bottom]))
+    keep = y > level + tolerance
+    return scan.subset(keep), int((~keep).sum())
+
+
+def remove_outliers(scan: Scan, *, neighbors: int = 16, std_ratio: float = 3.0) -> tuple[Scan, int]:
+    """Statistical outlier removal: drop points whose mean distance to their ``neighbors`` nearest points
+    exceeds the mean of that quantity by ``std_ratio`` standard deviations.
+
+    Returns:
+        (the cleaned scan, number of points removed).
+    """
+    if scan.point_count <= neighbors:
+        return scan, 0
+    dist, _ = cKDTree(scan.points).query(scan.points, k=neighbors + 1)
+    mean = dist[:, 1:].mean(1)
+    keep = mean <= mean.mean() + std_ratio * mean.std()
+    return scan.subset(keep), int((~keep).sum())
+
+
+def save_ply(
+    path: str | Path,
+    points: np.ndarray,
+    *,
+    colors: np.ndarray | None = None,
+    faces: np.ndarray | None = None,
+    int_properties: dict[str, np.ndarray] | None = None,
+) -> None:
+    """Write an ASCII PLY with optional colours, faces and integer vertex properties (e.g. labels).
+
+    Args:
+        points: (N, 3) [m]; colors: (N, 3) uint8; faces: (F, 3) int; int_properties: name -> (N,) ints.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    props = dict(int_properties or {})
+    header = ["ply", "format ascii 1.0", f"element vertex {len(points)}"]
+    header += [f"property double {a}" for a in "xyz"]
+    if colors is not None:
+        header += [f"property uchar {c}" for c in ("red", "green", "blue")]
+    header += [f"property int {name}" for name in props]
+    if faces is not None:
+        header += [f"element face {len(faces)}", "property list uchar int vertex_indices"]
+    header.append("end_header")
+    cols = [points]
+    if colors is not None:
+        cols.append(np.asarray(colors)[:, :3].astype(np.int64))
+    cols += [np.asarray(v).reshape(-1, 1).astype(np.int64) for v in props.values()]
+    with open(path, "w") as f:
+        f.write("\n".join(header) + "\n")
+        for row in zip(*cols):
+            f.write(" ".join(np.format_float_positional(x, 7, trim="-") for x in row[0]))
+            for extra in row[1:]:
+                f.write(" " + " ".join(str(int(x)) for x in extra))
+            f.write("\n")
+        if faces is not None:
+            for tri in np.asarray(faces, dtype=np.int64):
+                f.write(f"3 {tri[0]} {tri[1]} {tri[2]}\n")
