@@ -1,0 +1,95 @@
+"""Timing of the XPBD step on the project's performance anchor (notes/warp-newton.md).
+
+The anchor: a 64×64-vertex sheet (1 m × 1 m, 4,096 vertices, 7,938 triangles) falling from 0.5 m above
+onto a sphere mesh (radius 0.3 m), 60 frames/s, Newton's XPBD at 40 substeps × 1 iteration took
+~1.0 ms per substep single-threaded. Run ``python -m torch_diffavatar.sim.benchmark`` (add ``--help``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import torch
+
+from torch_diffavatar.sim.material import ClothMaterial
+from torch_diffavatar.sim.model import ClothModelBuilder
+from torch_diffavatar.sim.solver import XPBDConfig, XPBDSolver
+from torch_diffavatar.sim.testing import rectangle_garment
+
+
+def sphere_mesh(radius: float = 0.3, subdivisions: int = 4, dtype=torch.float32):
+    """(verts (Vb, 3), faces (Fb, 3)) of an icosphere centred at the origin (needs trimesh)."""
+    import trimesh
+
+    s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    return torch.as_tensor(s.vertices, dtype=dtype), torch.as_tensor(s.faces, dtype=torch.int64)
+
+
+def time_sheet_on_sphere(
+    n: int = 64,
+    frames: int = 30,
+    substeps: int = 40,
+    iterations: int = 1,
+    scheme: str = "gauss_seidel",
+    use_extension: bool = True,
+    dtype: torch.dtype = torch.float32,
+) -> dict:
+    """Drop an ``n``×``n`` sheet on a sphere for ``frames`` frames and time it.
+
+    Returns:
+        a dict with ``ms_per_substep``, ``ms_per_frame``, ``vertices``, ``mean_edge_strain``,
+        ``max_edge_strain``, ``min_radius_m`` (closest vertex to the sphere centre) and the options.
+    """
+    verts, faces = sphere_mesh(dtype=dtype)
+    material = ClothMaterial(k_uu=1e3, k_vv=1e3, k_uv=200.0, bend_stiffness=1e-6, thickness=0.005)
+    g = rectangle_garment(n, n, 1.0, 1.0, origin=(-0.5, 0.8, 0.5))
+    model = ClothModelBuilder(material).add_garment(g).finalize(dtype=dtype)
+    rest = model.rest_data(g.vert_uv.to(dtype))
+    cfg = XPBDConfig(substeps=substeps, iterations=iterations, scheme=scheme, use_extension=use_extension)
+    solver = XPBDSolver(model, cfg)
+    state = model.initial_state()
+    state = solver.step(state, rest, 1 / 60, body_verts=verts, body_faces=faces)  # warm-up
+    t0 = time.perf_counter()
+    for _ in range(frames):
+        state = solver.step(state, rest, 1 / 60, body_verts=verts, body_faces=faces)
+    seconds = time.perf_counter() - t0
+    tv = model.tri_vertices
+    edges = torch.cat((tv[:, [0, 1]], tv[:, [1, 2]], tv[:, [2, 0]]))
+    uv = g.vert_uv.to(dtype)
+    rest_len = (uv[edges[:, 0]] - uv[edges[:, 1]]).norm(dim=-1)
+    strain = (state.x[edges[:, 0]] - state.x[edges[:, 1]]).norm(dim=-1) / rest_len - 1
+    return {
+        "vertices": model.vert_count,
+        "substeps": substeps,
+        "iterations": iterations,
+        "scheme": scheme,
+        "extension": use_extension,
+        "frames": frames,
+        "ms_per_frame": 1e3 * seconds / frames,
+        "ms_per_substep": 1e3 * seconds / (frames * substeps),
+        "mean_edge_strain": float(strain.abs().mean()),
+        "max_edge_strain": float(strain.abs().max()),
+        "min_radius_m": float(state.x.norm(dim=-1).min()),
+    }
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--n", type=int, default=64)
+    parser.add_argument("--frames", type=int, default=30)
+    parser.add_argument("--substeps", type=int, default=40)
+    parser.add_argument("--iterations", type=int, default=1)
+    parser.add_argument("--scheme", default="gauss_seidel", choices=["gauss_seidel", "jacobi"])
+    parser.add_argument("--reference", action="store_true", help="force the PyTorch reference kernels")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    out = time_sheet_on_sphere(
+        args.n, args.frames, args.substeps, args.iterations, args.scheme, use_extension=not args.reference
+    )
+    print(json.dumps(out))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,326 @@
+"""Drape to quasi-equilibrium, warm-started or from the pattern's placement, and sew-then-drape.
+
+`drape_to_equilibrium` steps a `ClothModel` until the largest vertex speed stays under a tolerance
+(paper §3.2: the drapes end at quasi-equilibrium); pass ``state=`` (e.g. a previous `DrapeResult.state`)
+to warm-start from an earlier equilibrium. `sew_and_drape` runs the two phases that work for GarmentCode
+patterns whose panels start apart (notes/draping-lessons.md): phase 1 "sew" on the unmerged panel-vertex
+mesh with zero-length stitches ramped from soft to stiff, no gravity and strong damping, until the largest
+stitch gap is under ``sew_gap_tol``; phase 2 "drape" on the seam-merged mesh (sim vertex = mean of its
+panel vertices) with gravity until quasi-equilibrium.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import torch
+
+from torch_diffavatar.errors import SimulationError
+from torch_diffavatar.pattern.garment_mesh import GarmentMesh
+from torch_diffavatar.sim import collision
+from torch_diffavatar.sim.constraints import green_strain
+from torch_diffavatar.sim.material import ClothMaterial
+from torch_diffavatar.sim.model import ClothModel, ClothModelBuilder
+from torch_diffavatar.sim.solver import XPBDConfig, XPBDSolver
+from torch_diffavatar.sim.state import ClothState
+
+
+@dataclass(frozen=True)
+class DrapeConfig:
+    """Options of a drape (and of the sewing phase of `sew_and_drape`).
+
+    Attributes:
+        xpbd: stepping options of the drape.
+        sew_xpbd: stepping options of the sewing phase (no gravity: fewer substeps suffice).
+        dt: frame time [s].
+        max_steps: frames before giving up (the result then has ``converged=False``).
+        min_steps: frames always run.
+        speed_tol: quasi-equilibrium when the largest vertex speed is below this [m/s] ...
+        settle_steps: ... for this many consecutive frames.
+        sew_max_steps: frames of the sewing phase at most.
+        sew_ramp_steps: frames over which the stitch stiffness ramps (geometrically) from
+            ``sew_stiffness_start`` to ``sew_stiffness_end`` [N/m].
+        sew_gap_tol: sewing stops once the largest stitch gap is below this [m] (after the ramp).
+        sew_gravity_scale: gravity factor while sewing.
+        sew_velocity_scale: velocity factor per frame while sewing (strong damping).
+        sew_friction_scale: friction factor while sewing (0: seams pulled over the body slide freely).
+        sew_gap_max: `sew_and_drape` raises `SimulationError` when a stitch gap is still larger than
+            this [m] after sewing (merging it would tear the mesh).
+        drape_velocity_scale: velocity factor per frame while draping (mild artificial damping).
+    """
+
+    xpbd: XPBDConfig = field(default_factory=XPBDConfig)
+    sew_xpbd: XPBDConfig = field(default_factory=lambda: XPBDConfig(substeps=10, iterations=2))
+    dt: float = 1.0 / 60.0
+    max_steps: int = 600
+    min_steps: int = 10
+    speed_tol: float = 0.02
+    settle_steps: int = 5
+    sew_max_steps: int = 300
+    sew_ramp_steps: int = 100
+    sew_stiffness_start: float = 5.0
+    sew_stiffness_end: float = 1.0e5
+    sew_gap_tol: float = 1.0e-3
+    sew_gravity_scale: float = 0.0
+    sew_velocity_scale: float = 0.7
+    sew_friction_scale: float = 0.0
+    sew_gap_max: float = 0.01
+    drape_velocity_scale: float = 0.97
+
+
+@dataclass
+class DrapeResult:
+    """Outcome of a drape.
+
+    Attributes:
+        x: (Vs, 3) final positions [m]; v: (Vs, 3) final velocities [m/s].
+        steps: frames run; max_speed: largest vertex speed at the end [m/s];
+        converged: the speed criterion was met; seconds: wall time [s];
+        diagnostics: ``max_strain`` (largest |Green strain| component), ``contact_count``,
+            ``penetrating_count`` (vertices behind the plane of their closest body triangle within 5 cm),
+            and for `sew_and_drape` also ``max_stitch_gap_m``, ``sew_steps``, ``sew_seconds``.
+        model: the model the result belongs to (the merged one for `sew_and_drape`).
+    """
+
+    x: torch.Tensor
+    v: torch.Tensor
+    steps: int
+    max_speed: float
+    converged: bool
+    seconds: float
+    diagnostics: dict = field(default_factory=dict)
+    model: ClothModel | None = None
+
+    @property
+    def state(self) -> ClothState:
+        """The final state, e.g. to warm-start the next drape."""
+        return ClothState(self.x, self.v)
+
+
+def _check_body(body_verts, body_faces, model: ClothModel):
+    if (body_verts is None) != (body_faces is None):
+        raise ValueError("pass both body_verts and body_faces, or neither")
+    if body_verts is None:
+        return None, None
+    if body_verts.ndim != 2 or body_verts.shape[1] != 3:
+        raise ValueError(f"body_verts must be (Vb, 3), got {tuple(body_verts.shape)}")
+    if body_faces.ndim != 2 or body_faces.shape[1] != 3:
+        raise ValueError(f"body_faces must be (Fb, 3), got {tuple(body_faces.shape)}")
+    return body_verts.to(device=model.device, dtype=model.dtype), body_faces.to(model.device, torch.int64)
+
+
+def penetration_diagnostics(x, body_verts, body_faces, band: float = 0.05) -> dict:
+    """``contact_count`` (vertices within ``band`` of the body) and ``penetrating_count`` (of those,
+    vertices behind the plane of their closest body triangle)."""
+    contacts = collision.detect_contacts(x, body_verts, body_faces, band)
+    if contacts.count == 0:
+        return {"contact_count": 0, "penetrating_count": 0}
+    s = collision.signed_distance_along_normal(x, body_verts, body_faces, contacts)
+    return {"contact_count": contacts.count, "penetrating_count": int((s < 0).sum())}
+
+
+def drape_to_equilibrium(
+    model: ClothModel,
+    rest_uv: torch.Tensor,
+    *,
+    body_verts: torch.Tensor | None = None,
+    body_faces: torch.Tensor | None = None,
+    material: ClothMaterial | None = None,
+    state: ClothState | None = None,
+    config: DrapeConfig | None = None,
+) -> DrapeResult:
+    """Step until quasi-equilibrium (largest vertex speed < ``speed_tol`` for ``settle_steps`` frames).
+
+    Args:
+        model: the cloth model.
+        rest_uv: (V, 2) panel-vertex rest coordinates [m].
+        body_verts: (Vb, 3) body vertices [m]; body_faces: (Fb, 3) int64 (both or neither).
+        material: overrides ``model.material``.
+        state: start state (warm start, e.g. ``previous_result.state``); default: the placement at rest.
+        config: drape options.
+
+    Returns:
+        a `DrapeResult` (``converged`` False when ``max_steps`` ran out).
+
+    Raises:
+        SimulationError: the simulation blew up.
+    """
+    config = DrapeConfig() if config is None else config
+    body_verts, body_faces = _check_body(body_verts, body_faces, model)
+    t0 = time.perf_counter()
+    rest = model.rest_data(rest_uv, material)
+    solver = XPBDSolver(model, config.xpbd)
+    state = model.initial_state() if state is None else state
+    if state.x.shape != (model.vert_count, 3):
+        raise ValueError(f"state.x must be ({model.vert_count}, 3), got {tuple(state.x.shape)}")
+    state = state.to(device=model.device, dtype=model.dtype)
+    settled, steps, speed = 0, 0, math.inf
+    while steps < config.max_steps:
+        state = solver.step(
+            state,
+            rest,
+            config.dt,
+            body_verts=body_verts,
+            body_faces=body_faces,
+            velocity_scale=config.drape_velocity_scale,
+        )
+        steps += 1
+        speed = float(state.v.norm(dim=-1).max())
+        settled = settled + 1 if speed < config.speed_tol else 0
+        if steps >= config.min_steps and settled >= config.settle_steps:
+            break
+    diagnostics = {
+        "max_strain": float(green_strain(state.x, model.tri_vertices, rest.tri_rest_inv).abs().max())
+    }
+    if body_verts is not None:
+        diagnostics.update(penetration_diagnostics(state.x, body_verts, body_faces))
+    return DrapeResult(
+        x=state.x,
+        v=state.v,
+        steps=steps,
+        max_speed=speed,
+        converged=settled >= config.settle_steps,
+        seconds=time.perf_counter() - t0,
+        diagnostics=diagnostics,
+        model=model,
+    )
+
+
+def max_stitch_gap(model: ClothModel, x: torch.Tensor) -> float:
+    """Largest distance [m] between stitched vertices of ``model`` (0 without open stitches)."""
+    if model.stitch_vertices.shape[0] == 0:
+        return 0.0
+    pairs = model.stitch_vertices
+    return float((x[pairs[:, 0]] - x[pairs[:, 1]]).norm(dim=-1).max())
+
+
+def sew(
+    model: ClothModel,
+    rest_uv: torch.Tensor,
+    *,
+    body_verts: torch.Tensor | None = None,
+    body_faces: torch.Tensor | None = None,
+    material: ClothMaterial | None = None,
+    config: DrapeConfig | None = None,
+) -> DrapeResult:
+    """Phase 1: close the open stitches of an unmerged model (``merge_seams=False``).
+
+    The stitch stiffness ramps geometrically from ``sew_stiffness_start`` to ``sew_stiffness_end`` over
+    ``sew_ramp_steps`` frames; sewing stops when the ramp is done and the largest gap is under
+    ``sew_gap_tol`` (``converged``), or after ``sew_max_steps``. ``diagnostics["max_stitch_gap_m"]``
+    reports the final gap.
+    """
+    config = DrapeConfig() if config is None else config
+    body_verts, body_faces = _check_body(body_verts, body_faces, model)
+    t0 = time.perf_counter()
+    rest = model.rest_data(rest_uv, material)
+    solver = XPBDSolver(model, config.sew_xpbd)
+    state = model.initial_state()
+    gap = max_stitch_gap(model, state.x)
+    steps = 0
+    k0, k1 = config.sew_stiffness_start, config.sew_stiffness_end
+    while steps < config.sew_max_steps:
+        frac = min(1.0, steps / max(1, config.sew_ramp_steps))
+        stiffness = k0 * (k1 / k0) ** frac
+        state = solver.step(
+            state,
+            rest,
+            config.dt,
+            body_verts=body_verts,
+            body_faces=body_faces,
+            gravity_scale=config.sew_gravity_scale,
+            stitch_compliance=1.0 / stiffness,
+            velocity_scale=config.sew_velocity_scale,
+            friction_scale=config.sew_friction_scale,
+        )
+        steps += 1
+        gap = max_stitch_gap(model, state.x)
+        if frac >= 1.0 and gap < config.sew_gap_tol:
+            break
+    diagnostics = {
+        "max_stitch_gap_m": gap,
+        "max_strain": float(green_strain(state.x, model.tri_vertices, rest.tri_rest_inv).abs().max()),
+    }
+    return DrapeResult(
+        x=state.x,
+        v=state.v,
+        steps=steps,
+        max_speed=float(state.v.norm(dim=-1).max()),
+        converged=gap < config.sew_gap_tol,
+        seconds=time.perf_counter() - t0,
+        diagnostics=diagnostics,
+        model=model,
+    )
+
+
+def sew_and_drape(
+    garment: GarmentMesh,
+    *,
+    rest_uv: torch.Tensor | None = None,
+    body_verts: torch.Tensor | None = None,
+    body_faces: torch.Tensor | None = None,
+    material: ClothMaterial | None = None,
+    config: DrapeConfig | None = None,
+    device=None,
+    dtype: torch.dtype = torch.float32,
+) -> DrapeResult:
+    """Sew the garment's open seams (phase 1), then drape the seam-merged garment (phase 2).
+
+    Args:
+        garment: meshed and placed pattern (panels apart, ``stitch_pairs`` open).
+        rest_uv: (V, 2) rest coordinates [m] (default ``garment.vert_uv``).
+        body_verts, body_faces: the body (both or neither).
+        material: cloth material (default `medium_cotton`).
+        config: drape options.
+
+    Returns:
+        the phase-2 `DrapeResult` on the merged model (``result.model``), whose diagnostics also hold
+        ``max_stitch_gap_m``, ``sew_steps``, ``sew_seconds`` and ``sew_converged`` from phase 1.
+
+    Raises:
+        SimulationError: either phase blew up (the message says which).
+    """
+    config = DrapeConfig() if config is None else config
+    rest_uv = garment.vert_uv if rest_uv is None else rest_uv
+    sew_model = ClothModelBuilder(material).add_garment(garment, merge_seams=False).finalize(device, dtype)
+    drape_model = ClothModelBuilder(material).add_garment(garment, merge_seams=True).finalize(device, dtype)
+    rest_uv = rest_uv.to(device=sew_model.device, dtype=dtype)
+    try:
+        sewn = sew(sew_model, rest_uv, body_verts=body_verts, body_faces=body_faces, config=config)
+    except SimulationError as exc:
+        raise SimulationError(f"sewing phase: {exc}") from exc
+    gap = sewn.diagnostics["max_stitch_gap_m"]
+    if gap > config.sew_gap_max:
+        pairs = sew_model.stitch_vertices
+        worst = int((sewn.x[pairs[:, 0]] - sewn.x[pairs[:, 1]]).norm(dim=-1).argmax())
+        a, b = (int(v) for v in pairs[worst])
+        names = garment.panel_names
+        panels = (names[int(garment.vert_panel[a])], names[int(garment.vert_panel[b])])
+        raise SimulationError(
+            f"sewing phase: seams did not close after {sewn.steps} frames (max stitch gap {gap * 1e3:.1f} mm "
+            f"> sew_gap_max {config.sew_gap_max * 1e3:.1f} mm, between panels {panels[0]!r} and "
+            f"{panels[1]!r} at {[round(float(c), 3) for c in sewn.x[a]]}); the placement probably lays "
+            "that seam across the body"
+        )
+    x0 = drape_model.sim_positions(sewn.x)
+    try:
+        result = drape_to_equilibrium(
+            drape_model,
+            rest_uv,
+            body_verts=body_verts,
+            body_faces=body_faces,
+            state=drape_model.initial_state(x0),
+            config=config,
+        )
+    except SimulationError as exc:
+        raise SimulationError(f"drape phase: {exc}") from exc
+    result.diagnostics.update(
+        max_stitch_gap_m=sewn.diagnostics["max_stitch_gap_m"],
+        sew_steps=sewn.steps,
+        sew_seconds=sewn.seconds,
+        sew_converged=sewn.converged,
+    )
+    result.seconds += sewn.seconds
+    return result

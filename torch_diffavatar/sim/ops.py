@@ -1,0 +1,158 @@
+"""The one place that picks a simulator kernel: the C++ op when available, else the PyTorch twin.
+
+``torch.ops.diffavatar.<name>`` is used when the extension is built (`torch_diffavatar._ext.has_extension`),
+registers an op of that name, and the tensors are on the CPU; otherwise `torch_diffavatar.sim.reference`.
+Both follow the contract documented in `torch_diffavatar.sim.reference` (in-place ops return ``None``).
+Pass ``use_extension=False`` to force the reference (the tests and benchmarks compare the two).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from torch_diffavatar._ext import has_extension
+from torch_diffavatar.sim import reference
+
+__all__ = [
+    "bend_project_",
+    "bend_project_jacobi_",
+    "closest_point_on_mesh",
+    "extension_op",
+    "stretch_project_",
+    "stretch_project_jacobi_",
+]
+
+_FAKES_REGISTERED: set[str] = set()
+
+
+def extension_op(name: str):
+    """The compiled op ``torch.ops.diffavatar.<name>``, or None when the extension or the op is missing."""
+    if not has_extension():
+        return None
+    namespace = torch.ops.diffavatar
+    if not hasattr(namespace, name):
+        return None
+    _register_fake(name)
+    return getattr(namespace, name)
+
+
+def _register_fake(name: str) -> None:
+    """Shape-only (fake) kernels so `torch.compile` and `torch.library.opcheck` can trace the ops."""
+    if name in _FAKES_REGISTERED:
+        return
+    _FAKES_REGISTERED.add(name)
+
+    def fake_inplace(*args):
+        return None
+
+    def fake_closest(points, verts, faces, max_dist):
+        n = points.shape[0]
+        return (
+            points.new_empty((n,), dtype=torch.int64),
+            points.new_empty((n, 3)),
+            points.new_empty((n,)),
+        )
+
+    fake = fake_closest if name == "closest_point_on_mesh" else fake_inplace
+    try:
+        torch.library.register_fake(f"diffavatar::{name}")(fake)
+    except RuntimeError:
+        pass  # the extension already provides a fake/Meta kernel
+
+
+def _pick(name: str, x: torch.Tensor, use_extension: bool):
+    if use_extension and x.device.type == "cpu":
+        op = extension_op(name)
+        if op is not None:
+            return op
+    return getattr(reference, name)
+
+
+def stretch_project_(
+    x: torch.Tensor,
+    lam: torch.Tensor,
+    vert_inv_mass: torch.Tensor,
+    tri_vertices: torch.Tensor,
+    tri_rest_inv: torch.Tensor,
+    tri_compliance: torch.Tensor,
+    order: torch.Tensor,
+    color_offsets: torch.Tensor,
+    dt: float,
+    *,
+    use_extension: bool = True,
+) -> None:
+    """Colour-ordered Gauss–Seidel pass of the StVK stretch constraints (see `reference.stretch_project_`)."""
+    _pick("stretch_project_", x, use_extension)(
+        x, lam, vert_inv_mass, tri_vertices, tri_rest_inv, tri_compliance, order, color_offsets, float(dt)
+    )
+
+
+def stretch_project_jacobi_(
+    x: torch.Tensor,
+    lam: torch.Tensor,
+    vert_inv_mass: torch.Tensor,
+    tri_vertices: torch.Tensor,
+    tri_rest_inv: torch.Tensor,
+    tri_compliance: torch.Tensor,
+    dt: float,
+    omega: float,
+    *,
+    use_extension: bool = True,
+) -> None:
+    """Jacobi pass of the stretch constraints (see `reference.stretch_project_jacobi_`)."""
+    _pick("stretch_project_jacobi_", x, use_extension)(
+        x, lam, vert_inv_mass, tri_vertices, tri_rest_inv, tri_compliance, float(dt), float(omega)
+    )
+
+
+def bend_project_(
+    x: torch.Tensor,
+    lam: torch.Tensor,
+    vert_inv_mass: torch.Tensor,
+    edge_quads: torch.Tensor,
+    edge_rest_angle: torch.Tensor,
+    edge_compliance: torch.Tensor,
+    order: torch.Tensor,
+    color_offsets: torch.Tensor,
+    dt: float,
+    *,
+    use_extension: bool = True,
+) -> None:
+    """Colour-ordered Gauss–Seidel pass of the bending constraints (see `reference.bend_project_`)."""
+    _pick("bend_project_", x, use_extension)(
+        x, lam, vert_inv_mass, edge_quads, edge_rest_angle, edge_compliance, order, color_offsets, float(dt)
+    )
+
+
+def bend_project_jacobi_(
+    x: torch.Tensor,
+    lam: torch.Tensor,
+    vert_inv_mass: torch.Tensor,
+    edge_quads: torch.Tensor,
+    edge_rest_angle: torch.Tensor,
+    edge_compliance: torch.Tensor,
+    dt: float,
+    omega: float,
+    *,
+    use_extension: bool = True,
+) -> None:
+    """Jacobi pass of the bending constraints (see `reference.bend_project_jacobi_`)."""
+    _pick("bend_project_jacobi_", x, use_extension)(
+        x, lam, vert_inv_mass, edge_quads, edge_rest_angle, edge_compliance, float(dt), float(omega)
+    )
+
+
+def closest_point_on_mesh(
+    points: torch.Tensor,
+    verts: torch.Tensor,
+    faces: torch.Tensor,
+    max_dist: float,
+    *,
+    use_extension: bool = True,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Closest triangle, barycentrics and distance per point (see `reference.closest_point_on_mesh`).
+
+    Returns:
+        tri (N,) int64 (-1 when farther than ``max_dist``), bary (N, 3), dist (N,) [m] (inf when -1).
+    """
+    return _pick("closest_point_on_mesh", points, use_extension)(points, verts, faces, float(max_dist))

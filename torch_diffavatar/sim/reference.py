@@ -1,0 +1,410 @@
+"""PyTorch twins of the simulator's C++ kernels (the contract is /tmp/team/KERNELS.md, restated here).
+
+Every function here has the same signature and semantics as the op ``torch.ops.diffavatar.<name>``
+that ``csrc/`` registers; ``sim/ops.py`` picks between the two. The projection kernels work in place
+on ``x`` and ``lam`` and return ``None``. They are written for clarity and vectorised over one colour
+at a time (constraints of one colour share no vertex, so their corrections can be applied together).
+
+Conventions shared with the C++ (test against these, not against the prose):
+
+* **Stretch** (orthotropic StVK, one 3-vector block per triangle). ``D = [x0-x2, x1-x2]`` (3x2),
+  ``F = D @ tri_rest_inv`` (3x2), ``E = (F^T F - I) / 2``, ``C = [E00, E11, E01]`` (E01 not doubled).
+  ``dC_k/dD = P_k @ tri_rest_inv^T`` with ``P_0 = [f0, 0]``, ``P_1 = [0, f1]``, ``P_2 = [f1, f0] / 2``
+  (``f_j`` the columns of F); ``dC_k/dx0``, ``dC_k/dx1`` are the two columns and
+  ``dC_k/dx2 = -(col0 + col1)``. With ``G_i`` the 3x3 matrix whose row k is ``dC_k/dx_i``:
+  ``A = sum_i w_i G_i G_i^T + alpha / dt^2`` (NOTE: ``G_i G_i^T``, the 3x3 Schur complement
+  ``grad C  M^-1  grad C^T``; KERNELS.md's ``G_i^T G_i`` is a typo),
+  ``dlam = A^-1 (-C - alpha/dt^2 lam)``, ``lam += dlam``, ``x_i += w_i G_i^T dlam``.
+  Triangles whose three inverse masses are all 0 are skipped.
+* **Bend** (signed dihedral angle per interior edge). ``n1 = (x1-x0) x (x2-x0)``,
+  ``n2 = (x0-x1) x (x3-x1)`` (un-normalised normals of the triangles (v0,v1,v2) and (v1,v0,v3)),
+  ``e = x1 - x0``, ``theta = atan2((n1 x n2) . e/|e|, n1 . n2)`` (0 when flat; moving v2 or v3 along
+  its own triangle's normal decreases theta). The gradient below is the exact gradient of this theta
+  (checked against autograd in tests/sim/test_reference.py)::
+
+      dtheta/dx2 = -|e| n1/|n1|^2                       dtheta/dx3 = -|e| n2/|n2|^2
+      dtheta/dx0 = -((x2-x1).e/|e|) n1/|n1|^2 - ((x3-x1).e/|e|) n2/|n2|^2
+      dtheta/dx1 =  ((x2-x0).e/|e|) n1/|n1|^2 + ((x3-x0).e/|e|) n2/|n2|^2
+
+  (Bridson et al. 2003 with the overall sign flipped for this orientation convention.)
+  ``C = theta - rest``, ``dlam = (-C - alpha/dt^2 lam) / (sum_i w_i |dtheta/dx_i|^2 + alpha/dt^2)``,
+  ``lam += dlam``, ``x_i += w_i dtheta/dx_i dlam``. Quads with ``|e| < 1e-12`` or
+  ``|n1|^2, |n2|^2 < 1e-24`` are skipped (no change to x or lam).
+* **Colour order**: ``order`` (K,) int64 lists constraint ids colour by colour, ``color_offsets``
+  (n_colors+1,) int64 marks where each colour starts. Colours are processed in sequence, constraints
+  of a colour simultaneously (they share no vertex). Constraints absent from ``order`` are not touched.
+* **Jacobi** (``*_jacobi_``, no order/offsets, extra ``omega``): every constraint's dlam and dx are
+  computed from the same x; ``lam += dlam`` for all; per vertex the dx are summed and
+  ``x += omega * sum_dx / count`` where ``count`` is the number of non-skipped constraints that
+  contain the vertex (vertices with count 0 do not move).
+* **closest_point_on_mesh**: for each point the closest point on a triangle mesh, exact
+  (Ericson, "Real-Time Collision Detection", 5.1.5); returns ``tri`` (-1 when none within
+  ``max_dist``), barycentric ``bary`` (zeros when ``tri`` is -1) and unsigned ``dist`` (inf when -1).
+"""
+
+from __future__ import annotations
+
+import torch
+
+_BEND_EPS_LEN = 1e-12
+_BEND_EPS_N2 = 1e-24
+
+
+# --------------------------------------------------------------------------------------------- stretch
+
+
+def _sym3_solve(a00, a01, a02, a11, a12, a22, r0, r1, r2):
+    """Solve symmetric 3x3 systems by the adjugate (batched over the leading shape)."""
+    c00 = a11 * a22 - a12 * a12
+    c01 = a02 * a12 - a01 * a22
+    c02 = a01 * a12 - a02 * a11
+    c11 = a00 * a22 - a02 * a02
+    c12 = a01 * a02 - a00 * a12
+    c22 = a00 * a11 - a01 * a01
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    return (
+        (c00 * r0 + c01 * r1 + c02 * r2) / det,
+        (c01 * r0 + c11 * r1 + c12 * r2) / det,
+        (c02 * r0 + c12 * r1 + c22 * r2) / det,
+    )
+
+
+def _stretch_delta(x, lam_c, w, tri, rest_inv, compliance, dt):
+    """Corrections of a set of stretch constraints evaluated at the same ``x``.
+
+    Args:
+        x: (Vs, 3) positions; lam_c: (K, 3) their multipliers; w: (Vs,) inverse masses;
+        tri: (K, 3) int64 vertex ids; rest_inv: (K, 2, 2); compliance: (K, 3, 3); dt: float [s].
+
+    Returns:
+        dlam (K, 3), dx (K, 3, 3) per-vertex corrections (already multiplied by w_i), active (K,) bool.
+
+    Closed form of the contract's matrices: with ``rest_inv = [[a, b], [c, d]]`` and, per triangle
+    corner i, ``(p_i, q_i) = (a, b), (c, d), (-a-c, -b-d)``, the gradient rows are
+    ``dC0/dx_i = p_i f0``, ``dC1/dx_i = q_i f1``, ``dC2/dx_i = (q_i f0 + p_i f1) / 2``, so
+    ``A = sum_i w_i G_i G_i^T`` only needs ``f0.f0``, ``f1.f1``, ``f0.f1`` and
+    ``W_pp = sum w p^2``, ``W_qq = sum w q^2``, ``W_pq = sum w p q`` (checked against autograd in tests).
+    """
+    xt = x[tri]  # (K, 3, 3)  [corner, xyz]
+    wt = w[tri]  # (K, 3)
+    d0 = xt[:, 0] - xt[:, 2]
+    d1 = xt[:, 1] - xt[:, 2]
+    a, b = rest_inv[:, 0, 0, None], rest_inv[:, 0, 1, None]
+    c, d = rest_inv[:, 1, 0, None], rest_inv[:, 1, 1, None]
+    f0 = d0 * a + d1 * c  # (K, 3)
+    f1 = d0 * b + d1 * d
+    s00 = (f0 * f0).sum(-1)
+    s11 = (f1 * f1).sum(-1)
+    s01 = (f0 * f1).sum(-1)
+    c0, c1, c2 = 0.5 * (s00 - 1.0), 0.5 * (s11 - 1.0), 0.5 * s01
+    p = torch.stack((a[:, 0], c[:, 0], -a[:, 0] - c[:, 0]), dim=1)  # (K, 3) per corner
+    q = torch.stack((b[:, 0], d[:, 0], -b[:, 0] - d[:, 0]), dim=1)
+    wpp = (wt * p * p).sum(-1)
+    wqq = (wt * q * q).sum(-1)
+    wpq = (wt * p * q).sum(-1)
+    inv_dt2 = 1.0 / (dt * dt)
+    al = compliance * inv_dt2  # (K, 3, 3)
+    a00 = wpp * s00 + al[:, 0, 0]
+    a11 = wqq * s11 + al[:, 1, 1]
+    a22 = 0.25 * (wqq * s00 + 2.0 * wpq * s01 + wpp * s11) + al[:, 2, 2]
+    a01 = wpq * s01 + al[:, 0, 1]
+    a02 = 0.5 * (wpq * s00 + wpp * s01) + al[:, 0, 2]
+    a12 = 0.5 * (wqq * s01 + wpq * s11) + al[:, 1, 2]
+    l0, l1, l2 = lam_c[:, 0], lam_c[:, 1], lam_c[:, 2]
+    r0 = -c0 - (al[:, 0, 0] * l0 + al[:, 0, 1] * l1 + al[:, 0, 2] * l2)
+    r1 = -c1 - (al[:, 1, 0] * l0 + al[:, 1, 1] * l1 + al[:, 1, 2] * l2)
+    r2 = -c2 - (al[:, 2, 0] * l0 + al[:, 2, 1] * l1 + al[:, 2, 2] * l2)
+    active = (wt > 0).any(-1)
+    one = torch.ones_like(a00)
+    a00 = torch.where(active, a00, one)
+    a11 = torch.where(active, a11, one)
+    a22 = torch.where(active, a22, one)
+    zero = torch.zeros_like(a00)
+    a01, a02, a12 = (torch.where(active, t, zero) for t in (a01, a02, a12))
+    dl0, dl1, dl2 = _sym3_solve(a00, a01, a02, a11, a12, a22, r0, r1, r2)
+    dlam = torch.stack((dl0, dl1, dl2), dim=-1)
+    dlam = torch.where(active[:, None], dlam, torch.zeros_like(dlam))
+    dl0, dl1, dl2 = dlam[:, 0, None], dlam[:, 1, None], dlam[:, 2, None]
+    # x_i += w_i * ((p_i dl0 + q_i dl2 / 2) f0 + (q_i dl1 + p_i dl2 / 2) f1)
+    cf0 = wt * (p * dl0 + 0.5 * q * dl2)  # (K, 3) per corner
+    cf1 = wt * (q * dl1 + 0.5 * p * dl2)
+    dx = cf0[:, :, None] * f0[:, None, :] + cf1[:, :, None] * f1[:, None, :]  # (K, 3[corner], 3[xyz])
+    return dlam, dx, active
+
+
+def stretch_project_(
+    x: torch.Tensor,
+    lam: torch.Tensor,
+    vert_inv_mass: torch.Tensor,
+    tri_vertices: torch.Tensor,
+    tri_rest_inv: torch.Tensor,
+    tri_compliance: torch.Tensor,
+    order: torch.Tensor,
+    color_offsets: torch.Tensor,
+    dt: float,
+) -> None:
+    """One colour-ordered Gauss–Seidel pass of the StVK stretch constraints, in place on x and lam.
+
+    Args:
+        x: (Vs, 3) positions [m], updated in place.
+        lam: (F, 3) accumulated XPBD multipliers, updated in place.
+        vert_inv_mass: (Vs,) inverse masses [1/kg] (0 = pinned).
+        tri_vertices: (F, 3) int64 sim-vertex ids.
+        tri_rest_inv: (F, 2, 2) inverse of the rest edge matrix ``[u0-u2, u1-u2]`` [1/m].
+        tri_compliance: (F, 3, 3) SPD compliance of C (already divided by the rest area) [1/(N/m * m^2)].
+        order: (K,) int64 triangle ids colour by colour.
+        color_offsets: (n_colors + 1,) int64 start of each colour in ``order``.
+        dt: substep [s].
+    """
+    offsets = color_offsets.tolist()
+    for start, end in zip(offsets[:-1], offsets[1:]):
+        if end <= start:
+            continue
+        ids = order[start:end]
+        tri = tri_vertices[ids]
+        dlam, dx, _ = _stretch_delta(
+            x, lam[ids], vert_inv_mass, tri, tri_rest_inv[ids], tri_compliance[ids], dt
+        )
+        lam[ids] += dlam
+        x.index_add_(0, tri.reshape(-1), dx.reshape(-1, 3))
+
+
+def stretch_project_jacobi_(
+    x: torch.Tensor,
+    lam: torch.Tensor,
+    vert_inv_mass: torch.Tensor,
+    tri_vertices: torch.Tensor,
+    tri_rest_inv: torch.Tensor,
+    tri_compliance: torch.Tensor,
+    dt: float,
+    omega: float,
+) -> None:
+    """One Jacobi pass of all stretch constraints (arguments as `stretch_project_`; ``omega`` the
+    relaxation factor): ``x += omega * sum_dx / count`` per vertex, ``lam += dlam`` for all triangles."""
+    dlam, dx, active = _stretch_delta(x, lam, vert_inv_mass, tri_vertices, tri_rest_inv, tri_compliance, dt)
+    lam += dlam
+    _jacobi_apply(x, tri_vertices, dx, active, omega)
+
+
+def _jacobi_apply(x, ids, dx, active, omega):
+    """x += omega * (sum of dx per vertex) / (number of active constraints containing the vertex)."""
+    flat = ids.reshape(-1)
+    total = torch.zeros_like(x).index_add_(0, flat, dx.reshape(-1, 3))
+    count = torch.zeros_like(x[:, 0]).index_add_(
+        0, flat, active[:, None].expand(ids.shape).reshape(-1).to(x.dtype)
+    )
+    x += omega * total / count.clamp_min(1.0)[:, None]
+
+
+# ------------------------------------------------------------------------------------------------ bend
+
+
+def dihedral_angle(x0, x1, x2, x3):
+    """Signed dihedral angle [rad] of the quads (..., 3) x4 as defined in the module docstring."""
+    e = x1 - x0
+    n1 = torch.linalg.cross(e, x2 - x0)
+    n2 = torch.linalg.cross(x0 - x1, x3 - x1)
+    e_hat = e / e.norm(dim=-1, keepdim=True)
+    return torch.atan2((torch.linalg.cross(n1, n2) * e_hat).sum(-1), (n1 * n2).sum(-1))
+
+
+def _bend_delta(x, lam_c, w, quads, rest_angle, compliance, dt):
+    """Corrections of a set of bend constraints evaluated at the same ``x``.
+
+    Returns:
+        dlam (K,), dx (K, 4, 3) per-vertex corrections (already multiplied by w_i), active (K,) bool.
+    """
+    xq = x[quads]  # (K, 4, 3)
+    wq = w[quads]  # (K, 4)
+    x0, x1, x2, x3 = xq.unbind(1)
+    e = x1 - x0
+    e_len = e.norm(dim=-1)
+    n1 = torch.linalg.cross(e, x2 - x0)
+    n2 = torch.linalg.cross(x0 - x1, x3 - x1)
+    n1_sq = (n1 * n1).sum(-1)
+    n2_sq = (n2 * n2).sum(-1)
+    active = (e_len >= _BEND_EPS_LEN) & (n1_sq >= _BEND_EPS_N2) & (n2_sq >= _BEND_EPS_N2)
+    one = torch.ones_like(e_len)
+    e_len_s = torch.where(active, e_len, one)
+    e_hat = e / e_len_s[:, None]
+    m1 = n1 / torch.where(active, n1_sq, one)[:, None]
+    m2 = n2 / torch.where(active, n2_sq, one)[:, None]
+    theta = torch.atan2((torch.linalg.cross(n1, n2) * e_hat).sum(-1), (n1 * n2).sum(-1))
+    g2 = -e_len_s[:, None] * m1
+    g3 = -e_len_s[:, None] * m2
+    g0 = -((x2 - x1) * e_hat).sum(-1, keepdim=True) * m1 - ((x3 - x1) * e_hat).sum(-1, keepdim=True) * m2
+    g1 = ((x2 - x0) * e_hat).sum(-1, keepdim=True) * m1 + ((x3 - x0) * e_hat).sum(-1, keepdim=True) * m2
+    g = torch.stack((g0, g1, g2, g3), dim=1)  # (K, 4, 3)
+    alpha_t = compliance / (dt * dt)
+    denom = (wq * (g * g).sum(-1)).sum(-1) + alpha_t
+    c = theta - rest_angle
+    ok = active & (denom > 0)
+    dlam = torch.where(ok, (-c - alpha_t * lam_c) / torch.where(ok, denom, one), torch.zeros_like(c))
+    dx = wq[..., None] * g * dlam[:, None, None]
+    return dlam, dx, ok
+
+
+def bend_project_(
+    x: torch.Tensor,
+    lam: torch.Tensor,
+    vert_inv_mass: torch.Tensor,
+    edge_quads: torch.Tensor,
+    edge_rest_angle: torch.Tensor,
+    edge_compliance: torch.Tensor,
+    order: torch.Tensor,
+    color_offsets: torch.Tensor,
+    dt: float,
+) -> None:
+    """One colour-ordered Gauss–Seidel pass of the dihedral bending constraints, in place on x and lam.
+
+    Args:
+        x: (Vs, 3) positions [m], updated in place.
+        lam: (E,) accumulated multipliers, updated in place.
+        vert_inv_mass: (Vs,) inverse masses [1/kg].
+        edge_quads: (E, 4) int64 (v0, v1, v2, v3): v0-v1 the shared edge, v2 opposite in (v0, v1, v2),
+            v3 opposite in (v1, v0, v3).
+        edge_rest_angle: (E,) rest dihedral angle [rad].
+        edge_compliance: (E,) compliance [1/(N m)] (includes the geometric weight).
+        order: (K,) int64 edge ids colour by colour; color_offsets: (n_colors + 1,) int64.
+        dt: substep [s].
+    """
+    offsets = color_offsets.tolist()
+    for start, end in zip(offsets[:-1], offsets[1:]):
+        if end <= start:
+            continue
+        ids = order[start:end]
+        quads = edge_quads[ids]
+        dlam, dx, _ = _bend_delta(
+            x, lam[ids], vert_inv_mass, quads, edge_rest_angle[ids], edge_compliance[ids], dt
+        )
+        lam[ids] += dlam
+        x.index_add_(0, quads.reshape(-1), dx.reshape(-1, 3))
+
+
+def bend_project_jacobi_(
+    x: torch.Tensor,
+    lam: torch.Tensor,
+    vert_inv_mass: torch.Tensor,
+    edge_quads: torch.Tensor,
+    edge_rest_angle: torch.Tensor,
+    edge_compliance: torch.Tensor,
+    dt: float,
+    omega: float,
+) -> None:
+    """One Jacobi pass of all bending constraints (arguments as `bend_project_`, plus ``omega``)."""
+    dlam, dx, active = _bend_delta(x, lam, vert_inv_mass, edge_quads, edge_rest_angle, edge_compliance, dt)
+    lam += dlam
+    _jacobi_apply(x, edge_quads, dx, active, omega)
+
+
+# ------------------------------------------------------------------------------------- closest point
+
+
+def closest_point_on_triangles(p, a, b, c):
+    """Exact closest point on triangles (Ericson 5.1.5), broadcasting over leading dims.
+
+    Args:
+        p, a, b, c: (..., 3) query points and triangle corners.
+
+    Returns:
+        bary: (..., 3) barycentric coordinates of the closest point (weights of a, b, c).
+    """
+    ab = b - a
+    ac = c - a
+    ap = p - a
+    d1 = (ab * ap).sum(-1)
+    d2 = (ac * ap).sum(-1)
+    bp = p - b
+    d3 = (ab * bp).sum(-1)
+    d4 = (ac * bp).sum(-1)
+    cp = p - c
+    d5 = (ab * cp).sum(-1)
+    d6 = (ac * cp).sum(-1)
+    va = d3 * d6 - d5 * d4
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+
+    def safe_div(num, den):
+        ok = den != 0
+        return torch.where(ok, num / torch.where(ok, den, torch.ones_like(den)), torch.zeros_like(num))
+
+    zero = torch.zeros_like(d1)
+    one = torch.ones_like(d1)
+    # interior (default), then regions overriding in reverse of Ericson's early-return order
+    denom = va + vb + vc
+    v = safe_div(vb, denom)
+    w = safe_div(vc, denom)
+    u = 1.0 - v - w
+    # edge BC
+    w_bc = safe_div(d4 - d3, (d4 - d3) + (d5 - d6))
+    m = (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0)
+    u, v, w = torch.where(m, zero, u), torch.where(m, 1.0 - w_bc, v), torch.where(m, w_bc, w)
+    # edge AC
+    w_ac = safe_div(d2, d2 - d6)
+    m = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
+    u, v, w = torch.where(m, 1.0 - w_ac, u), torch.where(m, zero, v), torch.where(m, w_ac, w)
+    # vertex C
+    m = (d6 >= 0) & (d5 <= d6)
+    u, v, w = torch.where(m, zero, u), torch.where(m, zero, v), torch.where(m, one, w)
+    # edge AB
+    v_ab = safe_div(d1, d1 - d3)
+    m = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
+    u, v, w = torch.where(m, 1.0 - v_ab, u), torch.where(m, v_ab, v), torch.where(m, zero, w)
+    # vertex B
+    m = (d3 >= 0) & (d4 <= d3)
+    u, v, w = torch.where(m, zero, u), torch.where(m, one, v), torch.where(m, zero, w)
+    # vertex A
+    m = (d1 <= 0) & (d2 <= 0)
+    u, v, w = torch.where(m, one, u), torch.where(m, zero, v), torch.where(m, zero, w)
+    return torch.stack((u, v, w), dim=-1)
+
+
+def closest_point_on_mesh(
+    points: torch.Tensor, verts: torch.Tensor, faces: torch.Tensor, max_dist: float
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Closest point on a triangle mesh for each query point (brute force in chunks; no autograd).
+
+    Args:
+        points: (N, 3) query points [m].
+        verts: (Vb, 3) mesh vertices [m].
+        faces: (Fb, 3) int64 triangles.
+        max_dist: search radius [m]; farther points get no triangle.
+
+    Returns:
+        tri: (N,) int64 closest triangle (-1 when none within ``max_dist``).
+        bary: (N, 3) barycentric coordinates of the closest point on ``tri`` (zeros when -1).
+        dist: (N,) unsigned distance [m] (inf when -1).
+    """
+    n = points.shape[0]
+    tri = torch.full((n,), -1, dtype=torch.int64, device=points.device)
+    bary = points.new_zeros(n, 3)
+    dist = points.new_full((n,), float("inf"))
+    if n == 0 or faces.shape[0] == 0:
+        return tri, bary, dist
+    with torch.no_grad():
+        a, b, c = verts[faces].unbind(1)  # (Fb, 3) each
+        lo = torch.minimum(torch.minimum(a, b), c) - max_dist
+        hi = torch.maximum(torch.maximum(a, b), c) + max_dist
+        chunk = max(1, 2_000_000 // faces.shape[0])
+        for s in range(0, n, chunk):
+            p = points[s : s + chunk]  # (P, 3)
+            near = ((p[:, None] >= lo[None]) & (p[:, None] <= hi[None])).all(-1)  # (P, Fb)
+            pi, fi = near.nonzero(as_tuple=True)
+            if pi.numel() == 0:
+                continue
+            bc = closest_point_on_triangles(p[pi], a[fi], b[fi], c[fi])  # (M, 3)
+            q = bc[:, :1] * a[fi] + bc[:, 1:2] * b[fi] + bc[:, 2:] * c[fi]
+            d = (p[pi] - q).norm(dim=-1)
+            best = p.new_full((p.shape[0],), float("inf")).scatter_reduce(0, pi, d, reduce="amin")
+            is_best = d == best[pi]
+            # one winner per point (ties: any)
+            winner = torch.full((p.shape[0],), -1, dtype=torch.int64, device=p.device)
+            cand = torch.nonzero(is_best).squeeze(1)
+            winner[pi[cand]] = cand
+            hit = (winner >= 0) & (best <= max_dist)
+            rows = torch.nonzero(hit).squeeze(1)
+            sel = winner[rows]
+            tri[s + rows] = fi[sel]
+            bary[s + rows] = bc[sel]
+            dist[s + rows] = d[sel]
+    return tri, bary, dist
