@@ -14,6 +14,8 @@ def has_extension() -> bool:
     """True when the compiled ops are importable; warns once when they are not."""
     if "ok" not in _STATE:
         try:
+            import torch  # noqa: F401  (loads libc10/libtorch, which _C links against)
+
             from torch_diffavatar import _C  # noqa: F401  (importing registers the ops)
 
             _STATE["ok"] = True

@@ -14,6 +14,7 @@ _COMMAND_MODULES = (
     "torch_diffavatar.pattern.commands",
     "torch_diffavatar.sim.commands",
     "torch_diffavatar.body.commands",
+    "torch_diffavatar.fit_commands",
     "torch_diffavatar.demo",
 )
 
