@@ -1,0 +1,890 @@
+"""The fit (paper §4.2): pattern cage, body and bending stiffness optimised through the differentiable drape.
+
+A standard ``torch.optim.Adam`` loop over `FitParameters` (control-cage handles ζ, body phenotypes /
+translation / pose, log bending stiffness; one parameter group and learning rate each). Every iteration
+drapes the garment with `torch_diffavatar.sim.differentiable.drape`, warm-started from the previous
+equilibrium (the very first start state is a full `sew_and_drape` of the placed template), computes
+
+    loss = ρ·boundary + σ·interior + α·seam_length + β·curvature  (+ a weak phenotype prior)
+
+(`LossWeights`, terms of `torch_diffavatar.losses`), backpropagates through the drape and steps.
+
+Guards: non-finite gradient entries are zeroed (counted, never reach the parameters); a step that would
+shrink a rest triangle below ``min_rest_area_ratio`` of its template area (inverting it), make a
+parameter non-finite, or blow up the drape (`SimulationError`, non-finite positions, a vertex jumping
+more than ``max_drape_jump``) is rejected and retried at half the size (``max_retries`` times; then the
+step is dropped and the learning rates halved). TensorBoard (``<out>/tb``): every loss term, Chamfer
+distance, rest/draped mesh quality, bending stiffness, body parameters, pictures of the pattern and the
+drape, the draped mesh. A tqdm bar on stderr. A checkpoint (``<out>/checkpoint.pt``, atomic) after every
+iteration; ``resume=True`` continues from it bit for bit.
+
+Units: metres, kilograms, seconds; Chamfer distances in the report are *mean nearest-neighbour
+distances* [m] (the symmetric average of scan → garment and garment → scan), loss terms are in the units
+of `torch_diffavatar.losses` times their weights.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from torch_diffavatar.cage import ControlCage, seam_segments
+from torch_diffavatar.chamfer import nearest_indices
+from torch_diffavatar.errors import InputError, SimulationError
+from torch_diffavatar.losses import boundary_loss, curvature_loss, interior_loss, seam_length_loss
+from torch_diffavatar.metrics import triangle_quality
+from torch_diffavatar.pattern.garment_mesh import GarmentMesh
+from torch_diffavatar.sim.drape import DrapeConfig
+from torch_diffavatar.sim.material import ClothMaterial
+from torch_diffavatar.sim.model import ClothModel, ClothModelBuilder
+from torch_diffavatar.sim.solver import XPBDConfig
+from torch_diffavatar.sim.state import ClothState
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+CHECKPOINT = "checkpoint.pt"
+SETUP = "setup.pt"
+
+# ---------------------------------------------------------------------------------------------------------
+# Configuration
+
+
+@dataclass(frozen=True)
+class LossWeights:
+    """Weights of the fit loss terms (paper §4.2.5). Each weight times its term is dimensionless-ish.
+
+    Attributes:
+        boundary: ρ [1/m²], times `boundary_loss` (mean squared distance of the openings) [m²].
+        interior: σ [1/m²], times `interior_loss` (two-sided squared Chamfer) [m²].
+        seam_length: α [1/m⁴], times `seam_length_loss` (squared differences of squared lengths) [m⁴].
+        curvature: β [1/m²], times `curvature_loss` (boundary Laplacian residual) [m²].
+        phenotype_prior: [-], times the squared distance of the phenotypes from the initial body fit's.
+    """
+
+    boundary: float = 1.0e4
+    interior: float = 1.0e4
+    seam_length: float = 1.0e7
+    curvature: float = 1.0e5
+    phenotype_prior: float = 1.0
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"LossWeights.{f.name} must be a finite number >= 0, got {value!r}")
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """Everything a fit needs besides its inputs (YAML files in ``configs/`` fill it, see `load_config`).
+
+    Attributes:
+        template: garment template to start from (`torch_diffavatar.pattern.list_templates`).
+        spacing: mesh edge length [m] of the fitted garment.
+        iterations: optimisation iterations (one drape + one backward each).
+        lr_cage: Adam step of the cage handles [m].
+        lr_phenotypes: Adam step of the body phenotype logits [-] (0 freezes the body shape).
+        lr_translation: Adam step of the body translation [m] (0 freezes it).
+        lr_pose: Adam step of the body pose [rad] (0 freezes it).
+        lr_log_bend_stiffness: Adam step of log k_b [-] (0 freezes the material).
+        initial_bend_stiffness: k_b at the start [N·m].
+        weights: the loss weights.
+        adjoint: ``"trajectory"`` or ``"equilibrium"`` (see `sim.differentiable.drape`).
+        drape_steps: frames of every warm-started drape (fixed count: the drape is a function of the
+            parameters, not of a stopping test) [-]. The trajectory adjoint replays every substep of
+            every frame, so its cost is ∝ ``drape_steps · drape_substeps``.
+        drape_substeps: XPBD substeps per frame of the fit's drapes [-].
+        first_max_steps: frames at most of the first (sew and) drape [-].
+        max_scan_points: scan garment points used by the interior loss (a fixed random subset) [-].
+        boundary_samples: points per loop edge of the boundary loss (`boundary_loss` samples_per_edge).
+        min_rest_area_ratio: a step is rejected when a rest triangle's signed area falls below this
+            fraction of its template area [-].
+        max_drape_jump: a step is rejected when a cloth vertex moves more than this between two
+            successive drapes [m].
+        max_retries: halvings of a rejected step before it is dropped [-].
+        tie_mirrored, tie_seams: `ControlCage` tying options.
+        image_every: iterations between TensorBoard pictures (0: only first and last).
+        seed: seed of the scan subsampling.
+    """
+
+    template: str = "dress"
+    spacing: float = 0.025
+    iterations: int = 20
+    lr_cage: float = 0.004
+    lr_phenotypes: float = 0.02
+    lr_translation: float = 0.002
+    lr_pose: float = 0.0
+    lr_log_bend_stiffness: float = 0.1
+    initial_bend_stiffness: float = 5.0e-6
+    weights: LossWeights = field(default_factory=LossWeights)
+    adjoint: str = "trajectory"
+    drape_steps: int = 3
+    drape_substeps: int = 10
+    first_max_steps: int = 400
+    max_scan_points: int = 4000
+    boundary_samples: int = 2
+    min_rest_area_ratio: float = 0.1
+    max_drape_jump: float = 0.15
+    max_retries: int = 3
+    tie_mirrored: bool = True
+    tie_seams: bool = True
+    image_every: int = 5
+    seed: int = 0
+
+    def __post_init__(self):
+        from torch_diffavatar.sim.adjoint import ADJOINTS
+
+        if not isinstance(self.weights, LossWeights):
+            raise ValueError(f"FitConfig.weights must be a LossWeights, got {type(self.weights).__name__}")
+        if self.adjoint not in ADJOINTS:
+            raise ValueError(f"FitConfig.adjoint must be one of {sorted(ADJOINTS)}, got {self.adjoint!r}")
+        if not self.spacing > 0:
+            raise ValueError(f"FitConfig.spacing must be a positive length [m], got {self.spacing}")
+        if not self.initial_bend_stiffness > 0:
+            raise ValueError(
+                f"FitConfig.initial_bend_stiffness must be > 0 [N·m], got {self.initial_bend_stiffness}"
+            )
+        for name in (
+            "iterations",
+            "drape_steps",
+            "drape_substeps",
+            "first_max_steps",
+            "max_scan_points",
+            "boundary_samples",
+        ):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < (0 if name == "iterations" else 1):
+                raise ValueError(f"FitConfig.{name} must be an integer >= {0 if name == 'iterations' else 1}")
+        for name in ("lr_cage", "lr_phenotypes", "lr_translation", "lr_pose", "lr_log_bend_stiffness"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"FitConfig.{name} must be >= 0 (0 freezes the parameter)")
+
+
+def _field_names(cls) -> list[str]:
+    return [f.name for f in dataclasses.fields(cls)]
+
+
+def config_from_dict(data: dict, base: FitConfig | None = None, source: str = "config") -> FitConfig:
+    """A `FitConfig` from a (YAML) dict: keys are `FitConfig` fields, ``weights`` a dict of `LossWeights`.
+
+    Raises:
+        InputError: unknown keys (the message lists the valid ones) or invalid values.
+    """
+    base = FitConfig() if base is None else base
+    if not isinstance(data, dict):
+        raise InputError(f"{source}: expected a mapping of FitConfig fields, got {type(data).__name__}")
+    unknown = sorted(set(data) - set(_field_names(FitConfig)))
+    if unknown:
+        raise InputError(f"{source}: unknown key(s) {unknown}; valid keys: {_field_names(FitConfig)}")
+    values = dict(data)
+    if "weights" in values:
+        w = values["weights"] or {}
+        if not isinstance(w, dict):
+            raise InputError(f"{source}: 'weights' must be a mapping of {_field_names(LossWeights)}")
+        bad = sorted(set(w) - set(_field_names(LossWeights)))
+        if bad:
+            raise InputError(
+                f"{source}: unknown weights key(s) {bad}; valid keys: {_field_names(LossWeights)}"
+            )
+        try:
+            values["weights"] = replace(base.weights, **{k: float(v) for k, v in w.items()})
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"{source}: {exc}") from exc
+    for f in dataclasses.fields(FitConfig):  # YAML gives ints for floats like 1; keep the field's type
+        if f.name in values and f.name != "weights" and isinstance(getattr(base, f.name), float):
+            if isinstance(values[f.name], int | float) and not isinstance(values[f.name], bool):
+                values[f.name] = float(values[f.name])
+    try:
+        return replace(base, **values)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{source}: {exc}") from exc
+
+
+def config_to_dict(config: FitConfig) -> dict:
+    """Plain dict of a config (``weights`` nested), the inverse of `config_from_dict`."""
+    return dataclasses.asdict(config)
+
+
+def load_config(
+    path: str | os.PathLike | None = None, *, garment: str | None = None, **overrides
+) -> FitConfig:
+    """Resolve a fit configuration.
+
+    Args:
+        path: a YAML file; when None, ``configs/<garment>.yaml`` of the source tree if present, else the
+            `FitConfig` defaults with ``template = garment``.
+        garment: the garment type / template name (used when ``path`` is None).
+        overrides: fields set last (e.g. ``iterations=5``; None values are ignored).
+
+    Raises:
+        InputError: missing file, malformed YAML, unknown keys, invalid values.
+    """
+    import yaml
+
+    base = FitConfig() if garment is None else FitConfig(template=garment)
+    if path is None and garment is not None and (CONFIG_DIR / f"{garment}.yaml").is_file():
+        path = CONFIG_DIR / f"{garment}.yaml"
+    config = base
+    if path is not None:
+        path = Path(path)
+        if not path.is_file():
+            raise InputError(f"--config {path}: file not found")
+        try:
+            data = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError as exc:
+            raise InputError(f"{path}: malformed YAML ({exc})") from exc
+        config = config_from_dict(data, base, source=str(path))
+    overrides = {k: v for k, v in overrides.items() if v is not None}
+    return config_from_dict(overrides, config, source="overrides") if overrides else config
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Targets, parameters, guards
+
+
+@dataclass
+class ScanTarget:
+    """What the garment is fitted to (world frame, metres).
+
+    Attributes:
+        garment_points: (P, 3) scan points of the garment.
+        boundaries: garment opening name (``GarmentMesh.boundary_loops`` names) -> (k, 3) scan points.
+        body_points: (Q, 3) the other scan points (skin), may be empty.
+    """
+
+    garment_points: torch.Tensor
+    boundaries: dict[str, torch.Tensor] = field(default_factory=dict)
+    body_points: torch.Tensor | None = None
+
+    def __post_init__(self):
+        g = self.garment_points
+        if not isinstance(g, torch.Tensor) or g.dim() != 2 or g.shape[1] != 3 or g.shape[0] < 1:
+            raise ValueError("ScanTarget.garment_points must be a (P, 3) tensor with P >= 1")
+        if not torch.isfinite(g).all():
+            raise ValueError("ScanTarget.garment_points hold NaN or infinite values")
+
+
+class FitParameters(nn.Module):
+    """The fit variables: a `ControlCage` (pattern), an optional `BodyModel`, the log bending stiffness.
+
+    Args:
+        cage: the pattern's control cage (its ``handles`` parameter is optimised).
+        body: a `BodyModel` (batch 1) whose vertices are the drape's body, or None for a fixed body.
+        log_bend_stiffness: initial log k_b (k_b in [N·m]).
+
+    ``forward()`` returns ``(rest_uv (V, 2) [m], body_verts (Vb, 3) [m] or None, bend_stiffness () [N·m])``.
+    """
+
+    def __init__(self, cage: ControlCage, body: nn.Module | None, log_bend_stiffness: float):
+        super().__init__()
+        self.cage = cage
+        self.body = body
+        dtype = cage.handles.dtype
+        self.log_bend_stiffness = nn.Parameter(torch.tensor(float(log_bend_stiffness), dtype=dtype))
+
+    def forward(self):
+        rest_uv = self.cage()
+        body_verts = None if self.body is None else self.body().vertices[0]
+        return rest_uv, body_verts, self.log_bend_stiffness.exp()
+
+
+def param_groups(params: FitParameters, config: FitConfig) -> list[dict]:
+    """Adam parameter groups (name, params, lr) of the parameters with a positive learning rate; the
+    others are frozen (``requires_grad=False``)."""
+    spec = [("cage", [params.cage.handles], config.lr_cage)]
+    if params.body is not None:
+        spec += [
+            ("phenotypes", [params.body.phenotype_logits], config.lr_phenotypes),
+            ("translation", [params.body.translation], config.lr_translation),
+            ("pose", [params.body.pose], config.lr_pose),
+        ]
+    spec.append(("log_bend_stiffness", [params.log_bend_stiffness], config.lr_log_bend_stiffness))
+    for p in params.parameters():
+        p.requires_grad_(False)
+    groups = []
+    for name, ps, lr in spec:
+        if lr > 0:
+            for p in ps:
+                p.requires_grad_(True)
+            groups.append({"name": name, "params": ps, "lr": lr})
+    return groups
+
+
+def signed_rest_areas(rest_uv: torch.Tensor, tri_vertices: torch.Tensor) -> torch.Tensor:
+    """(F,) signed areas [m²] of the rest triangles in their panel frames ((V, 2) coords, (F, 3) ids)."""
+    a, b, c = rest_uv[tri_vertices].unbind(1)
+    e1, e2 = b - a, c - a
+    return 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+
+
+def rest_area_ratio(
+    rest_uv: torch.Tensor, template_uv: torch.Tensor, tri_vertices: torch.Tensor
+) -> torch.Tensor:
+    """(F,) signed rest area over the template's (1 = unchanged, <= 0 = inverted or collapsed)."""
+    ref = signed_rest_areas(template_uv.to(rest_uv), tri_vertices)
+    return signed_rest_areas(rest_uv, tri_vertices) / ref
+
+
+def chamfer_m(x: torch.Tensor, y: torch.Tensor) -> float:
+    """Symmetric mean nearest-neighbour distance [m] ``(mean_x d(x, Y) + mean_y d(y, X)) / 2``."""
+    x, y = x.detach().double().cpu(), y.detach().double().cpu()
+    dxy = (x - y[torch.from_numpy(nearest_indices(x, y))]).norm(dim=1).mean()
+    dyx = (y - x[torch.from_numpy(nearest_indices(y, x))]).norm(dim=1).mean()
+    return float(0.5 * (dxy + dyx))
+
+
+# ---------------------------------------------------------------------------------------------------------
+# The loop
+
+
+@dataclass
+class Evaluation:
+    """One drape and its loss at the current parameters."""
+
+    loss: torch.Tensor
+    terms: dict[str, torch.Tensor]
+    x: torch.Tensor
+    rest_uv: torch.Tensor
+    body_verts: torch.Tensor | None
+    bend_stiffness: torch.Tensor
+    stats: dict
+
+
+@dataclass
+class FitResult:
+    """Outcome of `Fitter.run`.
+
+    Attributes:
+        params: the fitted `FitParameters`; x: (Vs, 3) final drape [m]; rest_uv: (V, 2) [m];
+        body_verts: (Vb, 3) [m] or None; history: one dict of scalars per iteration;
+        report: the metrics (see `Fitter.report`).
+    """
+
+    params: FitParameters
+    x: torch.Tensor
+    rest_uv: torch.Tensor
+    body_verts: torch.Tensor | None
+    history: list[dict]
+    report: dict
+
+
+def _atomic_save(obj, path: Path) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+class Fitter:
+    """Runs the fit loop on one garment / body / scan target (see the module docstring).
+
+    Args:
+        garment: the meshed and placed template (float64 as built is fine; cast inside).
+        target: the scan target.
+        config: the fit configuration.
+        body: a float32 `BodyModel` initialised to the scan (fitted in place), or None with
+            ``body_mesh`` for a fixed body (or no body at all).
+        body_mesh: (verts (Vb, 3), faces (Fb, 3)) of a fixed body, or None; with ``body``, only the faces
+            are taken from ``body.faces``.
+        material: the base cloth material (its bending stiffness is replaced by the fitted one).
+        start_state: the first warm start (e.g. a `sew_and_drape` result's state); None runs
+            `sew_and_drape` from the placement.
+        out_dir: where checkpoints and TensorBoard logs go (None: nowhere).
+        progress: show a tqdm bar on stderr.
+        dtype: float32 for fits (float64 for tiny tests).
+    """
+
+    def __init__(
+        self,
+        garment: GarmentMesh,
+        target: ScanTarget,
+        config: FitConfig,
+        *,
+        body: nn.Module | None = None,
+        body_mesh: tuple[torch.Tensor, torch.Tensor] | None = None,
+        material: ClothMaterial | None = None,
+        start_state: ClothState | None = None,
+        out_dir: str | os.PathLike | None = None,
+        progress: bool = True,
+        tensorboard: bool = True,
+        dtype: torch.dtype = torch.float32,
+    ):
+        self.config = config
+        self.dtype = dtype
+        self.garment = garment
+        self.template_uv = garment.vert_uv.to(dtype)
+        self.material = material if material is not None else ClothMaterial()
+        self.model: ClothModel = ClothModelBuilder(self.material).add_garment(garment).finalize(dtype=dtype)
+        cage = ControlCage(garment, tie_mirrored=config.tie_mirrored, tie_seams=config.tie_seams).to(dtype)
+        self.params = FitParameters(cage, body, math.log(config.initial_bend_stiffness))
+        if body is not None:
+            self.body_faces = body.faces
+            self.fixed_body = None
+        elif body_mesh is not None:
+            self.fixed_body = body_mesh[0].to(dtype)
+            self.body_faces = body_mesh[1].to(torch.int64)
+        else:
+            self.fixed_body, self.body_faces = None, None
+        self.phenotypes0 = None if body is None else body.phenotypes.detach().clone()
+        self.seam_segments = seam_segments(garment)
+        self.target = target
+        gen = torch.Generator().manual_seed(config.seed)
+        pts = target.garment_points.to(dtype)
+        if pts.shape[0] > config.max_scan_points:
+            pts = pts[torch.randperm(pts.shape[0], generator=gen)[: config.max_scan_points]]
+        self.scan_points = pts
+        self.scan_boundaries = {k: v.to(dtype) for k, v in target.boundaries.items()}
+        self.loops = [lp for lp in garment.boundary_loops if lp.name in self.scan_boundaries]
+        self.out_dir = None if out_dir is None else Path(out_dir)
+        self.progress = progress
+        self.tensorboard = tensorboard and self.out_dir is not None
+        self.groups = param_groups(self.params, config)
+        self.optimizer = torch.optim.Adam(self.groups)
+        self.start_state = start_state
+        self.iteration = 0
+        self.history: list[dict] = []
+        self.rejected_steps = 0
+        self.nan_gradients = 0
+        self.adjoint_failures = 0
+        self.first: dict | None = None  # x, body_verts, loss terms, chamfer of the first evaluation
+        self.seconds = 0.0
+
+    # -- one evaluation ------------------------------------------------------------------------------------
+
+    def _body(self):
+        rest_uv, body_verts, kb = self.params()
+        if body_verts is None:
+            body_verts = self.fixed_body
+        return rest_uv, body_verts, kb
+
+    def drape_config(self, steps: int | None = None) -> DrapeConfig:
+        """The fit's drape options: ``drape_steps`` frames (or ``steps``) of ``drape_substeps`` substeps."""
+        n = self.config.drape_steps if steps is None else steps
+        xpbd = XPBDConfig(substeps=self.config.drape_substeps, iterations=1)
+        return DrapeConfig(xpbd=xpbd, min_steps=n, max_steps=n)
+
+    def evaluate(self, start: ClothState) -> Evaluation:
+        """Drape from ``start`` at the current parameters and compute the loss (graph kept for backward).
+
+        Raises:
+            SimulationError: the drape blew up.
+        """
+        from torch_diffavatar.sim.differentiable import drape
+
+        cfg = self.config
+        rest_uv, body_verts, kb = self._body()
+        material = replace(self.material, bend_stiffness=kb)
+        stats: dict = {}
+        x = drape(
+            rest_uv,
+            self.model,
+            body_verts,
+            material,
+            body_faces=None if body_verts is None else self.body_faces,
+            state=start,
+            config=self.drape_config(),
+            adjoint=cfg.adjoint,
+            stats=stats,
+        )
+        w = cfg.weights
+        terms = {"interior": interior_loss(x, self.scan_points)}
+        if self.loops:
+            terms["boundary"] = boundary_loss(
+                x, self.loops, self.scan_boundaries, samples_per_edge=cfg.boundary_samples
+            )
+        terms["seam_length"] = seam_length_loss(rest_uv, self.garment, segments=self.seam_segments)
+        terms["curvature"] = curvature_loss(rest_uv, self.template_uv, self.garment)
+        if self.phenotypes0 is not None and self.params.body.phenotype_logits.requires_grad:
+            terms["phenotype_prior"] = ((self.params.body.phenotypes - self.phenotypes0) ** 2).sum()
+        loss = sum(getattr(w, k) * v for k, v in terms.items())
+        return Evaluation(loss, terms, x, rest_uv, body_verts, kb, stats)
+
+    def _checked_evaluate(self, start: ClothState) -> Evaluation | None:
+        """`evaluate`, or None when the drape blew up, jumped too far or gave non-finite values."""
+        try:
+            ev = self.evaluate(start)
+        except SimulationError:
+            return None
+        if not (torch.isfinite(ev.x).all() and torch.isfinite(ev.loss)):
+            return None
+        if float((ev.x.detach() - start.x).norm(dim=1).max()) > self.config.max_drape_jump:
+            return None
+        return ev
+
+    def _rest_ok(self) -> bool:
+        with torch.no_grad():
+            rest_uv = self.params.cage()
+            if not torch.isfinite(rest_uv).all():
+                return False
+            ratio = rest_area_ratio(rest_uv, self.template_uv, self.garment.tri_vertices)
+            return bool((ratio > self.config.min_rest_area_ratio).all())
+
+    def _params_finite(self) -> bool:
+        return all(bool(torch.isfinite(p).all()) for p in self.params.parameters())
+
+    def _sanitize_grads(self) -> None:
+        for g in self.groups:
+            for p in g["params"]:
+                if p.grad is not None and not torch.isfinite(p.grad).all():
+                    self.nan_gradients += 1
+                    p.grad = torch.nan_to_num(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
+
+    def _backward(self, ev: Evaluation, start: ClothState) -> Evaluation:
+        """Backpropagate ``ev.loss``; if the adjoint fails, retry once with the trajectory adjoint."""
+        self.optimizer.zero_grad(set_to_none=True)
+        try:
+            ev.loss.backward()
+            return ev
+        except SimulationError:
+            self.adjoint_failures += 1
+            if self.config.adjoint == "trajectory":
+                raise
+        self.optimizer.zero_grad(set_to_none=True)
+        saved = self.config
+        self.config = replace(saved, adjoint="trajectory")
+        try:
+            ev = self.evaluate(start)
+            ev.loss.backward()
+        finally:
+            self.config = saved
+        return ev
+
+    def step(self, ev: Evaluation, start: ClothState) -> tuple[Evaluation, ClothState, int]:
+        """Backward, Adam step with the guards; returns (next evaluation, its start state, rejections)."""
+        ev = self._backward(ev, start)
+        self._sanitize_grads()
+        params = [p for g in self.groups for p in g["params"]]
+        before = [p.detach().clone() for p in params]
+        self.optimizer.step()
+        delta = [p.detach() - b for p, b in zip(params, before)]
+        next_start = ClothState(ev.x.detach(), torch.zeros_like(ev.x.detach()))
+        rejected = 0
+        scale = 1.0
+        for _ in range(self.config.max_retries + 1):
+            with torch.no_grad():
+                for p, b, d in zip(params, before, delta):
+                    p.copy_(b + scale * d)
+            if self._params_finite() and self._rest_ok():
+                new = self._checked_evaluate(next_start)
+                if new is not None:
+                    return new, next_start, rejected
+            rejected += 1
+            scale *= 0.5
+        # every retry failed: drop the step, halve the learning rates
+        with torch.no_grad():
+            for p, b in zip(params, before):
+                p.copy_(b)
+        for g in self.optimizer.param_groups:
+            g["lr"] *= 0.5
+        new = self._checked_evaluate(next_start)
+        if new is None:
+            raise SimulationError("the drape fails even at the last accepted parameters")
+        return new, next_start, rejected
+
+    # -- logging -------------------------------------------------------------------------------------------
+
+    def _scalars(self, ev: Evaluation) -> dict:
+        w = self.config.weights
+        out = {"loss/total": float(ev.loss.detach())}
+        for k, v in ev.terms.items():
+            out[f"loss/{k}"] = float(v.detach())
+            out[f"loss_weighted/{k}"] = float(getattr(w, k) * v.detach())
+        out["chamfer/interior_m"] = chamfer_m(ev.x, self.scan_points)
+        for name, pts in self.scan_boundaries.items():
+            loop = next((lp for lp in self.loops if lp.name == name), None)
+            if loop is not None:
+                out[f"chamfer/boundary_{name}_m"] = chamfer_m(ev.x[loop.vertices], pts)
+        with torch.no_grad():
+            q_rest = triangle_quality(ev.rest_uv.detach(), self.garment.tri_vertices)
+            q_drape = triangle_quality(ev.x.detach(), self.garment.sim_faces)
+            ratio = rest_area_ratio(ev.rest_uv.detach(), self.template_uv, self.garment.tri_vertices)
+        out["quality/rest_min"] = float(q_rest.min())
+        out["quality/rest_mean"] = float(q_rest.mean())
+        out["quality/draped_min"] = float(q_drape.min())
+        out["quality/draped_mean"] = float(q_drape.mean())
+        out["quality/inverted_rest_triangles"] = int((ratio <= 0).sum())
+        out["material/bend_stiffness"] = float(ev.bend_stiffness.detach())
+        out["material/log_bend_stiffness"] = float(self.params.log_bend_stiffness.detach())
+        body = self.params.body
+        if body is not None:
+            for label, value in zip(body.phenotype_labels, body.phenotypes[0].detach().tolist()):
+                out[f"body/{label}"] = value
+            for axis, value in zip("xyz", body.translation[0].detach().tolist()):
+                out[f"body/translation_{axis}"] = value
+        out["steps/rejected_total"] = self.rejected_steps
+        out["steps/nan_gradients"] = self.nan_gradients
+        for k in ("newton_force_residual", "forward_seconds", "backward_seconds"):
+            if isinstance(ev.stats.get(k), int | float):
+                out[f"drape/{k}"] = float(ev.stats[k])
+        return out
+
+    def _log(self, writer, ev: Evaluation, scalars: dict, it: int, images: bool) -> None:
+        if writer is None:
+            return
+        for k, v in scalars.items():
+            writer.add_scalar(k, v, it)
+        if images:
+            try:
+                writer.add_image("drape", self._drape_image(ev), it, dataformats="HWC")
+                writer.add_image("pattern", self._pattern_image(ev.rest_uv.detach()), it, dataformats="HWC")
+                faces = self.garment.sim_faces
+                writer.add_mesh(
+                    "draped_mesh",
+                    vertices=ev.x.detach()[None].float(),
+                    faces=faces[None].int(),
+                    global_step=it,
+                )
+            except Exception as exc:  # pictures are diagnostics: never let them stop a fit
+                print(f"fit: could not log images ({exc})", file=sys.stderr)
+        writer.flush()
+
+    def _drape_image(self, ev: Evaluation) -> np.ndarray:
+        from torch_diffavatar.render import CLOTH_COLOR, CLOTH_DEPTH_BIAS, RenderMesh, render_views
+
+        meshes = [RenderMesh(ev.x.detach().cpu(), self.garment.sim_faces, CLOTH_COLOR, CLOTH_DEPTH_BIAS)]
+        if ev.body_verts is not None:
+            meshes.insert(0, RenderMesh(ev.body_verts.detach().cpu(), self.body_faces.cpu()))
+        return render_views(meshes, views=("front", "back"), width=256, height=320)
+
+    def _pattern_image(self, rest_uv: torch.Tensor, size: int = 512) -> np.ndarray:
+        """The rest mesh of every panel, side by side, drawn with Pillow ((H, W, 3) uint8)."""
+        from PIL import Image, ImageDraw
+
+        uv = rest_uv.cpu().double().numpy()
+        vert_panel = self.garment.vert_panel.cpu().numpy()
+        offsets, x0 = [], 0.0
+        for pid in range(len(self.garment.panel_names)):
+            p = uv[vert_panel == pid]
+            offsets.append((x0 - p[:, 0].min(), -p[:, 1].min()))
+            x0 += p[:, 0].max() - p[:, 0].min() + 0.05
+        pos = uv + np.array(offsets)[vert_panel]
+        extent = max(pos[:, 0].max(), pos[:, 1].max(), 1e-6)
+        s = (size - 20) / extent
+        img = Image.new("RGB", (size, size), (255, 255, 255))
+        draw = ImageDraw.Draw(img)
+        for tri in self.garment.tri_vertices.cpu().numpy():
+            pts = [(10 + s * pos[i, 0], size - 10 - s * pos[i, 1]) for i in tri]
+            draw.polygon(pts, outline=(70, 110, 190))
+        return np.asarray(img)
+
+    # -- checkpoints ---------------------------------------------------------------------------------------
+
+    def state_dict(self, start: ClothState) -> dict:
+        return {
+            "iteration": self.iteration,
+            "params": self.params.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "start_x": start.x.detach().clone(),
+            "start_v": start.v.detach().clone(),
+            "history": list(self.history),
+            "rejected_steps": self.rejected_steps,
+            "nan_gradients": self.nan_gradients,
+            "adjoint_failures": self.adjoint_failures,
+            "first": self.first,
+            "seconds": self.seconds,
+            "config": config_to_dict(self.config),
+        }
+
+    def load_state_dict(self, state: dict) -> ClothState:
+        self.params.load_state_dict(state["params"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.iteration = int(state["iteration"])
+        self.history = list(state["history"])
+        self.rejected_steps = int(state["rejected_steps"])
+        self.nan_gradients = int(state["nan_gradients"])
+        self.adjoint_failures = int(state.get("adjoint_failures", 0))
+        self.first = state["first"]
+        self.seconds = float(state.get("seconds", 0.0))
+        return ClothState(state["start_x"].to(self.dtype), state["start_v"].to(self.dtype))
+
+    def save_checkpoint(self, start: ClothState) -> None:
+        if self.out_dir is not None:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            _atomic_save(self.state_dict(start), self.out_dir / CHECKPOINT)
+
+    # -- the run -------------------------------------------------------------------------------------------
+
+    def _first_state(self) -> ClothState:
+        """The first warm start: ``start_state`` or a `sew_and_drape` of the placement, then settled with
+        the fit's own substeps (so the first iteration does not see the change of stepping)."""
+        from torch_diffavatar.sim.drape import drape_to_equilibrium, sew_and_drape
+
+        with torch.no_grad():
+            rest_uv, body_verts, kb = self._body()
+            material = replace(self.material, bend_stiffness=float(kb))
+            faces = None if body_verts is None else self.body_faces
+            if self.start_state is not None:
+                state = ClothState(self.start_state.x.to(self.dtype), self.start_state.v.to(self.dtype))
+            else:
+                res = sew_and_drape(
+                    self.garment,
+                    rest_uv=rest_uv,
+                    body_verts=body_verts,
+                    body_faces=faces,
+                    material=material,
+                    config=DrapeConfig(max_steps=self.config.first_max_steps),
+                    dtype=self.dtype,
+                )
+                state = res.state
+            settle = replace(self.drape_config(), min_steps=10, max_steps=self.config.first_max_steps)
+            res = drape_to_equilibrium(
+                self.model,
+                rest_uv,
+                body_verts=body_verts,
+                body_faces=faces,
+                material=material,
+                state=state,
+                config=settle,
+            )
+        return ClothState(res.x, torch.zeros_like(res.x))
+
+    def run(self, iterations: int | None = None, *, resume: bool = False) -> FitResult:
+        """Run the loop up to ``iterations`` completed iterations (default ``config.iterations``).
+
+        With ``resume``, continue from ``out_dir/checkpoint.pt`` when it exists.
+        """
+        total = self.config.iterations if iterations is None else iterations
+        t0 = time.perf_counter()
+        start = None
+        if resume and self.out_dir is not None and (self.out_dir / CHECKPOINT).is_file():
+            state = torch.load(self.out_dir / CHECKPOINT, weights_only=False)
+            start = self.load_state_dict(state)
+        if start is None:
+            start = self._first_state()
+        writer = None
+        if self.tensorboard:
+            from torch.utils.tensorboard import SummaryWriter
+
+            writer = SummaryWriter(log_dir=str(self.out_dir / "tb"))
+            writer.add_text("config", "```\n" + _yaml_dump(config_to_dict(self.config)) + "\n```", 0)
+        ev = self._checked_evaluate(start)
+        if ev is None:
+            raise SimulationError("the first drape of the fit failed (blow-up or non-finite values)")
+        if self.first is None:
+            self.first = self._summary(ev)
+            scalars = self._scalars(ev)
+            self._log(writer, ev, scalars, 0, images=True)
+        bar = None
+        if self.progress:
+            from tqdm import tqdm
+
+            bar = tqdm(
+                total=total, initial=min(self.iteration, total), desc="fit", unit="it", file=sys.stderr
+            )
+        try:
+            while self.iteration < total:
+                ev, start, rejected = self.step(ev, start)
+                self.rejected_steps += rejected
+                self.iteration += 1
+                scalars = self._scalars(ev)
+                scalars["steps/rejected"] = rejected
+                self.history.append({"iteration": self.iteration, **scalars})
+                every = self.config.image_every
+                images = self.iteration == total or (every > 0 and self.iteration % every == 0)
+                self._log(writer, ev, scalars, self.iteration, images)
+                self.seconds += time.perf_counter() - t0
+                t0 = time.perf_counter()
+                self.save_checkpoint(start)
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix(
+                        loss=f"{scalars['loss/total']:.4g}",
+                        chamfer_mm=f"{1e3 * scalars['chamfer/interior_m']:.2f}",
+                    )
+        finally:
+            if bar is not None:
+                bar.close()
+            if writer is not None:
+                writer.close()
+        self.seconds += time.perf_counter() - t0
+        final = self._summary(ev)
+        return FitResult(
+            params=self.params,
+            x=ev.x.detach(),
+            rest_uv=ev.rest_uv.detach(),
+            body_verts=None if ev.body_verts is None else ev.body_verts.detach(),
+            history=self.history,
+            report=self.report(final),
+        )
+
+    def _summary(self, ev: Evaluation) -> dict:
+        """Numbers and tensors of one evaluation kept for the report and the before/after picture."""
+        return {
+            "x": ev.x.detach().clone(),
+            "body_verts": None if ev.body_verts is None else ev.body_verts.detach().clone(),
+            "loss": float(ev.loss.detach()),
+            "terms": {k: float(v.detach()) for k, v in ev.terms.items()},
+            "chamfer_m": chamfer_m(ev.x, self.target.garment_points),
+            "boundary_chamfer_m": {
+                lp.name: chamfer_m(ev.x[lp.vertices], self.scan_boundaries[lp.name]) for lp in self.loops
+            },
+            "bend_stiffness": float(ev.bend_stiffness.detach()),
+            "phenotypes": None
+            if self.params.body is None
+            else dict(
+                zip(self.params.body.phenotype_labels, self.params.body.phenotypes[0].detach().tolist())
+            ),
+            "rest_uv": ev.rest_uv.detach().clone(),
+        }
+
+    def report(self, final: dict) -> dict:
+        """The metrics of the fit: initial vs final Chamfer [m], loss terms, material, body, quality."""
+        first = self.first
+        with torch.no_grad():
+            q_rest = triangle_quality(final["rest_uv"], self.garment.tri_vertices)
+            q_drape = triangle_quality(final["x"], self.garment.sim_faces)
+            ratio = rest_area_ratio(final["rest_uv"], self.template_uv, self.garment.tri_vertices)
+        return {
+            "units": "m",
+            "chamfer_definition": "mean nearest-neighbour distance, (scan->garment + garment->scan) / 2",
+            "template": self.config.template,
+            "chamfer_initial": first["chamfer_m"],
+            "chamfer_final": final["chamfer_m"],
+            "boundary_chamfer_initial": first["boundary_chamfer_m"],
+            "boundary_chamfer_final": final["boundary_chamfer_m"],
+            "iterations": self.iteration,
+            "seconds": round(self.seconds, 2),
+            "loss_initial": first["loss"],
+            "loss_final": final["loss"],
+            "loss_terms_initial": first["terms"],
+            "loss_terms_final": final["terms"],
+            "material": {
+                "bend_stiffness_initial": first["bend_stiffness"],
+                "bend_stiffness_final": final["bend_stiffness"],
+                "unit": "N*m",
+            },
+            "body_phenotypes_initial": first["phenotypes"],
+            "body_phenotypes_final": final["phenotypes"],
+            "rest_quality": {"min": float(q_rest.min()), "mean": float(q_rest.mean())},
+            "draped_quality": {"min": float(q_drape.min()), "mean": float(q_drape.mean())},
+            "inverted_rest_triangles": int((ratio <= 0).sum()),
+            "min_rest_area_ratio": float(ratio.min()),
+            "rejected_steps": self.rejected_steps,
+            "nan_gradients": self.nan_gradients,
+            "adjoint_failures": self.adjoint_failures,
+            "adjoint": self.config.adjoint,
+            "vertices": self.garment.sim_vert_count,
+            "faces": self.garment.tri_count,
+            "matched_boundaries": [lp.name for lp in self.loops],
+        }
+
+
+def _yaml_dump(data: dict) -> str:
+    import yaml
+
+    return yaml.safe_dump(data, sort_keys=False)
+
+
+def write_resolved_config(config: FitConfig, out_dir: str | os.PathLike) -> Path:
+    """Write the resolved config as ``<out_dir>/config.yaml`` (also into the TensorBoard text)."""
+    path = Path(out_dir) / "config.yaml"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(_yaml_dump(config_to_dict(config)))
+    return path

@@ -1,0 +1,322 @@
+"""The equilibrium adjoint: implicit differentiation of the draped rest state (one sparse solve).
+
+The drape ends at quasi-equilibrium, so its result x* minimises the drape energy ``U(x; θ)`` of
+`sim/energy.py` (stretch + bend + gravity + stitches + attachments + the frozen active contacts) over the
+free vertices: ``∇ₓU(x*; θ) = 0``. Forward: the XPBD drape (`drape_to_equilibrium`), then the active
+contact set (vertices within ``contact_tol`` of the body's surface offset), then a projected-Newton polish
+(per-element Hessians projected to PSD, sparse solve, backtracking line search) to a tight force
+residual, with primal active-set updates (release contacts that pull, add vertices that penetrate).
+Backward: ``H λ = ∂φ/∂x`` with the exact sparse Hessian H = ∇²ₓU (free dofs), then
+``dφ/dθ = −λᵀ ∂(∇ₓU)/∂θ`` by one double-backward through ∇ₓU with λ detached.
+
+Limitations: the result is the minimiser of U, which the XPBD drape approximates (finite iterations,
+friction, damping); friction is not in U, so a frictionless minimiser must exist (pinned or attached
+cloth, or cloth resting in a stable position); the contact set is frozen (its changes are not
+differentiated); a singular or strongly indefinite H is reported (warning or `SimulationError`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from torch_diffavatar.sim import collision
+from torch_diffavatar.sim.adjoint.common import DrapeSetup, Gradients, contacts_subset, material_with
+from torch_diffavatar.sim.adjoint.linsolve import SOLVE_METHODS, check_solve, solve_symmetric
+from torch_diffavatar.sim.collision import Contacts
+from torch_diffavatar.sim.drape import drape_to_equilibrium
+from torch_diffavatar.sim.energy import EnergyParams, assemble_csr, drape_energy, hessian_elements
+from torch_diffavatar.sim.state import ClothState
+
+
+@dataclass(frozen=True)
+class EquilibriumOptions:
+    """Options of the equilibrium adjoint.
+
+    Attributes:
+        newton_iterations: Newton steps at most per active-set round.
+        newton_tol: stop when the largest free-dof force |∇ₓU| is below this fraction of the largest
+            vertex weight m_i |g| (float32 models use at least 1e-4).
+        active_set_rounds: active-set updates at most.
+        contact_stiffness: stiffness of the active-contact quadratic [N/m].
+        contact_tol: a vertex starts active when its distance to the body is below thickness + this [m].
+        contact_slack: release an active contact when it pulls its vertex by more than this [m]
+            (s − thickness).
+        solve_method: adjoint solve method (`linsolve.SOLVE_METHODS`); newton_solve_method: the polish's.
+        solve_tol: relative residual accepted for the adjoint solve (a larger one warns; > 1e-3 raises).
+        use_extension: use the C++ solve op when built.
+    """
+
+    newton_iterations: int = 30
+    newton_tol: float = 1e-9
+    active_set_rounds: int = 5
+    contact_stiffness: float = 1e4
+    contact_tol: float = 2e-4
+    contact_slack: float = 1e-7
+    solve_method: str = "auto"
+    newton_solve_method: str = "direct"
+    solve_tol: float = 1e-8
+    use_extension: bool = True
+
+    def __post_init__(self):
+        for name in ("solve_method", "newton_solve_method"):
+            if getattr(self, name) not in SOLVE_METHODS:
+                raise ValueError(f"EquilibriumOptions.{name} must be one of {SOLVE_METHODS}")
+
+
+def _params(setup: DrapeSetup, opts: EquilibriumOptions) -> EnergyParams:
+    x = setup.config.xpbd
+    return EnergyParams(x.gravity, x.stitch_compliance, x.attach_compliance, opts.contact_stiffness)
+
+
+def _free(rest, model):
+    free_vert = rest.vert_inv_mass.detach() > 0
+    free_dof = free_vert[:, None].expand(-1, 3).reshape(-1)
+    idx = torch.full(free_dof.shape, -1, dtype=torch.int64, device=free_dof.device)
+    n = int(free_dof.sum())
+    idx[free_dof] = torch.arange(n, device=free_dof.device)
+    return free_dof, idx, n
+
+
+def _energy_grad(x, setup, rest, material, params, body_verts, contacts):
+    with torch.enable_grad():
+        xl = x.detach().requires_grad_(True)
+        u = drape_energy(
+            xl, setup.model, rest, material, params,
+            body_verts=body_verts, body_faces=setup.body_faces, contacts=contacts,
+        )  # fmt: skip
+        (g,) = torch.autograd.grad(u, xl)
+    return u.detach(), g
+
+
+def newton_polish(setup, rest, material, params, body_verts, contacts, x, opts, stats):
+    """Projected Newton on U over the free dofs from ``x``; returns (x, iterations, force residual)."""
+    model = setup.model
+    free_dof, free_index, nfree = _free(rest, model)
+    weight = float((rest.vert_mass.detach() * x.new_tensor(params.gravity).norm()).max())
+    tol = max(opts.newton_tol, 1e-4 if x.dtype == torch.float32 else 0.0) * weight
+    energy = lambda y: drape_energy(  # noqa: E731
+        y,
+        model,
+        rest,
+        material,
+        params,
+        body_verts=body_verts,
+        body_faces=setup.body_faces,
+        contacts=contacts,
+    )
+    all_dofs = torch.arange(3 * model.vert_count, device=x.device)[:, None]
+    it, gmax = 0, float("inf")
+    for it in range(opts.newton_iterations + 1):  # noqa: B007
+        u0, g = _energy_grad(x, setup, rest, material, params, body_verts, contacts)
+        gf = g.reshape(-1)[free_dof]
+        gmax = float(gf.abs().max()) if nfree else 0.0
+        if gmax <= tol or it == opts.newton_iterations:
+            break
+        d = None
+        for project in (False, True):  # exact Newton while H is positive definite, else projected
+            elements = hessian_elements(
+                x, model, rest, material, params,
+                body_verts=body_verts, body_faces=setup.body_faces, contacts=contacts, project=project,
+            )  # fmt: skip
+            diag = torch.cat([b.diagonal(dim1=1, dim2=2).reshape(-1) for _, b in elements])
+            mu = 1e-10 * float(diag.abs().max())
+            elements.append((all_dofs, x.new_full((all_dofs.shape[0], 1, 1), mu)))
+            crow, col, val = assemble_csr(elements, free_index, nfree)
+            method = "cg" if not project else opts.newton_solve_method
+            # the exact-H CG attempt is capped: when it stalls, the projected Newton step is cheaper
+            d, info = solve_symmetric(
+                crow, col, val, -gf, method=method, tol=1e-10, max_iter=2000, use_extension=opts.use_extension
+            )
+            if not info.indefinite and info.residual < 1e-6:
+                break
+        slope = float((gf * d).sum())
+        if slope >= 0:  # not a descent direction (solve failed): steepest descent
+            d, slope = -gf, -float((gf * gf).sum())
+        step = torch.zeros_like(g).reshape(-1)
+        t, accepted = 1.0, False
+        with torch.no_grad():
+            while t > 1e-8:
+                step[free_dof] = t * d
+                x_new = x + step.reshape(-1, 3)
+                u1 = float(energy(x_new))
+                if u1 <= float(u0) + 1e-4 * t * slope + 1e-13 * abs(float(u0)):
+                    accepted = True
+                    break
+                t *= 0.5
+        if not accepted:
+            break
+        x = x_new
+    return x, it, gmax
+
+
+def _signed(x, setup, body_verts, contacts):
+    return collision.signed_distance_along_normal(x, body_verts, setup.body_faces, contacts)
+
+
+def initial_contacts(x, setup, material, body_verts, opts) -> Contacts | None:
+    """Vertices within ``thickness + contact_tol`` of their closest body triangle's plane."""
+    if body_verts is None:
+        return None
+    thick = float(material.thickness)
+    band = thick + setup.config.xpbd.collision_band
+    c = collision.detect_contacts(x, body_verts, setup.body_faces, band, use_extension=opts.use_extension)
+    if c.count == 0:
+        return None
+    s = _signed(x, setup, body_verts, c)
+    c = contacts_subset(c, s < thick + opts.contact_tol)
+    return c if c.count else None
+
+
+def _update_active_set(x, setup, material, body_verts, contacts, opts):
+    """Release contacts that pull (s > thickness + slack), add penetrating vertices.
+
+    Returns:
+        (contacts, changed).
+    """
+    thick = float(material.thickness)
+    slack = max(opts.contact_slack, 50 * torch.finfo(x.dtype).eps)
+    changed = False
+    if contacts is not None:
+        s = _signed(x, setup, body_verts, contacts)
+        keep = s <= thick + slack
+        if not bool(keep.all()):
+            changed = True
+            contacts = contacts_subset(contacts, keep)
+    band = thick + setup.config.xpbd.collision_band
+    cand = collision.detect_contacts(x, body_verts, setup.body_faces, band, use_extension=opts.use_extension)
+    if cand.count:
+        s = _signed(x, setup, body_verts, cand)
+        new = s < thick - slack
+        if contacts is not None and contacts.count:
+            new &= ~torch.isin(cand.vert, contacts.vert)
+        if bool(new.any()):
+            changed = True
+            add = contacts_subset(cand, new)
+            if contacts is None or contacts.count == 0:
+                contacts = add
+            else:
+                contacts = Contacts(
+                    torch.cat((contacts.vert, add.vert)),
+                    torch.cat((contacts.tri, add.tri)),
+                    torch.cat((contacts.bary, add.bary)),
+                )
+    if contacts is not None and contacts.count == 0:
+        contacts = None
+    return contacts, changed
+
+
+def equilibrium_forward(setup: DrapeSetup, rest_uv, body_verts, material_values) -> torch.Tensor:
+    """XPBD drape, active set, Newton polish. Saves x* and the contact set in ``setup.saved``."""
+    opts: EquilibriumOptions = setup.options
+    model = setup.model
+    material = material_with(setup.material, setup.material_names, material_values)
+    res = drape_to_equilibrium(
+        model,
+        rest_uv,
+        body_verts=body_verts,
+        body_faces=setup.body_faces,
+        material=material,
+        state=ClothState(setup.x0, setup.v0),
+        config=setup.config,
+    )
+    rest = model.rest_data(rest_uv, material)
+    params = _params(setup, opts)
+    x = res.x
+    contacts = initial_contacts(x, setup, material, body_verts, opts)
+    total_it, gmax, rounds = 0, float("inf"), 0
+    for rounds in range(1, opts.active_set_rounds + 1):  # noqa: B007
+        x, it, gmax = newton_polish(setup, rest, material, params, body_verts, contacts, x, opts, setup.stats)
+        total_it += it
+        if body_verts is None:
+            break
+        contacts, changed = _update_active_set(x, setup, material, body_verts, contacts, opts)
+        if not changed:
+            break
+    setup.saved.update(x=x, contacts=contacts)
+    setup.record(
+        xpbd_steps=res.steps,
+        xpbd_converged=res.converged,
+        xpbd_max_speed=res.max_speed,
+        polish_displacement=float((x - res.x).norm(dim=-1).max()),
+        newton_iterations=total_it,
+        newton_force_residual=gmax,
+        active_set_rounds=rounds,
+        active_contacts=0 if contacts is None else contacts.count,
+    )
+    return x
+
+
+def equilibrium_backward(
+    setup: DrapeSetup, rest_uv, body_verts, material_values, grad_x, needs, grad_frames=None
+) -> Gradients:
+    """``−λᵀ ∂(∇ₓU)/∂θ`` with ``H λ = grad_x`` (free dofs)."""
+    opts: EquilibriumOptions = setup.options
+    model = setup.model
+    x, contacts = setup.saved["x"], setup.saved["contacts"]
+    need_uv, need_body, need_mat = needs
+    material = material_with(setup.material, setup.material_names, material_values)
+    params = _params(setup, opts)
+    rest = model.rest_data(rest_uv.detach(), material)
+    free_dof, free_index, nfree = _free(rest, model)
+    elements = hessian_elements(
+        x,
+        model,
+        rest,
+        material,
+        params,
+        body_verts=body_verts,
+        body_faces=setup.body_faces,
+        contacts=contacts,
+    )
+    crow, col, val = assemble_csr(elements, free_index, nfree)
+    b = grad_x.reshape(-1)[free_dof].to(x.dtype)
+    lam_free, info = solve_symmetric(
+        crow, col, val, b, method=opts.solve_method, tol=opts.solve_tol, use_extension=opts.use_extension
+    )
+    setup.record(
+        adjoint_solve_method=info.method,
+        adjoint_solve_iterations=info.iterations,
+        adjoint_solve_residual=info.residual,
+        adjoint_hessian_indefinite=info.indefinite,
+        adjoint_dofs=nfree,
+    )
+    check_solve(info, opts.solve_tol, "equilibrium adjoint")
+    lam = x.new_zeros(3 * model.vert_count)
+    lam[free_dof] = lam_free
+    lam = lam.reshape(-1, 3)
+    out = Gradients(material=tuple(None for _ in need_mat))
+    with torch.enable_grad():
+        uv_l = rest_uv.detach().requires_grad_(need_uv)
+        mats = tuple(m.detach().requires_grad_(n) for m, n in zip(material_values, need_mat))
+        body_l = body_verts.detach().requires_grad_(need_body) if body_verts is not None else None
+        mat_l = material_with(setup.material, setup.material_names, mats)
+        rest_l = model.rest_data(uv_l, mat_l)
+        xl = x.detach().requires_grad_(True)
+        u = drape_energy(
+            xl,
+            model,
+            rest_l,
+            mat_l,
+            params,
+            body_verts=body_l,
+            body_faces=setup.body_faces,
+            contacts=contacts,
+        )
+        (g,) = torch.autograd.grad(u, xl, create_graph=True)
+        wrt = (
+            ([uv_l] if need_uv else [])
+            + ([body_l] if need_body and body_l is not None else [])
+            + [m for m, n in zip(mats, need_mat) if n]
+        )
+        if not wrt:
+            return out
+        grads = torch.autograd.grad((g * lam).sum(), wrt, allow_unused=True)
+    grads = [torch.zeros_like(w) if gr is None else -gr for gr, w in zip(grads, wrt)]
+    if need_uv:
+        out.rest_uv = grads.pop(0)
+    if need_body and body_l is not None:
+        out.body_verts = grads.pop(0)
+    out.material = tuple(grads.pop(0) if n else None for n in need_mat)
+    return out

@@ -1,0 +1,340 @@
+"""The trajectory adjoint (DiffXPBD, paper §3.3 and appendix A, eqs. 9–12; appendix B, eqs. 13–19).
+
+Forward: the XPBD drape of `XPBDSolver.step`, frame by frame under ``no_grad``, keeping a checkpoint of the
+state (x, v) every ``checkpoint_every`` frames and the contact set (cloth vertex, body triangle,
+barycentrics) of EVERY frame — the contact set is frozen from the forward pass.
+
+Backward: reverse-mode through the discrete steps. Segment by segment, from the last to the first, the
+frames are replayed from their checkpoint under ``torch.enable_grad()`` with `replay_frame`, a
+differentiable (clone-then-in-place: the PyTorch reference kernels of `sim/reference.py` on fresh tensors)
+copy of the same step math, and the vector–Jacobian products come from `torch.autograd.grad`
+(torchdiffeq's adjoint pattern). This IS the adjoint recursion of eqs. 9–12 evaluated by the chain rule:
+the adjoint state (x̂_n, v̂_n) of a frame boundary is the VJP of the frame map with (x̂_{n+1}, v̂_{n+1});
+∂Δx/∂x̄ (rest shape, eqs. 13–19) is the VJP through ``tri_rest_inv``, the rest areas (compliances, masses)
+and the bending weights; ∂Δx/∂λ_b through the bending compliance; ∂Δx/∂x_body through the contact
+projection (contact point and face normal recomputed from the body vertices, paper eq. 6) and friction.
+The gradient is exact for the discrete trajectory up to the difference between the C++ kernels used in
+the forward and the reference kernels used in the replay (~1e-15 relative in float64).
+
+Cost: one replayed forward plus its backward per frame; memory: the checkpoints plus one segment's graph.
+Limitations: the Gauss–Seidel order, contact set and friction regime (static/kinetic) are those of the
+forward; the step count is fixed by the forward (speed criterion), so the derivative of "when the drape
+stops" is ignored.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import torch
+
+from torch_diffavatar.sim import collision, reference
+from torch_diffavatar.sim.adjoint.common import DrapeSetup, Gradients, material_with
+from torch_diffavatar.sim.collision import Contacts
+from torch_diffavatar.sim.constraints import RestData
+from torch_diffavatar.sim.model import ClothModel
+from torch_diffavatar.sim.solver import XPBDConfig, XPBDSolver, _project_attach, _project_stitches
+from torch_diffavatar.sim.state import ClothState
+
+
+@dataclass(frozen=True)
+class TrajectoryOptions:
+    """Options of the trajectory adjoint.
+
+    Attributes:
+        checkpoint_every: frames between stored states; the backward keeps one segment's graph at a time
+            (memory ∝ frames / checkpoint_every + checkpoint_every).
+        return_trajectory: also return every frame's positions (T+1, Vs, 3) (differentiable).
+    """
+
+    checkpoint_every: int = 8
+    return_trajectory: bool = False
+
+    def __post_init__(self):
+        if self.checkpoint_every < 1:
+            raise ValueError(f"checkpoint_every must be >= 1, got {self.checkpoint_every}")
+
+
+_REST_LEAVES = ("tri_rest_inv", "tri_compliance", "edge_compliance", "vert_inv_mass")
+
+
+def replay_frame(
+    model: ClothModel,
+    xpbd: XPBDConfig,
+    x: torch.Tensor,
+    v: torch.Tensor,
+    rest: RestData,
+    dt: float,
+    *,
+    contacts: Contacts | None = None,
+    body_verts: torch.Tensor | None = None,
+    body_faces: torch.Tensor | None = None,
+    velocity_scale: float = 1.0,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """One frame of `XPBDSolver.step`, differentiable (autograd) in x, v, rest data and body vertices.
+
+    Same maths and order as `XPBDSolver.step` (drape phase: gravity on, ``config.stitch_compliance``),
+    with the PyTorch reference kernels applied in place to tensors created inside this function, and
+    the contact set given instead of detected.
+
+    Args:
+        x, v: (Vs, 3) state at the frame start [m], [m/s].
+        rest: rest data (its tensors may require grad); dt: frame time [s].
+        contacts: the frame's contact set (from the forward) or None.
+        body_verts: (Vb, 3) [m]; body_faces: (Fb, 3) int64 (needed when ``contacts`` is given).
+        velocity_scale: factor on v at the end of the frame.
+
+    Returns:
+        (x, v) at the frame end, (Vs, 3) each.
+    """
+    h = dt / xpbd.substeps
+    mat = rest.material
+    w = rest.vert_inv_mass
+    movable = (w.detach() > 0).to(x.dtype)[:, None]
+    g = x.new_tensor(xpbd.gravity)
+    damp = math.exp(-float(mat.damping) * h)
+    tc, ec = model.tri_coloring, model.edge_coloring
+    depth_sum = normal = None
+    for _ in range(xpbd.substeps):
+        x_start = x
+        v = (v * damp + g * h) * movable
+        x = x + v * h
+        lam_tri = x.new_zeros(model.tri_count, 3)
+        lam_edge = x.new_zeros(model.edge_count)
+        lam_stitch = x.new_zeros(model.stitch_vertices.shape[0], 3)
+        lam_attach = x.new_zeros(model.attach_vertices.shape[0])
+        depth_sum = None
+        for _ in range(xpbd.iterations):
+            x = x.clone()
+            if xpbd.scheme == "gauss_seidel":
+                reference.stretch_project_(
+                    x, lam_tri, w, model.tri_vertices, rest.tri_rest_inv, rest.tri_compliance,
+                    tc.order, tc.color_offsets, h,
+                )  # fmt: skip
+                if model.edge_count:
+                    reference.bend_project_(
+                        x, lam_edge, w, model.edge_quads, rest.edge_rest_angle, rest.edge_compliance,
+                        ec.order, ec.color_offsets, h,
+                    )  # fmt: skip
+            else:
+                om = xpbd.jacobi_omega
+                reference.stretch_project_jacobi_(
+                    x, lam_tri, w, model.tri_vertices, rest.tri_rest_inv, rest.tri_compliance, h, om
+                )
+                if model.edge_count:
+                    reference.bend_project_jacobi_(
+                        x, lam_edge, w, model.edge_quads, rest.edge_rest_angle, rest.edge_compliance, h, om
+                    )
+            if lam_stitch.numel():
+                _project_stitches(x, lam_stitch, w, model.stitch_vertices, xpbd.stitch_compliance, h)
+            if lam_attach.numel():
+                _project_attach(
+                    x, lam_attach, w, model.attach_vertices, model.attach_height, xpbd.attach_compliance, h
+                )
+            if contacts is not None:
+                x, depth, normal = collision.project_contacts(
+                    x, w, body_verts, body_faces, contacts, mat.thickness
+                )
+                depth_sum = depth if depth_sum is None else depth_sum + depth
+        if contacts is not None and float(mat.friction) > 0:
+            x = collision.apply_friction(x, x_start, contacts, normal, depth_sum, mat.friction)
+        v = (x - x_start) / h
+    if velocity_scale != 1.0:
+        v = v * velocity_scale
+    return x, v
+
+
+@dataclass
+class Rollout:
+    """What the forward keeps for the backward.
+
+    Attributes:
+        steps: frames run; checkpoints: {frame: (x, v)} every ``checkpoint_every`` frames (and frame 0);
+        contacts: per frame, its contact set or None; frames: (T+1, Vs, 3) all positions when requested;
+        x, v: (Vs, 3) final state; max_speed [m/s]; converged: the speed criterion was met.
+    """
+
+    steps: int
+    checkpoints: dict
+    contacts: list
+    frames: torch.Tensor | None
+    x: torch.Tensor
+    v: torch.Tensor
+    max_speed: float
+    converged: bool
+
+
+def rollout(
+    setup: DrapeSetup, rest: RestData, body_verts: torch.Tensor | None, options: TrajectoryOptions
+) -> Rollout:
+    """The XPBD drape of `drape_to_equilibrium` (same stopping rule), keeping checkpoints and contacts."""
+    model, cfg = setup.model, setup.config
+    solver = XPBDSolver(model, cfg.xpbd)
+    band = float(rest.material.thickness) + cfg.xpbd.collision_band
+    state = ClothState(setup.x0, setup.v0)
+    checkpoints = {0: (state.x, state.v)}
+    contacts_per_frame = []
+    frames = [state.x] if options.return_trajectory else None
+    settled, steps, speed = 0, 0, math.inf
+    with torch.no_grad():
+        while steps < cfg.max_steps:
+            contacts = None
+            if body_verts is not None:
+                contacts = collision.detect_contacts(
+                    state.x, body_verts, setup.body_faces, band, use_extension=cfg.xpbd.use_extension
+                )
+                contacts = contacts if contacts.count else None
+            contacts_per_frame.append(contacts)
+            state = solver.step(
+                state,
+                rest,
+                cfg.dt,
+                body_verts=body_verts,
+                body_faces=setup.body_faces,
+                velocity_scale=cfg.drape_velocity_scale,
+            )
+            steps += 1
+            if steps % options.checkpoint_every == 0:
+                checkpoints[steps] = (state.x, state.v)
+            if frames is not None:
+                frames.append(state.x)
+            speed = float(state.v.norm(dim=-1).max())
+            settled = settled + 1 if speed < cfg.speed_tol else 0
+            if steps >= cfg.min_steps and settled >= cfg.settle_steps:
+                break
+    return Rollout(
+        steps=steps,
+        checkpoints=checkpoints,
+        contacts=contacts_per_frame,
+        frames=torch.stack(frames) if frames is not None else None,
+        x=state.x,
+        v=state.v,
+        max_speed=speed,
+        converged=settled >= cfg.settle_steps,
+    )
+
+
+def trajectory_forward(setup: DrapeSetup, rest_uv, body_verts, material_values):
+    """XPBD rollout with checkpoints; returns the final positions (Vs, 3) (frames in ``setup.saved``)."""
+    material = material_with(setup.material, setup.material_names, material_values)
+    rest = setup.model.rest_data(rest_uv, material)
+    ro = rollout(setup, rest, body_verts, setup.options)
+    setup.saved["rollout"] = ro
+    setup.record(
+        xpbd_steps=ro.steps,
+        xpbd_converged=ro.converged,
+        xpbd_max_speed=ro.max_speed,
+        checkpoints=len(ro.checkpoints),
+        max_contacts=max((c.count for c in ro.contacts if c is not None), default=0),
+    )
+    return ro.x
+
+
+def trajectory_backward(
+    setup: DrapeSetup,
+    rest_uv: torch.Tensor,
+    body_verts: torch.Tensor | None,
+    material_values: tuple[torch.Tensor, ...],
+    grad_x: torch.Tensor,
+    needs: tuple[bool, bool, tuple[bool, ...]],
+    grad_frames: torch.Tensor | None = None,
+) -> Gradients:
+    """Vector–Jacobian product of the drape with ``grad_x`` (Vs, 3) (and ``grad_frames`` (T+1, Vs, 3)).
+
+    Args:
+        setup: forward data; ``setup.saved["rollout"]`` is the `Rollout`.
+        rest_uv: (V, 2) [m]; body_verts: (Vb, 3) [m] or None; material_values: differentiable material
+            tensors (names in ``setup.material_names``).
+        needs: whether rest_uv, body_verts and each material tensor need a gradient.
+    """
+    ro: Rollout = setup.saved["rollout"]
+    model, cfg = setup.model, setup.config
+    need_uv, need_body, need_mat = needs
+    need_rest = need_uv or any(need_mat)
+    with torch.enable_grad():
+        uv_leaf = rest_uv.detach().requires_grad_(need_uv)
+        mat_leaves = tuple(m.detach().requires_grad_(n) for m, n in zip(material_values, need_mat))
+        material = material_with(setup.material, setup.material_names, mat_leaves)
+        rest_graph = model.rest_data(uv_leaf, material)
+        leaves = {name: getattr(rest_graph, name).detach().requires_grad_(need_rest) for name in _REST_LEAVES}
+        rest = dataclasses.replace(rest_graph, material=setup.material, **leaves)
+        rest = dataclasses.replace(rest, material=_floats(material))
+        body = body_verts.detach().requires_grad_(need_body) if body_verts is not None else None
+        acc_rest = {name: torch.zeros_like(t) for name, t in leaves.items()}
+        acc_body = torch.zeros_like(body) if body is not None else None
+        a_x, a_v = grad_x, torch.zeros_like(grad_x)
+        starts = sorted(ro.checkpoints)
+        for k in reversed(starts):
+            if k >= ro.steps:
+                continue
+            end = min(ro.steps, k + _segment(starts, k))
+            x0, v0 = ro.checkpoints[k]
+            x = x0.detach().requires_grad_(True)
+            v = v0.detach().requires_grad_(True)
+            outs, gouts = [], []
+            xs, vs = x, v
+            for n in range(k, end):
+                xs, vs = replay_frame(
+                    model,
+                    cfg.xpbd,
+                    xs,
+                    vs,
+                    rest,
+                    cfg.dt,
+                    contacts=ro.contacts[n],
+                    body_verts=body,
+                    body_faces=setup.body_faces,
+                    velocity_scale=cfg.drape_velocity_scale,
+                )
+                if grad_frames is not None and n + 1 < end:
+                    outs.append(xs)
+                    gouts.append(grad_frames[n + 1])
+            outs += [xs, vs]
+            gouts += [a_x, a_v]
+            inputs = [x, v] + [leaves[n] for n in _REST_LEAVES if need_rest]
+            if need_body and body is not None:
+                inputs.append(body)
+            grads = torch.autograd.grad(outs, inputs, gouts, allow_unused=True)
+            a_x, a_v = _zero_if_none(grads[0], x), _zero_if_none(grads[1], v)
+            if grad_frames is not None:
+                a_x = a_x + grad_frames[k]
+            i = 2
+            if need_rest:
+                for name in _REST_LEAVES:
+                    if grads[i] is not None:
+                        acc_rest[name] += grads[i]
+                    i += 1
+            if need_body and body is not None and grads[i] is not None:
+                acc_body += grads[i]
+        out = Gradients(body_verts=acc_body if need_body else None, material=tuple(None for _ in need_mat))
+        if need_rest:
+            wrt = ([uv_leaf] if need_uv else []) + [m for m, n in zip(mat_leaves, need_mat) if n]
+            tensors = [getattr(rest_graph, name) for name in _REST_LEAVES]
+            pairs = [(t, acc_rest[n]) for t, n in zip(tensors, _REST_LEAVES) if t.requires_grad]
+            grads = torch.autograd.grad([p[0] for p in pairs], wrt, [p[1] for p in pairs], allow_unused=True)
+            grads = [_zero_if_none(gr, t) for gr, t in zip(grads, wrt)]
+            if need_uv:
+                out.rest_uv = grads.pop(0)
+            out.material = tuple(grads.pop(0) if n else None for n in need_mat)
+    return out
+
+
+def _segment(starts: list[int], k: int) -> int:
+    later = [s for s in starts if s > k]
+    return (later[0] - k) if later else 1 << 62
+
+
+def _floats(material):
+    """The material with every tensor field detached (the replay reads damping/friction/thickness)."""
+    values = {
+        f.name: getattr(material, f.name).detach()
+        for f in dataclasses.fields(material)
+        if isinstance(getattr(material, f.name), torch.Tensor)
+    }
+    return dataclasses.replace(material, **values) if values else material
+
+
+def _zero_if_none(g, like):
+    return torch.zeros_like(like) if g is None else g

@@ -1,0 +1,184 @@
+"""The differentiable drape: `drape()` and the `_Drape` autograd.Function (paper §3.3, eqs. 3–5).
+
+``x = drape(rest_uv, garment, body_verts, material, body_faces=..., adjoint="equilibrium")`` runs the XPBD
+drape under ``no_grad`` and returns the final (Vs, 3) positions; ``x.backward(...)`` (or any loss of x)
+reaches ``rest_uv`` (the 2D pattern), ``body_verts`` (through the body contacts) and every material
+tensor that requires grad (``bend_stiffness``, ``k_uu``, ``k_vv``, ``k_uv``, ``poisson``,
+``areal_density``; e.g. ``ClothMaterial(bend_stiffness=log_kb.exp())``). Two adjoints, chosen by name:
+
+* ``"trajectory"`` — DiffXPBD (`sim/adjoint/trajectory.py`): reverse-mode through every frame of the
+  discrete drape from checkpoints; exact for the discrete trajectory; cost grows with the frames.
+* ``"equilibrium"`` — implicit differentiation of the Newton-polished equilibrium
+  (`sim/adjoint/equilibrium.py`): one sparse solve ``H λ = ∂φ/∂x`` per backward.
+
+Example::
+
+    log_kb = torch.tensor(-12.0, requires_grad=True)
+    mat = ClothMaterial(bend_stiffness=log_kb.exp())
+    x = drape(rest_uv, model, body_verts, mat, body_faces=faces, adjoint="equilibrium")
+    loss = chamfer(x, scan); loss.backward()     # rest_uv.grad, body_verts.grad, log_kb.grad
+"""
+
+from __future__ import annotations
+
+import time
+
+import torch
+from torch.autograd.function import once_differentiable
+
+from torch_diffavatar.pattern.garment_mesh import GarmentMesh
+from torch_diffavatar.sim.adjoint import ADJOINTS
+from torch_diffavatar.sim.adjoint.common import DrapeSetup, material_tensor_fields, material_with
+from torch_diffavatar.sim.drape import DrapeConfig
+from torch_diffavatar.sim.material import ClothMaterial
+from torch_diffavatar.sim.model import ClothModel, ClothModelBuilder
+from torch_diffavatar.sim.state import ClothState
+
+__all__ = ["ADJOINTS", "drape"]
+
+
+class _Drape(torch.autograd.Function):
+    """XPBD drape with an adjoint backward. Inputs: setup (on ctx), rest_uv, body_verts, *material tensors."""
+
+    @staticmethod
+    def forward(ctx, setup: DrapeSetup, rest_uv, body_verts, *material_values):
+        t0 = time.perf_counter()
+        adjoint = ADJOINTS[setup.saved["adjoint"]]
+        with torch.no_grad():
+            x = adjoint.forward(setup, rest_uv, body_verts, material_values)
+        ro = setup.saved.get("rollout")
+        frames = ro.frames if ro is not None and ro.frames is not None else x.new_zeros(0, *x.shape)
+        ctx.setup = setup
+        ctx.save_for_backward(rest_uv, body_verts, *material_values)
+        if frames.shape[0] == 0:
+            ctx.mark_non_differentiable(frames)
+        setup.record(forward_seconds=time.perf_counter() - t0)
+        return x, frames
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_x, grad_frames):
+        t0 = time.perf_counter()
+        setup: DrapeSetup = ctx.setup
+        rest_uv, body_verts, *material_values = ctx.saved_tensors
+        needs = ctx.needs_input_grad
+        need_uv = needs[1]
+        need_body = body_verts is not None and needs[2]
+        need_mat = tuple(needs[3:])
+        if not (need_uv or need_body or any(need_mat)):
+            return (None,) * len(needs)
+        if grad_frames is not None and grad_frames.numel() == 0:
+            grad_frames = None
+        g = ADJOINTS[setup.saved["adjoint"]].backward(
+            setup,
+            rest_uv,
+            body_verts,
+            tuple(material_values),
+            grad_x,
+            (need_uv, need_body, need_mat),
+            grad_frames,
+        )
+        setup.record(backward_seconds=time.perf_counter() - t0)
+        return (None, g.rest_uv if need_uv else None, g.body_verts if need_body else None, *g.material)
+
+
+def _check_inputs(model: ClothModel, rest_uv, body_verts, body_faces):
+    if not isinstance(rest_uv, torch.Tensor) or not rest_uv.is_floating_point():
+        raise ValueError("rest_uv must be a floating-point tensor (V, 2) [m]")
+    if rest_uv.shape != (model.panel_vert_count, 2):
+        raise ValueError(f"rest_uv must have shape ({model.panel_vert_count}, 2), got {tuple(rest_uv.shape)}")
+    if rest_uv.dtype != model.dtype or rest_uv.device != model.device:
+        raise ValueError(
+            f"rest_uv is {rest_uv.dtype} on {rest_uv.device} but the model is {model.dtype} on "
+            f"{model.device}; finalize the model with the same dtype/device"
+        )
+    if (body_verts is None) != (body_faces is None):
+        raise ValueError("pass both body_verts and body_faces, or neither")
+    if body_verts is not None:
+        if body_verts.ndim != 2 or body_verts.shape[1] != 3:
+            raise ValueError(f"body_verts must be (Vb, 3), got {tuple(body_verts.shape)}")
+        if body_verts.dtype != model.dtype or body_verts.device != model.device:
+            raise ValueError(f"body_verts must be {model.dtype} on {model.device}, got {body_verts.dtype}")
+        if body_faces.ndim != 2 or body_faces.shape[1] != 3 or body_faces.dtype != torch.int64:
+            raise ValueError(
+                f"body_faces must be (Fb, 3) int64, got {tuple(body_faces.shape)} {body_faces.dtype}"
+            )
+
+
+def drape(
+    rest_uv: torch.Tensor,
+    garment: ClothModel | GarmentMesh,
+    body_verts: torch.Tensor | None = None,
+    material: ClothMaterial | None = None,
+    *,
+    body_faces: torch.Tensor | None = None,
+    state: ClothState | None = None,
+    config: DrapeConfig | None = None,
+    adjoint: str = "equilibrium",
+    options=None,
+    stats: dict | None = None,
+):
+    """Differentiable drape of a garment on a body.
+
+    Args:
+        rest_uv: (V, 2) panel-vertex rest coordinates [m] (differentiable).
+        garment: a `ClothModel` (seam-merged drape model; reuse it across a fit) or a `GarmentMesh`
+            (a merged model is built with ``material``, ``rest_uv``'s dtype and device).
+        body_verts: (Vb, 3) body vertices [m] (differentiable), or None for no body.
+        material: cloth material (default ``model.material``); its 0-dim tensor fields that require grad
+            get gradients (see `adjoint.common.DIFFERENTIABLE_MATERIAL_FIELDS`).
+        body_faces: (Fb, 3) int64 body triangles (outward normals), with ``body_verts``.
+        state: start state (warm start, e.g. a previous drape's positions); default the placement at rest.
+        config: drape options (step count, tolerances, XPBD settings). For gradchecks use a fixed step
+            count (``min_steps == max_steps``) with the trajectory adjoint.
+        adjoint: ``"trajectory"`` or ``"equilibrium"`` (keys of `ADJOINTS`).
+        options: the adjoint's options (`TrajectoryOptions` / `EquilibriumOptions`; default: theirs).
+        stats: a dict that the forward and backward fill with diagnostics (steps, Newton residual,
+            solve residual, timings).
+
+    Returns:
+        x: (Vs, 3) draped positions [m]; with ``TrajectoryOptions(return_trajectory=True)`` the tuple
+        (x, frames (T+1, Vs, 3)), every frame differentiable.
+
+    Raises:
+        ValueError: bad shapes/dtypes, unknown adjoint name, options of the wrong type.
+        SimulationError: the drape blew up, or the equilibrium adjoint's solve failed.
+    """
+    if adjoint not in ADJOINTS:
+        raise ValueError(f"unknown adjoint {adjoint!r}; valid: {sorted(ADJOINTS)}")
+    spec = ADJOINTS[adjoint]
+    options = spec.options() if options is None else options
+    if not isinstance(options, spec.options):
+        raise ValueError(f"adjoint {adjoint!r} takes {spec.options.__name__}, got {type(options).__name__}")
+    if isinstance(garment, GarmentMesh):
+        model = ClothModelBuilder(material).add_garment(garment).finalize(rest_uv.device, rest_uv.dtype)
+    elif isinstance(garment, ClothModel):
+        model = garment
+    else:
+        raise ValueError(f"garment must be a ClothModel or a GarmentMesh, got {type(garment).__name__}")
+    _check_inputs(model, rest_uv, body_verts, body_faces)
+    material = model.material if material is None else material
+    names, values = material_tensor_fields(material)
+    values = tuple(v.to(dtype=model.dtype, device=model.device) for v in values)
+    if state is None:
+        x0, v0 = model.vert_init_pos, torch.zeros_like(model.vert_init_pos)
+    else:
+        if state.x.shape != (model.vert_count, 3):
+            raise ValueError(f"state.x must be ({model.vert_count}, 3), got {tuple(state.x.shape)}")
+        x0, v0 = state.x.detach().to(model.vert_init_pos), state.v.detach().to(model.vert_init_pos)
+    setup = DrapeSetup(
+        model=model,
+        material=material_with(material, names, tuple(v.detach() for v in values)),
+        material_names=names,
+        body_faces=None if body_faces is None else body_faces.to(model.device),
+        config=DrapeConfig() if config is None else config,
+        x0=x0,
+        v0=v0,
+        options=options,
+        stats=stats,
+    )
+    setup.saved["adjoint"] = adjoint
+    x, frames = _Drape.apply(setup, rest_uv, body_verts, *values)
+    if getattr(options, "return_trajectory", False):
+        return x, frames
+    return x

@@ -1,0 +1,1043 @@
+"""Initial 3D placement of a meshed sewing pattern around any body (issue #3, item 6).
+
+GarmentCode places its panels flat around *its own* mean body (1.72 m, waist level 108.8 cm,
+``/work/shared/garmentcode/body/mean_all.yaml``), with gaps and at heights that suit that body only.
+On another body (the default Anny body is 1.625 m) flat panels start inside the body or across it,
+and sewing then pulls cloth through the body. `place_garment` instead *wraps* the panels around the
+body at hand (only the initial 3D positions ``vert_pos`` change; the 2D rest shape is untouched):
+
+1. **Landmarks** (`body_landmarks`): horizontal cross-sections of the body mesh (exact plane
+   intersections, split into connected loops) give the floor, crotch, waist, hip, armpit, shoulder
+   (acromion) and neck-base heights, and each arm's axis as a polyline (slice centroids below the
+   armpit, the upper-arm line extended up to the shoulder) with its radius.
+2. **Vertical map**: GarmentCode heights are mapped to the body through matching landmarks (floor,
+   crotch, waist, shoulder, neck base, top of the head), anchored at the waist, with the slope clamped
+   to [0.9, 1.1] so that panels are moved, not squashed.
+3. **Wrap**: torso panels are laid *by arc length* on an elliptic tube whose cross-section at each
+   height encloses the body's torso (both legs below the crotch; the arms cut off above the armpits)
+   with a clearance, is widened when the front + back panels are wider (so side seams meet), is kept
+   narrower than the gap to the arms (deeper instead), and changes with height at a bounded slope (so
+   the wrap stays close to an isometry of the flat panels). Front panels start at the front centre,
+   back panels at the back centre. Trouser panels wrap the same way around one leg (one half of the
+   hips above the crotch). Sleeves wrap around a tube along the arm's smoothed axis polyline (long
+   sleeves follow the bent elbows of Anny's A-pose) and slide outward until their caps clear the
+   shoulder. Panels that are neither (e.g. a horizontal collar) move rigidly to their stitch partners.
+4. **Clearance**: tops are lifted until their shoulder seams clear the shoulders, torso / leg tubes are
+   widened until no vertex is too close, and what remains is pushed out along the body normal with
+   smooth bumps, until every panel vertex is ``vertex_clearance`` and the midpoint of every stitched
+   pair ``stitch_clearance`` outside the body (signed distance to the closest point of the body mesh).
+
+Limitations: assumes our world frame (Y up, metres, facing +Z), a roughly symmetric GarmentCode-style
+layout (front panels at +Z, back panels at −Z, centred on x = 0) and a standing body with arms away from
+the torso below the armpits (A-pose). Without separable arms, sleeves fall back to GarmentCode's
+arm line scaled to the body. The wrap is not an exact isometry: on the bundled templates 95 % of the
+triangles start within a Green strain of 0.35 of their rest shape, but a handful near the armpits (where
+the clearance pushes act) start more distorted; sewing relaxes them.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import torch
+
+from torch_diffavatar.pattern.garment_mesh import GarmentMesh
+
+__all__ = ["GC_BODY", "BodyLandmarks", "body_landmarks", "body_signed_distance", "place_garment"]
+
+# GarmentCode's mean_all body [m], from body/mean_all.yaml (floor at 0): height; crotch = hip level −
+# crotch_hip_diff; waist level = height − head_l − waist_line; neck base = height − head_l; acromion =
+# neck base − (shoulder_w/2 − neck_w/2)·tan(shoulder_incl); the arm pose angle below horizontal [deg].
+GC_BODY = {
+    "height": 1.7199,
+    "crotch": 0.7648,
+    "waist": 1.0877,
+    "shoulder": 1.4219,
+    "neck": 1.4566,
+    "shoulder_half_width": 0.1823,
+    "arm_angle_deg": 45.48,
+}
+
+_SLICE_STEP = 0.005  # [m] spacing of the horizontal cross-sections
+_SMOOTH_WINDOW = 0.03  # [m] each cross-section encloses the body within ± this height
+_CENTRE_WINDOW = 0.08  # [m] cross-section centres are averaged over ± this height
+_ARM_GAP = 0.015  # [m] free space kept between the torso wrap and the arms
+_MAX_SLOPE = 0.3  # largest change of a wrap radius per metre along the body / arm (near-isometric)
+
+
+@dataclass
+class BodyLandmarks:
+    """Heights and arm axes of a standing body in the world frame (Y up, facing +Z). Units: metres.
+
+    Attributes:
+        floor_y, top_y: lowest and highest body point.
+        crotch_y: where the legs join.
+        hip_y: widest torso girth between crotch and waist.
+        waist_y: narrowest torso girth between crotch and armpit.
+        armpit_y: where the arms join the torso.
+        shoulder_y: acromion level (top of the shoulders at their outer end).
+        neck_y: base of the neck.
+        arm_left, arm_right: (K, 3) float64 arm axis polylines from the shoulder joint outward (left = +X),
+            or None when the arms cannot be separated from the torso.
+        arm_left_radius, arm_right_radius: (K,) float64 arm radius at each polyline point.
+    """
+
+    floor_y: float
+    top_y: float
+    crotch_y: float
+    hip_y: float
+    waist_y: float
+    armpit_y: float
+    shoulder_y: float
+    neck_y: float
+    arm_left: np.ndarray | None = None
+    arm_right: np.ndarray | None = None
+    arm_left_radius: np.ndarray | None = None
+    arm_right_radius: np.ndarray | None = None
+    _sections: object = field(default=None, repr=False, compare=False)
+
+    @property
+    def height(self) -> float:
+        """Body height [m]."""
+        return self.top_y - self.floor_y
+
+
+# ------------------------------------------------------------------------------------------------------
+# body cross-sections
+
+
+class _Slicer:
+    """Connected loops of horizontal plane sections of a closed triangle mesh."""
+
+    def __init__(self, verts: np.ndarray, faces: np.ndarray):
+        self.verts = verts
+        edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+        self.edges, inv = np.unique(edges, axis=0, return_inverse=True)
+        self.face_edges = inv.reshape(3, -1).T  # (F, 3) edge ids
+
+    def components(self, h: float) -> list[np.ndarray]:
+        """Cross-section loops at height ``h``: list of (n, 3) points on the mesh edges."""
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import connected_components
+
+        y = self.verts[:, 1]
+        ea, eb = self.edges[:, 0], self.edges[:, 1]
+        cross = (y[ea] - h) * (y[eb] - h) < 0
+        crossing = np.nonzero(cross)[0]
+        if len(crossing) == 0:
+            return []
+        fi, k = np.nonzero(cross[self.face_edges])
+        eid = self.face_edges[fi, k]
+        order = np.argsort(fi, kind="stable")
+        fi, eid = fi[order], eid[order]
+        # a face crossing the plane has exactly two crossing edges: link them
+        first = np.ones(len(fi), dtype=bool)
+        first[1:] = fi[1:] != fi[:-1]
+        a, b = eid[first], eid[np.nonzero(first)[0] + 1]
+        n = len(self.edges)
+        _, label = connected_components(coo_matrix((np.ones(len(a)), (a, b)), shape=(n, n)), directed=False)
+        t = (h - y[ea[crossing]]) / (y[eb[crossing]] - y[ea[crossing]])
+        pts = self.verts[ea[crossing]] + t[:, None] * (self.verts[eb[crossing]] - self.verts[ea[crossing]])
+        lab = label[crossing]
+        return [pts[lab == l] for l in np.unique(lab)]
+
+
+def _girth(points: np.ndarray) -> float:
+    """Convex-hull perimeter [m] of (n, 3) section points in the x–z plane."""
+    from scipy.spatial import ConvexHull
+
+    xz = points[:, [0, 2]]
+    if len(xz) < 3:
+        return 0.0
+    try:
+        hull = xz[ConvexHull(xz).vertices]
+    except Exception:  # degenerate (collinear) section
+        return float(2 * np.ptp(xz, axis=0).sum())
+    return float(np.linalg.norm(hull - np.roll(hull, 1, axis=0), axis=1).sum())
+
+
+@dataclass
+class _Sections:
+    """Per-height cross-sections: (S,) heights and, per height, the torso / leg loops."""
+
+    heights: np.ndarray
+    central: list[np.ndarray | None]  # loop containing x = 0 (torso, neck, head)
+    legs: list[tuple[np.ndarray | None, np.ndarray | None]]  # (left, right) below the crotch
+    arms: list[tuple[list[np.ndarray], list[np.ndarray]]]  # (left, right) non-central loops
+
+
+def _sections(verts: np.ndarray, faces: np.ndarray) -> _Sections:
+    slicer = _Slicer(verts, faces)
+    lo, hi = verts[:, 1].min(), verts[:, 1].max()
+    heights = np.arange(lo + _SLICE_STEP / 2, hi, _SLICE_STEP)
+    central, legs, arms = [], [], []
+    for h in heights:
+        comps = [c for c in slicer.components(h) if len(c) >= 3]
+        cen = [c for c in comps if c[:, 0].min() <= 0.0 <= c[:, 0].max()]
+        c0 = max(cen, key=len) if cen else None
+        # inner loops (mouth, nostrils) lie inside the central loop's x-range: keep only outer ones
+        others = [c for c in comps if c0 is None or not (c is c0 or _inside_range(c, c0))]
+        left = [c for c in others if c[:, 0].mean() > 0]
+        right = [c for c in others if c[:, 0].mean() < 0]
+        central.append(c0)
+        if c0 is None:
+            legs.append((_nearest_to_midplane(left), _nearest_to_midplane(right)))
+        else:
+            legs.append((None, None))
+        arms.append((left, right))
+    return _Sections(heights, central, legs, arms)
+
+
+def _nearest_to_midplane(loops: list[np.ndarray]) -> np.ndarray | None:
+    return min(loops, key=lambda c: abs(c[:, 0].mean())) if loops else None
+
+
+def _inside_range(c: np.ndarray, outer: np.ndarray) -> bool:
+    return bool(
+        c[:, 0].min() >= outer[:, 0].min()
+        and c[:, 0].max() <= outer[:, 0].max()
+        and c[:, 2].min() >= outer[:, 2].min()
+        and c[:, 2].max() <= outer[:, 2].max()
+    )
+
+
+def _check_body(verts, faces) -> tuple[np.ndarray, np.ndarray]:
+    if isinstance(verts, torch.Tensor):
+        verts = verts.detach().cpu().numpy()
+    if isinstance(faces, torch.Tensor):
+        faces = faces.detach().cpu().numpy()
+    verts, faces = np.asarray(verts, dtype=np.float64), np.asarray(faces, dtype=np.int64)
+    if verts.ndim != 2 or verts.shape[1] != 3 or len(verts) < 4:
+        raise ValueError(f"body_verts must be (Vb, 3) with Vb >= 4, got {verts.shape}")
+    if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
+        raise ValueError(f"body_faces must be (Fb, 3), got {faces.shape}")
+    if faces.min() < 0 or faces.max() >= len(verts):
+        raise ValueError(f"body_faces index out of range [0, {len(verts)})")
+    if not np.all(np.isfinite(verts)):
+        raise ValueError("body_verts contain NaN or inf")
+    height = np.ptp(verts[:, 1])
+    if not 0.5 < height < 2.8:
+        raise ValueError(
+            f"body is {height:.3f} m tall along +Y: expected a standing body in metres, Y up "
+            "(convert units/axes before placing garments)"
+        )
+    return verts, faces
+
+
+def body_landmarks(verts, faces) -> BodyLandmarks:
+    """Landmarks of a standing body mesh from its horizontal cross-sections.
+
+    Args:
+        verts: (Vb, 3) body vertices [m], world frame (Y up, facing +Z), numpy or torch.
+        faces: (Fb, 3) int triangles of a closed mesh.
+    """
+    verts, faces = _check_body(verts, faces)
+    return _landmarks_from_sections(_sections(verts, faces), verts)
+
+
+def _landmarks_from_sections(sec: _Sections, verts: np.ndarray) -> BodyLandmarks:
+    hs = sec.heights
+    floor, top = float(verts[:, 1].min()), float(verts[:, 1].max())
+    height = top - floor
+    rel = (hs - floor) / height
+    has_c = np.array([c is not None for c in sec.central])
+    # crotch: lowest height from which the torso section exists continuously up to 70 % of the height
+    band = (rel > 0.3) & (rel < 0.7)
+    idx = np.nonzero(band)[0]
+    crotch_i = idx[0]
+    for i in idx[::-1]:
+        if not has_c[i]:
+            crotch_i = i + 1
+            break
+    crotch_y = float(hs[min(crotch_i, len(hs) - 1)])
+    # armpit: highest height (below 90 %) where both arms are separate loops
+    both = np.array([bool(l) and bool(r) for l, r in sec.arms]) & (hs > crotch_y) & (rel < 0.9)
+    armpit_y = float(hs[np.nonzero(both)[0].max()]) if both.any() else floor + 0.75 * height
+    # shoulder / neck: central width collapses above the armpit
+    width = np.array([np.ptp(c[:, 0]) if c is not None else 0.0 for c in sec.central])
+    above = np.nonzero((hs > armpit_y) & (rel < 0.95))[0]
+    wmax = width[above].max() if len(above) else 0.0
+    shoulder_y = neck_y = None
+    for i in above:
+        if shoulder_y is None and hs[i] > hs[above[np.argmax(width[above])]] and width[i] < 0.7 * wmax:
+            shoulder_y = float(hs[i])
+        if width[i] < 0.45 * wmax and hs[i] > hs[above[np.argmax(width[above])]]:
+            neck_y = float(hs[i])
+            break
+    if neck_y is None:
+        neck_y = floor + 0.847 * height
+    if shoulder_y is None or shoulder_y >= neck_y:
+        shoulder_y = neck_y - 0.02 * height
+    # waist / hip from the torso girth
+    girth = np.array([_girth(c) if c is not None else np.nan for c in sec.central])
+    span = armpit_y - crotch_y
+    wband = np.nonzero((hs > crotch_y + 0.25 * span) & (hs < armpit_y - 0.2 * span) & has_c)[0]
+    waist_y = float(hs[wband[np.nanargmin(girth[wband])]]) if len(wband) else crotch_y + 0.6 * span
+    hband = np.nonzero((hs >= crotch_y) & (hs <= waist_y) & has_c)[0]
+    hip_y = float(hs[hband[np.nanargmax(girth[hband])]]) if len(hband) else 0.5 * (crotch_y + waist_y)
+    lm = BodyLandmarks(floor, top, crotch_y, hip_y, waist_y, armpit_y, shoulder_y, neck_y, _sections=sec)
+    for side, name in ((0, "left"), (1, "right")):
+        axis = _arm_axis(sec, side, armpit_y, shoulder_y, crotch_y, height)
+        if axis is not None:
+            setattr(lm, f"arm_{name}", axis[0])
+            setattr(lm, f"arm_{name}_radius", axis[1])
+    return lm
+
+
+def _arm_axis(sec: _Sections, side: int, armpit_y, shoulder_y, crotch_y, height):
+    """(K, 3) arm axis polyline from the shoulder joint outward and (K,) radii, or None."""
+    cents, loops = [], []
+    for i in range(len(sec.heights) - 1, -1, -1):
+        h = sec.heights[i]
+        if h > armpit_y or h < crotch_y:
+            continue
+        loops_here = sec.arms[i][side]
+        if len(loops_here) != 1:
+            if cents:  # fingers (several loops) or the end of the arm
+                break
+            continue
+        c = loops_here[0]
+        cents.append(c.mean(0))
+        loops.append(c)
+    if len(cents) < 6:
+        return None
+    cents = np.array(cents)
+    # upper arm: line through the centroids 2–10 % of the height below the armpit
+    sel = (cents[:, 1] < armpit_y - 0.012 * height) & (cents[:, 1] > armpit_y - 0.06 * height)
+    if sel.sum() < 3:
+        sel = np.arange(len(cents)) < max(3, len(cents) // 3)
+    pts = cents[sel]
+    mean = pts.mean(0)
+    direction = np.linalg.svd(pts - mean)[2][0]
+    if direction[1] > 0:
+        direction = -direction  # pointing down the arm
+    root_y = 0.5 * (armpit_y + shoulder_y)
+    root = mean + direction * (root_y - mean[1]) / direction[1]
+    keep = cents[:, 1] < armpit_y - 0.012 * height
+    poly = np.concatenate([root[None], cents[keep]])
+    # smooth the centroid chain (3-point moving average, ends fixed)
+    if len(poly) > 3:
+        poly[1:-1] = (poly[:-2] + poly[1:-1] + poly[2:]) / 3.0
+    # radius: largest distance of each loop to the local axis line
+    loops = [loops[i] for i in np.nonzero(keep)[0]]
+    tang = np.gradient(poly, axis=0)
+    tang /= np.maximum(np.linalg.norm(tang, axis=1, keepdims=True), 1e-12)
+    radii = np.empty(len(poly))
+    for k, loop in enumerate(loops, start=1):
+        d = loop - poly[k]
+        d -= (d @ tang[k])[:, None] * tang[k]
+        radii[k] = np.linalg.norm(d, axis=1).max()
+    radii[0] = 1.25 * radii[1]  # the shoulder is thicker than the arm below the armpit
+    return poly, radii
+
+
+# ------------------------------------------------------------------------------------------------------
+# signed distance to the body
+
+
+def _closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Barycentrics (..., 3) of the closest point to p on triangles (a, b, c), all (..., 3).
+
+    Voronoi-region test of Ericson, Real-Time Collision Detection, §5.1.5.
+    """
+    ab, ac, ap = b - a, c - a, p - a
+    d1, d2 = (ab * ap).sum(-1), (ac * ap).sum(-1)
+    bp = p - b
+    d3, d4 = (ab * bp).sum(-1), (ac * bp).sum(-1)
+    cp = p - c
+    d5, d6 = (ab * cp).sum(-1), (ac * cp).sum(-1)
+    va = d3 * d6 - d5 * d4
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+    eps = 1e-30
+    denom = np.where(np.abs(va + vb + vc) < eps, eps, va + vb + vc)
+    v, w = vb / denom, vc / denom
+    bary = np.stack([1 - v - w, v, w], -1)
+    # edge regions
+    t_ab = d1 / np.where(np.abs(d1 - d3) < eps, eps, d1 - d3)
+    t_ac = d2 / np.where(np.abs(d2 - d6) < eps, eps, d2 - d6)
+    t_bc = (d4 - d3) / np.where(np.abs((d4 - d3) + (d5 - d6)) < eps, eps, (d4 - d3) + (d5 - d6))
+    z = np.zeros_like(d1)
+    cases = [
+        (vc <= 0) & (d1 >= 0) & (d3 <= 0),
+        np.stack([1 - t_ab, t_ab, z], -1),
+        (vb <= 0) & (d2 >= 0) & (d6 <= 0),
+        np.stack([1 - t_ac, z, t_ac], -1),
+        (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0),
+        np.stack([z, 1 - t_bc, t_bc], -1),
+        (d1 <= 0) & (d2 <= 0),
+        np.stack([z + 1, z, z], -1),
+        (d3 >= 0) & (d4 <= d3),
+        np.stack([z, z + 1, z], -1),
+        (d6 >= 0) & (d5 <= d6),
+        np.stack([z, z, z + 1], -1),
+    ]
+    # later cases (vertex regions) take precedence over edge regions, as in Ericson's early returns
+    for cond, val in zip(cases[0::2], cases[1::2]):
+        bary = np.where(cond[..., None], val, bary)
+    return bary
+
+
+class _BodyDistance:
+    """Signed distance to a closed body mesh (> 0 outside).
+
+    The closest point is searched exactly among the ``k`` triangles whose centroids are nearest (exact
+    for the fine, even triangulations of body models); its side comes from the interpolated vertex normal.
+    """
+
+    def __init__(self, verts: np.ndarray, faces: np.ndarray, k: int = 16):
+        from scipy.spatial import cKDTree
+
+        self.verts, self.faces = verts, faces
+        fn = np.cross(verts[faces[:, 1]] - verts[faces[:, 0]], verts[faces[:, 2]] - verts[faces[:, 0]])
+        vn = np.zeros_like(verts)
+        for j in range(3):
+            np.add.at(vn, faces[:, j], fn)
+        self.vnormals = vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-20)
+        self.tree = cKDTree(verts[faces].mean(1))
+        self.k = min(k, len(faces))
+
+    def __call__(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """points (N, 3) -> signed distance (N,) [m] and outward unit normal (N, 3) at the closest point."""
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        if len(points) == 0:
+            return np.zeros(0), np.zeros((0, 3))
+        _, cand = self.tree.query(points, k=self.k)
+        cand = cand.reshape(len(points), self.k)
+        tri = self.verts[self.faces[cand]]  # (N, k, 3, 3)
+        p = np.broadcast_to(points[:, None], (len(points), self.k, 3))
+        bary = _closest_on_triangles(p, tri[:, :, 0], tri[:, :, 1], tri[:, :, 2])
+        q = (bary[..., None] * tri).sum(2)  # (N, k, 3)
+        d = np.linalg.norm(p - q, axis=-1)
+        best = d.argmin(1)
+        rows = np.arange(len(points))
+        q, bary, f = q[rows, best], bary[rows, best], cand[rows, best]
+        n = (bary[:, :, None] * self.vnormals[self.faces[f]]).sum(1)
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-20)
+        sign = np.where(((points - q) * n).sum(1) < 0, -1.0, 1.0)
+        return sign * d[rows, best], n
+
+
+def body_signed_distance(points, body_verts, body_faces) -> np.ndarray:
+    """Signed distance [m] of (N, 3) points to a closed body mesh: > 0 outside, < 0 inside. (N,) float64."""
+    verts, faces = _check_body(body_verts, body_faces)
+    if isinstance(points, torch.Tensor):
+        points = points.detach().cpu().numpy()
+    return _BodyDistance(verts, faces)(np.asarray(points, dtype=np.float64))[0]
+
+
+# ------------------------------------------------------------------------------------------------------
+# wrapping
+
+
+def _ellipse_arc_point(s: np.ndarray, ax: np.ndarray, az: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Point at signed arc length ``s`` from the +z pole of ellipses (ax, az), toward +x.
+
+    All inputs (N,); returns (x, z) offsets from the centre. |s| is clamped to half the perimeter.
+    """
+    t = np.linspace(0.0, math.pi, 257)  # (T,) parameter from the +z pole to the −z pole
+    dx = ax[:, None] * np.cos(t)[None]  # d/dt of ax sin t
+    dz = -az[:, None] * np.sin(t)[None]
+    speed = np.hypot(dx, dz)
+    arc = np.concatenate(
+        [np.zeros((len(s), 1)), np.cumsum(0.5 * (speed[:, 1:] + speed[:, :-1]) * np.diff(t), 1)], 1
+    )
+    a = np.minimum(np.abs(s), arc[:, -1])
+    k = np.clip((arc < a[:, None]).sum(1), 1, len(t) - 1)
+    a0, a1 = arc[np.arange(len(s)), k - 1], arc[np.arange(len(s)), k]
+    tt = t[k - 1] + (a - a0) / np.maximum(a1 - a0, 1e-15) * (t[k] - t[k - 1])
+    return np.sign(s) * ax * np.sin(tt), az * np.cos(tt)
+
+
+def _perimeter(ax, az):
+    """Ramanujan's ellipse perimeter."""
+    h = ((ax - az) / (ax + az)) ** 2
+    return math.pi * (ax + az) * (1 + 3 * h / (10 + np.sqrt(4 - 3 * h)))
+
+
+def _depth_for_perimeter(ax: np.ndarray, perimeter: np.ndarray) -> np.ndarray:
+    """Semi-axis az (N,) such that the ellipse (ax, az) has the given perimeter (at least 1 mm)."""
+    lo, hi = np.full_like(ax, 1e-3), np.full_like(ax, 5.0)
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        small = _perimeter(ax, mid) < perimeter
+        lo, hi = np.where(small, mid, lo), np.where(small, hi, mid)
+    return hi
+
+
+def _moving_average(values: np.ndarray, half: int) -> np.ndarray:
+    """Moving average over ±``half`` samples (shrinking window at the ends). values: (S,) or (S, k)."""
+    c = np.concatenate([np.zeros((1,) + values.shape[1:]), np.cumsum(values, axis=0)])
+    i = np.arange(len(values))
+    lo, hi = np.maximum(i - half, 0), np.minimum(i + half + 1, len(values))
+    shape = (-1,) + (1,) * (values.ndim - 1)
+    return (c[hi] - c[lo]) / (hi - lo).reshape(shape)
+
+
+def _slope_envelope(t: np.ndarray, f: np.ndarray, slope: float) -> np.ndarray:
+    """Smallest function >= f whose slope along t is at most ``slope``: max_j f_j − slope·|t − t_j|."""
+    return (f[None, :] - slope * np.abs(t[:, None] - t[None, :])).max(1)
+
+
+class _RegionSections:
+    """Smooth enclosing ellipses (cx, cz, ax, az) of one body region along the height grid.
+
+    Centres are averaged over ±``_CENTRE_WINDOW``; each ellipse (about its smoothed centre, with the
+    aspect of the local extents) encloses the region's cross-sections within ±``_SMOOTH_WINDOW``.
+    """
+
+    def __init__(self, heights: np.ndarray, loops: list[np.ndarray | None]):
+        self.room = None  # (S,) largest half-width [m] allowed per height (arms beside the torso), or None
+        self.window = []  # per height: (dx, dz) of the enclosed section points about the centre
+        ok = np.array([lp is not None and len(lp) >= 3 for lp in loops])
+        self.heights = heights[ok]
+        loops = [lp for lp, k in zip(loops, ok) if k]
+        if not len(loops):
+            self.rows = np.zeros((0, 4))
+            return
+        bbox_c = np.array([0.5 * (lp.min(0) + lp.max(0))[[0, 2]] for lp in loops])
+        centre = _moving_average(bbox_c, int(round(_CENTRE_WINDOW / _SLICE_STEP)))
+        half = int(round(_SMOOTH_WINDOW / _SLICE_STEP))
+        rows = []
+        for i in range(len(loops)):
+            pts = np.concatenate(loops[max(0, i - half) : i + half + 1])
+            dx, dz = pts[:, 0] - centre[i, 0], pts[:, 2] - centre[i, 1]
+            ax, az = max(np.abs(dx).max(), 1e-3), max(np.abs(dz).max(), 1e-3)
+            k = np.sqrt((dx / ax) ** 2 + (dz / az) ** 2).max()
+            rows.append((centre[i, 0], centre[i, 1], ax * k, az * k))
+            self.window.append((dx, dz))
+        self.rows = np.array(rows)
+
+    def depth_for_width(self, i: int, ax: float) -> float:
+        """Smallest az of an ellipse with semi-axis ``ax`` around height i's centre enclosing its window
+        (inf when ``ax`` is narrower than the body there)."""
+        dx, dz = self.window[i]
+        if np.abs(dx).max() >= ax:
+            return np.inf
+        return float((np.abs(dz) / np.sqrt(1.0 - (dx / ax) ** 2)).max())
+
+    def at(self, y: np.ndarray) -> np.ndarray:
+        """(N,) heights -> (N, 4) (cx, cz, ax, az), clamped to the region's height range."""
+        return np.stack([np.interp(y, self.heights, self.rows[:, k]) for k in range(4)], axis=1)
+
+
+def _vertical_map(lm: BodyLandmarks, slope_range: tuple[float, float] = (0.9, 1.1)):
+    """GarmentCode height [m] -> body height [m]: through matching landmarks (floor, crotch, waist,
+    shoulder, neck base, top of the head), with the slope clamped to ``slope_range`` (panels are only
+    moved, never squashed by more than 10 %), anchored at the waist."""
+    gc = np.array(
+        [0.0, GC_BODY["crotch"], GC_BODY["waist"], GC_BODY["shoulder"], GC_BODY["neck"], GC_BODY["height"]]
+    )
+    body = np.array([lm.floor_y, lm.crotch_y, lm.waist_y, lm.shoulder_y, lm.neck_y, lm.top_y])
+    grid = np.arange(-0.5, 2.5, 0.005)
+    slope = np.clip(np.gradient(np.interp(grid, gc, body), grid), *slope_range)
+    slope = np.where(
+        (grid < gc[0]) | (grid > gc[-1]), np.clip(lm.height / GC_BODY["height"], *slope_range), slope
+    )
+    integral = np.concatenate([[0.0], np.cumsum(0.5 * (slope[1:] + slope[:-1]) * np.diff(grid))])
+    integral += lm.waist_y - np.interp(GC_BODY["waist"], grid, integral)
+
+    def vmap(y):
+        return np.interp(np.asarray(y, dtype=np.float64), grid, integral)
+
+    return vmap
+
+
+def _lateral_profile(key: np.ndarray, lat: np.ndarray, bin_size: float = 0.01):
+    """Lateral extent of a panel set along ``key`` (height or arm coordinate).
+
+    Args:
+        key, lat: (n,) coordinates of the set's vertices along and across [m].
+
+    Returns:
+        centres (B,) of the occupied bins, lo (B,), hi (B,) lateral min / max per bin (each bin also
+        covers its neighbours so that narrow bins on curved outlines do not jump).
+    """
+    b = np.floor(key / bin_size).astype(np.int64)
+    ub, inv = np.unique(b, return_inverse=True)
+    lo = np.full(len(ub), np.inf)
+    hi = np.full(len(ub), -np.inf)
+    np.minimum.at(lo, inv, lat)
+    np.maximum.at(hi, inv, lat)
+    lo_s, hi_s = lo.copy(), hi.copy()
+    for k in range(len(ub)):
+        near = np.abs(ub - ub[k]) <= 1
+        lo_s[k], hi_s[k] = lo[near].min(), hi[near].max()
+    return (ub + 0.5) * bin_size, lo_s, hi_s
+
+
+def _width_on(grid: np.ndarray, centres: np.ndarray, width: np.ndarray, bin_size: float = 0.01) -> np.ndarray:
+    """A profile's width sampled on ``grid`` (0 farther than one bin outside the profile)."""
+    if len(centres) == 0:
+        return np.zeros(len(grid))
+    w = np.interp(grid, centres, width)
+    outside = (grid < centres[0] - bin_size) | (grid > centres[-1] + bin_size)
+    return np.where(outside, 0.0, w)
+
+
+def _panel_kinds(garment: GarmentMesh, gc_pos: np.ndarray) -> list[str]:
+    """Per panel: 'arm_left', 'arm_right', 'leg_left', 'leg_right', 'torso' or 'rigid'."""
+    kinds = []
+    vert_panel = garment.vert_panel.cpu().numpy()
+    for p, name in enumerate(garment.panel_names):
+        pos = gc_pos[vert_panel == p]
+        if len(pos) < 3:
+            kinds.append("rigid")
+            continue
+        centered = pos - pos.mean(0)
+        normal = np.linalg.svd(centered, full_matrices=False)[2][2]
+        cx = pos[:, 0].mean()
+        sleeve_like = "sleeve" in name.lower() or (
+            abs(cx) > 0.16
+            and pos[:, 1].mean() > GC_BODY["waist"]
+            and np.ptp(pos[:, 1]) < 0.9 * GC_BODY["height"] / 2
+        )
+        if abs(normal[2]) < 0.7:
+            kinds.append("rigid")
+        elif sleeve_like and abs(cx) > 0.1:
+            kinds.append("arm_left" if cx > 0 else "arm_right")
+        elif pos[:, 1].min() < GC_BODY["crotch"] - 0.05 and (
+            pos[:, 0].max() < 0.02 or pos[:, 0].min() > -0.02
+        ):
+            one_side = pos[:, 0].max() < 0.02
+            kinds.append("leg_right" if one_side else "leg_left")
+        else:
+            kinds.append("torso")
+    return kinds
+
+
+@dataclass
+class _Context:
+    garment: GarmentMesh
+    gc_pos: np.ndarray  # (V, 3) GarmentCode placement [m]
+    vert_panel: np.ndarray
+    kinds: list[str]
+    front: np.ndarray  # (P,) bool: panel in front of the body (GarmentCode frame)
+    lm: BodyLandmarks
+    sec: _Sections
+    vmap: object
+    clearance: dict  # kind -> [m]
+    regions: dict = field(default_factory=dict)
+
+
+def _region_sections(sec: _Sections, lm: BodyLandmarks, kind: str) -> _RegionSections:
+    """Cross-sections of the torso (both legs below the crotch; arms cut off above the armpits) or of one
+    leg (one half of the hips above the crotch)."""
+    if kind == "torso":
+        below = [c for c, h in zip(sec.central, sec.heights) if c is not None and h < lm.armpit_y]
+        cap = np.abs(below[-1][:, 0]).max() if below else np.inf  # torso half-width under the armpits
+        loops = []
+        for c, (l, r), h in zip(sec.central, sec.legs, sec.heights):
+            if c is None:
+                loops.append(_union(l, r))
+            elif h > lm.armpit_y:
+                loops.append(c[np.abs(c[:, 0]) <= cap])
+            else:
+                loops.append(c)
+        region = _RegionSections(sec.heights, loops)
+        # half-width room between the torso's centre line and the arms' inner edges (side seams must not
+        # start inside an arm); under the armpit it stays at the armpit's value up to the shoulders
+        room = np.full(len(sec.heights), np.inf)
+        for i, (h, c, (al, ar)) in enumerate(zip(sec.heights, sec.central, sec.arms)):
+            if c is not None and h < lm.armpit_y and al and ar:
+                room[i] = min(min(a[:, 0].min() for a in al), min(-a[:, 0].max() for a in ar))
+        ok = np.isfinite(room)
+        if ok.any():
+            top = sec.heights[ok].max()
+            band = (sec.heights > top) & (sec.heights < lm.shoulder_y + 0.05)
+            room[band] = room[np.nonzero(ok)[0][-1]]
+        region.room = np.interp(region.heights, sec.heights, room) if len(region.heights) else room[:0]
+        return region
+    else:
+        side = 0 if kind == "leg_left" else 1
+        sign = 1.0 if side == 0 else -1.0
+        loops = []
+        for c, lr in zip(sec.central, sec.legs):
+            loops.append(lr[side] if c is None else c[sign * c[:, 0] >= 0])
+    return _RegionSections(sec.heights, loops)
+
+
+def _side_sets(ctx: _Context, panels: list[int]) -> list[np.ndarray]:
+    """Vertex ids of the front and of the back panels among ``panels``."""
+    out = []
+    for is_front in (True, False):
+        sel = [p for p in panels if ctx.front[p] == is_front]
+        out.append(np.nonzero(np.isin(ctx.vert_panel, sel))[0])
+    return out
+
+
+def _wrap_torso_like(ctx: _Context, kind: str, lift: float, out: np.ndarray) -> None:
+    """Wrap the panels of ``kind`` ('torso', 'leg_left', 'leg_right') around a smooth elliptic tube.
+
+    Each height's ellipse encloses the body region with ``clearance``, grows (uniformly) to the front +
+    back panel width at that height, and changes with height at a bounded slope so that the wrap stays
+    close to an isometry of the flat panels.
+    """
+    panels = [p for p, k in enumerate(ctx.kinds) if k == kind]
+    if not panels:
+        return
+    if kind not in ctx.regions:
+        ctx.regions[kind] = _region_sections(ctx.sec, ctx.lm, kind)
+    region = ctx.regions[kind]
+    if len(region.heights) == 0:
+        return
+    sets = _side_sets(ctx, panels)
+    grid = region.heights
+    cx, cz, ax0, az0 = region.rows.T
+    ax0, az0 = ax0 + ctx.clearance[kind], az0 + ctx.clearance[kind]
+    profiles, need = [], np.zeros(len(grid))
+    for verts in sets:
+        if len(verts) == 0:
+            profiles.append(None)
+            continue
+        c, lo, hi = _lateral_profile(ctx.gc_pos[verts, 1], ctx.gc_pos[verts, 0])
+        if kind == "torso":  # garments are centred on x = 0
+            half = np.maximum(np.abs(lo), np.abs(hi))
+            lo, hi = -half, half
+        c_body = ctx.vmap(c) + lift
+        profiles.append((c_body, lo, hi))
+        need += _width_on(grid, c_body, hi - lo)
+    scale = np.maximum(need / _perimeter(ax0, az0), 1.0)
+    ax = _slope_envelope(grid, ax0 * scale, _MAX_SLOPE)
+    az = _slope_envelope(grid, az0 * scale, _MAX_SLOPE)
+    if region.room is not None:
+        # no wider than the room beside the arms: the ellipse gets narrower and deeper (still enclosing
+        # the body with the clearance), and the missing perimeter goes into the depth
+        limit = region.room - np.abs(cx) - _ARM_GAP
+        capped = np.nonzero(ax > limit)[0]
+        if len(capped):
+            c = ctx.clearance[kind]
+            depth = az.copy()
+            for i in capped:
+                inner = max(limit[i] - c, 0.0)
+                need_az = region.depth_for_width(i, inner)
+                if np.isfinite(need_az):
+                    ax[i], depth[i] = limit[i], max(az[i], need_az + c)
+                else:  # no room: as wide as the body needs
+                    ax[i] = min(ax[i], ax0[i])
+            target = np.maximum(need, _perimeter(ax0, az0))
+            az = _slope_envelope(grid, np.maximum(depth, _depth_for_perimeter(ax, target)), _MAX_SLOPE)
+    for g, verts in enumerate(sets):
+        if len(verts) == 0:
+            continue
+        y = ctx.vmap(ctx.gc_pos[verts, 1]) + lift
+        if kind == "torso":
+            mid = np.zeros(len(verts))
+        else:
+            c_body, lo, hi = profiles[g]
+            mid_profile = _moving_average(0.5 * (lo + hi), int(round(_CENTRE_WINDOW / 0.01)))
+            mid = np.interp(y, c_body, mid_profile)
+        e_cx, e_cz = np.interp(y, grid, cx), np.interp(y, grid, cz)
+        e_ax, e_az = np.interp(y, grid, ax), np.interp(y, grid, az)
+        dx, dz = _ellipse_arc_point(ctx.gc_pos[verts, 0] - mid, e_ax, e_az)
+        out[verts, 0] = e_cx + dx
+        out[verts, 1] = y
+        out[verts, 2] = e_cz + (dz if g == 0 else -dz)
+
+
+def _union(a, b):
+    parts = [p for p in (a, b) if p is not None]
+    return np.concatenate(parts) if parts else None
+
+
+def _smooth_polyline(poly: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:
+    """Resample a polyline every 5 mm and smooth it over ``length`` [m] (ends kept); returns it and its
+    cumulative arc length."""
+    seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
+    arc = np.concatenate([[0.0], np.cumsum(seg)])
+    t = np.arange(0.0, arc[-1] + 1e-9, 0.005)
+    res = np.stack([np.interp(t, arc, poly[:, k]) for k in range(3)], axis=1)
+    half = max(1, int(round(0.5 * length / 0.005)))
+    pad = np.concatenate([2 * res[:1] - res[half:0:-1], res, 2 * res[-1:] - res[-2 : -half - 2 : -1]])
+    smooth = _moving_average(pad, half)[half : half + len(res)]
+    seg = np.linalg.norm(np.diff(smooth, axis=0), axis=1)
+    return smooth, np.concatenate([[0.0], np.cumsum(seg)])
+
+
+def _rotation_minimizing_frames(poly: np.ndarray):
+    """Tangents (K, 3) and two normals e1 ('up' at the root), e2 ('front') along a polyline."""
+    tang = np.gradient(poly, axis=0)
+    tang /= np.linalg.norm(tang, axis=1, keepdims=True)
+    up = np.array([0.0, 1.0, 0.0])
+    e1 = up - (up @ tang[0]) * tang[0]
+    e1 /= np.linalg.norm(e1)
+    e1s = [e1]
+    for k in range(1, len(poly)):
+        e = e1s[-1] - (e1s[-1] @ tang[k]) * tang[k]
+        e1s.append(e / np.linalg.norm(e))
+    e1s = np.array(e1s)
+    e2s = np.cross(tang, e1s)
+    if e2s[0, 2] < 0:
+        e2s = -e2s
+    return tang, e1s, e2s
+
+
+def _wrap_arm(ctx: _Context, kind: str, out: np.ndarray, shift: float = 0.0) -> None:
+    """Wrap sleeve panels around a tube along the arm axis (front panels over the front of the arm)."""
+    panels = [p for p, k in enumerate(ctx.kinds) if k == kind]
+    if not panels:
+        return
+    side = 1.0 if kind == "arm_left" else -1.0
+    lm = ctx.lm
+    poly = lm.arm_left if side > 0 else lm.arm_right
+    radii = lm.arm_left_radius if side > 0 else lm.arm_right_radius
+    verts_all = np.nonzero(np.isin(ctx.vert_panel, panels))[0]
+    pos = ctx.gc_pos[verts_all]
+    # GarmentCode arm line: direction from the sleeve panels' rotation, through their centroid
+    alpha = math.radians(GC_BODY["arm_angle_deg"])
+    d_gc = np.array([side * math.cos(alpha), -math.sin(alpha), 0.0])
+    rot = _panel_rotation_angle(ctx.garment, panels[0])
+    if rot is not None and 10.0 < abs(math.degrees(rot)) < 80.0:
+        d = np.array([math.cos(rot), math.sin(rot), 0.0])
+        d_gc = d if d[0] * side > 0 else -d
+    if d_gc[1] > 0:  # the arm points down
+        d_gc = np.array([d_gc[0], -d_gc[1], 0.0])
+    n_gc = np.array([-d_gc[1], d_gc[0], 0.0])
+    if n_gc[1] < 0:
+        n_gc = -n_gc
+    c0 = pos.mean(0)
+    # GarmentCode arm root: on that line where |x| = GarmentCode's shoulder half width
+    root_gc = c0 + (side * GC_BODY["shoulder_half_width"] - c0[0]) / d_gc[0] * d_gc
+    if poly is None:  # no separable arms: GarmentCode's line mapped to the body's heights
+        root = np.array([side * GC_BODY["shoulder_half_width"], float(ctx.vmap(root_gc[1])), 0.0])
+        poly = np.stack([root, root + 0.6 * d_gc])
+        radii = np.array([0.05, 0.04])
+    seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
+    raw_arc = np.concatenate([[0.0], np.cumsum(seg)])
+    poly, arc = _smooth_polyline(poly, 0.15)
+    radii = np.interp(arc * raw_arc[-1] / max(arc[-1], 1e-9), raw_arc, radii)
+    tang, e1s, e2s = _rotation_minimizing_frames(poly)
+    sets = _side_sets(ctx, panels)
+    profiles = []
+    grid = np.arange(-0.3, arc[-1] + 0.5, 0.005)
+    need = np.zeros(len(grid))
+    for verts in sets:
+        if len(verts) == 0:
+            profiles.append(None)
+            continue
+        rel = ctx.gc_pos[verts] - root_gc
+        c, lo, hi = _lateral_profile(rel @ d_gc + shift, rel @ n_gc)
+        profiles.append((c, lo, hi))
+        need += _width_on(grid, c, hi - lo)
+    r_body = np.interp(grid, arc, radii)
+    r_body = np.where(grid > arc[-1] - 0.02, radii.max(), r_body)  # the hand is wider than the wrist
+    r = _slope_envelope(grid, np.maximum(r_body + ctx.clearance[kind], need / (2 * math.pi)), _MAX_SLOPE)
+    for g, verts in enumerate(sets):
+        if len(verts) == 0:
+            continue
+        rel = ctx.gc_pos[verts] - root_gc
+        a, lat = rel @ d_gc + shift, rel @ n_gc
+        c, lo, hi = profiles[g]
+        mid = np.median(0.5 * (lo + hi))  # one lateral centre line: the wrap of a tube stays isometric
+        # axis point and frame at arc length a (straight extension beyond the ends)
+        k = np.clip(np.searchsorted(arc, a) - 1, 0, len(arc) - 2)
+        f = np.clip((a - arc[k]) / np.maximum(arc[k + 1] - arc[k], 1e-12), 0.0, 1.0)
+        point = poly[k] + f[:, None] * (poly[k + 1] - poly[k])
+        point += np.minimum(a, 0.0)[:, None] * tang[0] + np.maximum(a - arc[-1], 0.0)[:, None] * tang[-1]
+        e1 = e1s[k] + f[:, None] * (e1s[k + 1] - e1s[k])
+        e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+        e2 = e2s[k] + f[:, None] * (e2s[k + 1] - e2s[k])
+        e2 /= np.linalg.norm(e2, axis=1, keepdims=True)
+        rv = np.interp(a, grid, r)
+        dx, dz = _ellipse_arc_point(lat - mid, rv, rv)
+        front = 1.0 if g == 0 else -1.0
+        out[verts] = point + dx[:, None] * e1 + front * dz[:, None] * e2
+
+
+def _panel_rotation_angle(garment: GarmentMesh, panel: int) -> float | None:
+    """In-plane (about Z) rotation [rad] taking the panel's 2D frame to its GarmentCode placement."""
+    sel = garment.vert_panel == panel
+    uv = garment.vert_uv[sel].cpu().numpy()
+    pos = garment.vert_pos[sel].cpu().numpy()[:, :2]
+    if len(uv) < 3:
+        return None
+    a, b = uv - uv.mean(0), pos - pos.mean(0)
+    u, _, vt = np.linalg.svd(a.T @ b)
+    r = (u @ vt).T
+    return math.atan2(r[1, 0], r[0, 0])
+
+
+def _place_rigid(ctx: _Context, out: np.ndarray, placed: np.ndarray) -> None:
+    """Move each 'rigid' panel so its stitched vertices' centroid meets their placed partners'."""
+    pairs = ctx.garment.stitch_pairs.cpu().numpy()
+    for p, kind in enumerate(ctx.kinds):
+        if kind != "rigid":
+            continue
+        verts = np.nonzero(ctx.vert_panel == p)[0]
+        mine = np.isin(pairs, verts)
+        rows = np.nonzero(mine.any(1) & ~mine.all(1))[0]
+        own = np.where(mine[rows, 0], pairs[rows, 0], pairs[rows, 1])
+        partner = np.where(mine[rows, 0], pairs[rows, 1], pairs[rows, 0])
+        ok = placed[partner]
+        if ok.any():
+            shift = out[partner[ok]].mean(0) - ctx.gc_pos[own[ok]].mean(0)
+        else:
+            c = ctx.gc_pos[verts].mean(0)
+            shift = np.array([0.0, ctx.vmap(c[1]) - c[1], 0.0])
+        out[verts] = ctx.gc_pos[verts] + shift
+        placed[verts] = True
+
+
+def _vertex_neighbours(garment: GarmentMesh) -> tuple[np.ndarray, np.ndarray]:
+    tris = garment.tri_vertices.cpu().numpy()
+    e = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
+    e = np.concatenate([e, e[:, ::-1]])
+    return e[:, 0], e[:, 1]
+
+
+def place_garment(
+    garment: GarmentMesh,
+    body_verts,
+    body_faces,
+    *,
+    body_landmarks: BodyLandmarks | None = None,
+    clearance: float = 0.02,
+    vertex_clearance: float = 0.01,
+    stitch_clearance: float = 0.015,
+    max_lift: float = 0.2,
+    push_radius: float = 0.08,
+) -> GarmentMesh:
+    """Wrap a meshed pattern around a body (see the module docstring); only ``vert_pos`` changes.
+
+    Args:
+        garment: the mesher's output, whose ``vert_pos`` is GarmentCode's flat placement [m].
+        body_verts: (Vb, 3) body vertices [m], world frame (Y up, facing +Z, feet on the floor).
+        body_faces: (Fb, 3) int triangles of a closed body mesh.
+        body_landmarks: precomputed `body_landmarks(body_verts, body_faces)` (saves ~1 s).
+        clearance: [m] gap between the body and the cylinders the panels are wrapped on.
+        vertex_clearance: [m] every panel vertex ends at least this far outside the body.
+        stitch_clearance: [m] the midpoint of every stitched pair ends at least this far outside.
+        max_lift: [m] largest upward shift tried to clear the shoulders.
+        push_radius: [m] radius over which a local push out of the body fades (smooth bump).
+
+    Returns:
+        a copy of ``garment`` with new ``vert_pos`` (V, 3) (same dtype/device), everything else shared.
+    """
+    if not isinstance(garment, GarmentMesh):
+        raise TypeError(f"garment must be a GarmentMesh, got {type(garment).__name__}")
+    verts, faces = _check_body(body_verts, body_faces)
+    if body_landmarks is not None and body_landmarks._sections is not None:
+        lm, sec = body_landmarks, body_landmarks._sections
+    else:
+        sec = _sections(verts, faces)
+        lm = body_landmarks if body_landmarks is not None else _landmarks_from_sections(sec, verts)
+    gc_pos = garment.vert_pos.detach().cpu().numpy().astype(np.float64)
+    vert_panel = garment.vert_panel.cpu().numpy()
+    kinds = _panel_kinds(garment, gc_pos)
+    # front/back by the side of the GarmentCode layout's mid-plane
+    z_mid = 0.5 * (gc_pos[:, 2].min() + gc_pos[:, 2].max())
+    front = np.array([gc_pos[vert_panel == p, 2].mean() > z_mid for p in range(len(garment.panel_names))])
+    kind_names = ("torso", "leg_left", "leg_right", "arm_left", "arm_right")
+    ctx = _Context(
+        garment,
+        gc_pos,
+        vert_panel,
+        kinds,
+        front,
+        lm,
+        sec,
+        _vertical_map(lm),
+        dict.fromkeys(kind_names, clearance),
+    )
+    dist = _BodyDistance(verts, faces)
+    pairs = garment.stitch_pairs.cpu().numpy()
+    upper_body = lm.armpit_y
+
+    # sleeves slide out along the arm until they clear the shoulder (their caps start beyond it)
+    arm_shift = {}
+    for kind in ("arm_left", "arm_right"):
+        verts_k = np.nonzero(np.array([k == kind for k in kinds], dtype=bool)[vert_panel])[0]
+        if len(verts_k) == 0:
+            continue
+        best = (-np.inf, 0.0)
+        for shift in np.arange(0.0, 0.151, 0.01):
+            trial = gc_pos.copy()
+            _wrap_arm(ctx, kind, trial, shift)
+            worst = dist(trial[verts_k])[0].min()
+            if worst > best[0] + 1e-4:
+                best = (worst, shift)
+            if worst >= vertex_clearance:
+                break
+        arm_shift[kind] = best[1]
+
+    def wrap(lift: float) -> np.ndarray:
+        out = gc_pos.copy()
+        placed = np.zeros(len(out), dtype=bool)
+        for kind in ("torso", "leg_left", "leg_right"):
+            _wrap_torso_like(ctx, kind, lift, out)
+        for kind, shift in arm_shift.items():
+            _wrap_arm(ctx, kind, out, shift)
+        placed[:] = [k != "rigid" for k in np.array(kinds)[vert_panel]]
+        _place_rigid(ctx, out, placed)
+        return out
+
+    def deficits(pos):
+        sd_v, n_v = dist(pos)
+        mids = 0.5 * (pos[pairs[:, 0]] + pos[pairs[:, 1]]) if len(pairs) else np.zeros((0, 3))
+        sd_m, n_m = dist(mids)
+        return vertex_clearance - sd_v, n_v, stitch_clearance - sd_m, n_m, mids
+
+    # 1. lift tops until nothing of the torso above the armpits is too close (shoulders), and widen the
+    #    torso / leg wraps until no vertex below is too close
+    vert_kind = np.array(kinds)[vert_panel]
+    pair_kind = np.where(vert_kind[pairs[:, 0]] == vert_kind[pairs[:, 1]], vert_kind[pairs[:, 0]], "")
+    lift, pos = 0.0, wrap(0.0)
+    for _ in range(12):
+        dv, _, dm, _, mids = deficits(pos)
+        changed = False
+        high_v, high_m = pos[:, 1] > upper_body, mids[:, 1] > upper_body
+        high = max(
+            dv[(vert_kind == "torso") & high_v].max(initial=0.0),
+            dm[(pair_kind == "torso") & high_m].max(initial=0.0),
+        )
+        if high > 0 and lift < max_lift:
+            lift = min(lift + max(high, 0.01), max_lift)
+            changed = True
+        for kind in ("torso", "leg_left", "leg_right"):
+            # only vertices: widening a wrap opens its seams further (their midpoints go deeper)
+            low_v = ~high_v if kind == "torso" else True
+            need = dv[(vert_kind == kind) & low_v].max(initial=0.0)
+            if need > 0 and ctx.clearance[kind] < clearance + 0.1:
+                ctx.clearance[kind] += max(need, 0.005)
+                changed = True
+        if not changed:
+            break
+        pos = wrap(lift)
+    # 2. local push along the body normal, spread smoothly over a ball (no spikes), until all clear
+    from scipy.spatial import cKDTree
+
+    for attempt in range(41):
+        dv, nv, dm, nm, _ = deficits(pos)
+        if dv.max(initial=0) <= 0 and dm.max(initial=0) <= 0:
+            break
+        if attempt == 40:
+            warnings.warn(
+                f"place_garment: {int((dv > 0).sum())} vertices and {int((dm > 0).sum())} stitch midpoints "
+                "are still closer to the body than asked (largest shortfall "
+                f"{100 * max(dv.max(initial=0), dm.max(initial=0)):.1f} cm)",
+                stacklevel=2,
+            )
+            break
+        bad_v = np.nonzero(dv > 0)[0]
+        bad_m = np.nonzero(dm > 0)[0]
+        # a seam midpoint too close moves both of its vertices along the body normal at the midpoint
+        push_m = (dm[bad_m] + 0.003)[:, None] * nm[bad_m]
+        centres = np.concatenate([pos[bad_v], pos[pairs[bad_m, 0]], pos[pairs[bad_m, 1]]])
+        push = np.concatenate([(dv[bad_v] + 0.003)[:, None] * nv[bad_v], push_m, push_m])
+        pairs_near = cKDTree(centres).sparse_distance_matrix(cKDTree(pos), push_radius, output_type="ndarray")
+        ci, vj, d = pairs_near["i"], pairs_near["j"], pairs_near["v"]
+        w = (1.0 - (d / push_radius) ** 2) ** 2
+        # weighted mean of the pushes reaching each vertex: a smooth displacement field
+        disp = np.zeros_like(pos)
+        np.add.at(disp, vj, w[:, None] * push[ci])
+        total = np.bincount(vj, weights=w, minlength=len(pos))
+        disp /= np.maximum(total, 1.0)[:, None]
+        # a vertex that is itself too close takes its own full push (the mean could dilute it)
+        own = np.concatenate([bad_v, pairs[bad_m, 0], pairs[bad_m, 1]])
+        disp[own] = push
+        pos = pos + disp
+    new_pos = torch.as_tensor(pos, dtype=garment.vert_pos.dtype, device=garment.vert_pos.device)
+    return replace(garment, vert_pos=new_pos)
