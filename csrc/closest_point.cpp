@@ -191,6 +191,16 @@ Hit query(const Grid& g, const T* verts, const int64_t* faces, const double p[3]
   if (box_dist2(p, g.lo, g.hi) > max_dist * max_dist) return hit;
   const double max2 = max_dist * max_dist;
   const V3 pv{p[0], p[1], p[2]};
+  // The per-entry box test runs in float (the boxes are stored as float, rounded outwards). Rounding p
+  // and the float arithmetic err by a few float ulps of the coordinates, so the pruning radius gets a
+  // slack of 1e-6 (1 + |p|_max) [m] plus 1e-6 relative: an entry is only skipped when it is certainly
+  // farther than the bound.
+  const float pf[3] = {static_cast<float>(p[0]), static_cast<float>(p[1]), static_cast<float>(p[2])};
+  const double slack = 1e-6 * (1.0 + std::max(std::fabs(p[0]), std::max(std::fabs(p[1]), std::fabs(p[2]))));
+  auto entry_bound = [&](double bound2) {
+    const double b = std::sqrt(bound2) * (1.0 + 1e-6) + slack;
+    return static_cast<float>(b * b);  // inf stays inf
+  };
   int64_t c[3], lim_lo[3], lim_hi[3];
   for (int a = 0; a < 3; ++a) {
     c[a] = g.axis_cell(a, p[a]);
@@ -203,10 +213,15 @@ Hit query(const Grid& g, const T* verts, const int64_t* faces, const double p[3]
     const double chi[3] = {clo[0] + g.h, clo[1] + g.h, clo[2] + g.h};
     if (box_dist2(p, clo, chi) > bound2) return;
     const int64_t cid = g.cell(i, j, k);
+    float bound_f = entry_bound(bound2);
     for (int64_t s = g.start[cid]; s < g.start[cid + 1]; ++s) {
       const Entry& e = g.items[s];
-      const double blo[3] = {e.lo[0], e.lo[1], e.lo[2]}, bhi[3] = {e.hi[0], e.hi[1], e.hi[2]};
-      if (box_dist2(p, blo, bhi) > std::min(hit.dist2, max2)) continue;
+      float d2f = 0.0f;
+      for (int a = 0; a < 3; ++a) {
+        const float d = std::max(std::max(e.lo[a] - pf[a], pf[a] - e.hi[a]), 0.0f);
+        d2f += d * d;
+      }
+      if (d2f > bound_f) continue;
       const int32_t f = e.tri;
       if (stamp[f] == stamp_id) continue;
       stamp[f] = stamp_id;
@@ -221,6 +236,7 @@ Hit query(const Grid& g, const T* verts, const int64_t* faces, const double p[3]
         hit.tri = f;
         hit.dist2 = d2;
         hit.bary[0] = bc[0], hit.bary[1] = bc[1], hit.bary[2] = bc[2];
+        bound_f = entry_bound(d2);
       }
     }
   };

@@ -41,6 +41,19 @@ TORCH_LIBRARY(diffavatar, m) {
   m.def(
       "bend_project_jacobi_(Tensor(a!) x, Tensor(b!) lam, Tensor vert_inv_mass, Tensor edge_quads, "
       "Tensor edge_rest_angle, Tensor edge_compliance, float dt, float omega) -> ()");
+  // Fused XPBD substeps (predict, iterations x (stretch, bend, attachments, body contacts, stitches),
+  // friction, velocity update), in place on x and v; twin: reference.xpbd_substeps_.
+  m.def(
+      "xpbd_substeps_(Tensor(a!) x, Tensor(b!) v, Tensor vert_inv_mass, Tensor tri_vertices, "
+      "Tensor tri_rest_inv, Tensor tri_compliance, Tensor tri_order, Tensor tri_color_offsets, "
+      "Tensor edge_quads, Tensor edge_rest_angle, Tensor edge_compliance, Tensor edge_order, "
+      "Tensor edge_color_offsets, Tensor stitch_vertices, Tensor attach_vertices, Tensor attach_height, "
+      "Tensor body_verts, Tensor body_faces, Tensor contact_vert, Tensor contact_tri, Tensor contact_bary, "
+      "float[] gravity, float velocity_decay, float dt, int substeps, int iterations, float stitch_compliance, "
+      "float stitch_max_move, float stitch_snap, float attach_compliance, float thickness, float friction, "
+      "bool jacobi, float jacobi_omega, int num_threads) -> ()");
+  // Largest |Green strain component| over the triangles (0-dim tensor): the solver's blow-up test.
+  m.def("max_abs_green_strain(Tensor x, Tensor tri_vertices, Tensor tri_rest_inv) -> Tensor");
   // Closest point on a triangle mesh within max_dist (uniform grid + exact point-triangle distance).
   m.def(
       "closest_point_on_mesh(Tensor points, Tensor verts, Tensor faces, float max_dist) "

@@ -335,3 +335,154 @@ def test_closest_point_on_anny_body(default_body):
     want = reference.closest_point_on_mesh(points, verts, faces, 0.03)
     _assert_same_closest(points, verts, faces, got, want)
     assert (got[0] >= 0).float().mean() > 0.8
+
+
+# ------------------------------------------------------------------------------------ fused substeps
+
+
+def _sphere(dtype=F64):
+    trimesh = pytest.importorskip("trimesh")
+    s = trimesh.creation.icosphere(subdivisions=3, radius=0.3)
+    return torch.as_tensor(s.vertices, dtype=dtype), torch.as_tensor(s.faces, dtype=torch.int64)
+
+
+def _substep_args(case: str, dtype=F64, monkeypatch=None):
+    """The exact argument list `XPBDSolver.step` passes to `ops.xpbd_substeps_` in a state where every
+    constraint kind is active: ``"sphere"`` a perturbed, moving sheet pressed onto a sphere (contacts,
+    friction), ``"tube"`` an open stitched tube with its waist attached (stitches with the bounded pull,
+    attachments), ``"jacobi"`` the sphere case with the Jacobi scheme."""
+    from torch_diffavatar.sim.material import ClothMaterial
+    from torch_diffavatar.sim.model import ClothModelBuilder
+    from torch_diffavatar.sim.solver import XPBDConfig, XPBDSolver
+    from torch_diffavatar.sim.state import ClothState
+    from torch_diffavatar.sim.testing import rectangle_garment, tube_garment
+
+    gen = torch.Generator().manual_seed(7)
+    kw = {}
+    if case in ("sphere", "jacobi"):
+        mat = ClothMaterial(
+            k_uu=800.0, k_vv=600.0, k_uv=100.0, bend_stiffness=1e-4, thickness=0.005, friction=0.4
+        )
+        g = rectangle_garment(10, 10, 0.6, 0.6, origin=(-0.3, 0.31, 0.3))
+        model = ClothModelBuilder(mat).add_garment(g).finalize(dtype=dtype)
+        kw["body_verts"], kw["body_faces"] = _sphere(dtype)
+    else:
+        mat = ClothMaterial(k_uu=500.0, k_vv=500.0, k_uv=100.0, bend_stiffness=1e-5)
+        g = tube_garment(nx=6, ny=6, width=0.3, height=0.3, gap=0.08, y0=1.0)
+        model = ClothModelBuilder(mat).add_garment(g, merge_seams=False).finalize(dtype=dtype)
+        kw["stitch_compliance"] = 1e-4
+        assert model.stitch_vertices.shape[0] > 0 and model.attach_vertices.shape[0] > 0
+    rest = model.rest_data(g.vert_uv.to(dtype))
+    x0 = model.vert_init_pos
+    x = x0 + 0.004 * torch.randn(x0.shape, generator=gen, dtype=F64).to(dtype)
+    v = 0.3 * torch.randn(x0.shape, generator=gen, dtype=F64).to(dtype)
+    v[:, 1] -= 0.5
+    cfg = XPBDConfig(substeps=6, iterations=2, scheme="jacobi" if case == "jacobi" else "gauss_seidel")
+    captured = []
+    monkeypatch.setattr(ops, "xpbd_substeps_", lambda *args, use_extension=True: captured.append(args))
+    XPBDSolver(model, cfg).step(ClothState(x, v), rest, 1 / 60, **kw)
+    monkeypatch.undo()
+    (args,) = captured
+    return list(args)
+
+
+def _run_substeps(fn, args, **overrides):
+    """(x, v) after fn(*args) on copies of x and v; keyword overrides replace named scalar arguments."""
+    names = ["substeps", "iterations", "num_threads"]
+    position = {"substeps": 24, "iterations": 25, "num_threads": 34}
+    args = list(args)
+    for name, value in overrides.items():
+        assert name in names
+        args[position[name]] = value
+    x, v = args[0].clone(), args[1].clone()
+    fn(x, v, *args[2:])
+    return x, v
+
+
+@pytest.mark.parametrize("case", ["sphere", "tube", "jacobi"])
+def test_xpbd_substeps_matches_reference_float64(case, monkeypatch):
+    args = _substep_args(case, monkeypatch=monkeypatch)
+    if case != "tube":
+        assert args[18].numel() > 10, "the problem must have body contacts"
+        assert args[31] > 0, "and friction"
+    x_cpp, v_cpp = _run_substeps(_op("xpbd_substeps_"), args)
+    x_ref, v_ref = _run_substeps(reference.xpbd_substeps_, args)
+    assert (x_ref - args[0]).abs().max() > 1e-3, "the problem must actually move the vertices"
+    torch.testing.assert_close(x_cpp, x_ref, rtol=0.0, atol=1e-10)
+    torch.testing.assert_close(v_cpp, v_ref, rtol=0.0, atol=1e-7)
+    if case == "tube":  # the bounded stitch pull was active: gaps shrink, but by at most max_move per pass
+        pairs = args[13]
+        gap0 = (args[0][pairs[:, 0]] - args[0][pairs[:, 1]]).norm(dim=-1)
+        gap1 = (x_cpp[pairs[:, 0]] - x_cpp[pairs[:, 1]]).norm(dim=-1)
+        assert float(gap1.max()) < float(gap0.max()) - 1e-3
+
+
+def test_xpbd_substeps_matches_reference_float32(monkeypatch):
+    args = _substep_args("sphere", dtype=torch.float32, monkeypatch=monkeypatch)
+    x_cpp, v_cpp = _run_substeps(_op("xpbd_substeps_"), args)
+    x_ref, v_ref = _run_substeps(reference.xpbd_substeps_, args)
+    assert x_cpp.dtype == torch.float32
+    torch.testing.assert_close(x_cpp, x_ref, rtol=0.0, atol=2e-5)
+    torch.testing.assert_close(v_cpp, v_ref, rtol=0.0, atol=5e-3)
+
+
+def test_xpbd_substeps_is_identical_with_two_threads(monkeypatch):
+    args = _substep_args("sphere", monkeypatch=monkeypatch)
+    x1, v1 = _run_substeps(_op("xpbd_substeps_"), args, num_threads=1)
+    x2, v2 = _run_substeps(_op("xpbd_substeps_"), args, num_threads=2)
+    assert torch.equal(x1, x2) and torch.equal(v1, v2)
+
+
+def test_xpbd_substeps_opcheck(monkeypatch):
+    args = _substep_args("tube", monkeypatch=monkeypatch)
+    args[24] = 2  # substeps
+    torch.library.opcheck(_op("xpbd_substeps_").default, (args[0].clone(), args[1].clone(), *args[2:]))
+
+
+def test_xpbd_substeps_rejects_bad_arguments(monkeypatch):
+    args = _substep_args("sphere", monkeypatch=monkeypatch)
+    op = _op("xpbd_substeps_")
+
+    def call(index, value):
+        bad = list(args)
+        bad[index] = value
+        op(bad[0].clone(), bad[1].clone(), *bad[2:])
+
+    with pytest.raises(RuntimeError, match="v must"):
+        call(1, args[1].float())
+    with pytest.raises(RuntimeError, match="contact_tri holds indices outside"):
+        call(19, torch.full_like(args[19], args[17].shape[0]))
+    with pytest.raises(RuntimeError, match="contact_bary must have shape"):
+        call(20, args[20][:-1].contiguous())
+    with pytest.raises(RuntimeError, match="gravity must have 3"):
+        call(21, [0.0, -9.81])
+    with pytest.raises(RuntimeError, match="tri_order"):
+        call(6, args[6] + args[3].shape[0])
+
+
+def test_unfused_composition_matches_fused_op(monkeypatch):
+    # the benchmark's "before" path: per-constraint C++ ops composed in Python
+    args = _substep_args("sphere", monkeypatch=monkeypatch)
+    x_cpp, v_cpp = _run_substeps(_op("xpbd_substeps_"), args)
+    x, v = args[0].clone(), args[1].clone()
+    reference.compose_substeps(ops, x, v, *args[2:-1])
+    torch.testing.assert_close(x, x_cpp, rtol=0.0, atol=1e-10)
+    torch.testing.assert_close(v, v_cpp, rtol=0.0, atol=1e-7)
+
+
+@pytest.mark.parametrize("dtype", [F64, torch.float32])
+def test_max_abs_green_strain_matches_reference(dtype):
+    from torch_diffavatar.sim.constraints import green_strain
+
+    args = _stretch_problem(8, dtype=dtype)
+    x, faces, rest_inv = args[0], args[3], args[4]
+    got = _op("max_abs_green_strain")(x, faces, rest_inv)
+    want = reference.max_abs_green_strain(x, faces, rest_inv)
+    assert got.shape == () and got.dtype == dtype and float(want) > 0.01
+    torch.testing.assert_close(got, want, rtol=1e-6, atol=0.0)
+    torch.testing.assert_close(want, green_strain(x, faces, rest_inv).abs().max(), rtol=1e-6, atol=0.0)
+    assert float(_op("max_abs_green_strain")(x, faces[:0], rest_inv[:0])) == 0.0
+    x_nan = x.clone()
+    x_nan[faces[3, 0], 1] = float("nan")
+    assert torch.isnan(_op("max_abs_green_strain")(x_nan, faces, rest_inv))
+    torch.library.opcheck(_op("max_abs_green_strain").default, (x, faces, rest_inv))

@@ -18,8 +18,10 @@ __all__ = [
     "bend_project_jacobi_",
     "closest_point_on_mesh",
     "extension_op",
+    "max_abs_green_strain",
     "stretch_project_",
     "stretch_project_jacobi_",
+    "xpbd_substeps_",
 ]
 
 _FAKES_REGISTERED: set[str] = set()
@@ -53,7 +55,12 @@ def _register_fake(name: str) -> None:
             points.new_empty((n,)),
         )
 
-    fake = fake_closest if name == "closest_point_on_mesh" else fake_inplace
+    def fake_scalar(x, *args):
+        return x.new_empty(())
+
+    fake = {"closest_point_on_mesh": fake_closest, "max_abs_green_strain": fake_scalar}.get(
+        name, fake_inplace
+    )
     try:
         torch.library.register_fake(f"diffavatar::{name}")(fake)
     except RuntimeError:
@@ -156,3 +163,89 @@ def closest_point_on_mesh(
         tri (N,) int64 (-1 when farther than ``max_dist``), bary (N, 3), dist (N,) [m] (inf when -1).
     """
     return _pick("closest_point_on_mesh", points, use_extension)(points, verts, faces, float(max_dist))
+
+
+def xpbd_substeps_(
+    x: torch.Tensor,
+    v: torch.Tensor,
+    vert_inv_mass: torch.Tensor,
+    tri_vertices: torch.Tensor,
+    tri_rest_inv: torch.Tensor,
+    tri_compliance: torch.Tensor,
+    tri_order: torch.Tensor,
+    tri_color_offsets: torch.Tensor,
+    edge_quads: torch.Tensor,
+    edge_rest_angle: torch.Tensor,
+    edge_compliance: torch.Tensor,
+    edge_order: torch.Tensor,
+    edge_color_offsets: torch.Tensor,
+    stitch_vertices: torch.Tensor,
+    attach_vertices: torch.Tensor,
+    attach_height: torch.Tensor,
+    body_verts: torch.Tensor,
+    body_faces: torch.Tensor,
+    contact_vert: torch.Tensor,
+    contact_tri: torch.Tensor,
+    contact_bary: torch.Tensor,
+    gravity,
+    velocity_decay: float,
+    dt: float,
+    substeps: int,
+    iterations: int,
+    stitch_compliance: float,
+    stitch_max_move: float,
+    stitch_snap: float,
+    attach_compliance: float,
+    thickness: float,
+    friction: float,
+    jacobi: bool,
+    jacobi_omega: float,
+    num_threads: int,
+    *,
+    use_extension: bool = True,
+) -> None:
+    """XPBD substeps of one frame, in place on x and v (see `reference.xpbd_substeps_` for the arguments)."""
+    _pick("xpbd_substeps_", x, use_extension)(
+        x,
+        v,
+        vert_inv_mass,
+        tri_vertices,
+        tri_rest_inv,
+        tri_compliance,
+        tri_order,
+        tri_color_offsets,
+        edge_quads,
+        edge_rest_angle,
+        edge_compliance,
+        edge_order,
+        edge_color_offsets,
+        stitch_vertices,
+        attach_vertices,
+        attach_height,
+        body_verts,
+        body_faces,
+        contact_vert,
+        contact_tri,
+        contact_bary,
+        [float(gi) for gi in gravity],
+        float(velocity_decay),
+        float(dt),
+        int(substeps),
+        int(iterations),
+        float(stitch_compliance),
+        float(stitch_max_move),
+        float(stitch_snap),
+        float(attach_compliance),
+        float(thickness),
+        float(friction),
+        bool(jacobi),
+        float(jacobi_omega),
+        int(num_threads),
+    )
+
+
+def max_abs_green_strain(
+    x: torch.Tensor, tri_vertices: torch.Tensor, tri_rest_inv: torch.Tensor, *, use_extension: bool = True
+) -> torch.Tensor:
+    """0-dim tensor: the largest |Green strain component| (see `reference.max_abs_green_strain`)."""
+    return _pick("max_abs_green_strain", x, use_extension)(x, tri_vertices, tri_rest_inv)

@@ -40,9 +40,17 @@ Conventions shared with the C++ (test against these, not against the prose):
 * **closest_point_on_mesh**: for each point the closest point on a triangle mesh, exact
   (Ericson, "Real-Time Collision Detection", 5.1.5); returns ``tri`` (-1 when none within
   ``max_dist``), barycentric ``bary`` (zeros when ``tri`` is -1) and unsigned ``dist`` (inf when -1).
+* **max_abs_green_strain**: 0-dim tensor, the largest ``|C_k|`` of the stretch constraint vectors
+  ``C = [E00, E11, E01]`` over all triangles (0 without triangles; NaN when any is NaN).
+* **xpbd_substeps_** (fused): ``substeps`` × [predict, ``iterations`` × (stretch, bend, attachments,
+  body contacts, stitches), friction, velocity update] in place on ``x`` and ``v``; the composition of
+  the kernels above, `attach_project_`, `stitch_project_` and `sim.collision`'s ``project_contacts`` /
+  ``apply_friction`` (see `xpbd_substeps_`). Multipliers start at 0 every substep.
 """
 
 from __future__ import annotations
+
+from types import SimpleNamespace
 
 import torch
 
@@ -408,3 +416,232 @@ def closest_point_on_mesh(
             bary[s + rows] = bc[sel]
             dist[s + rows] = d[sel]
     return tri, bary, dist
+
+
+# ------------------------------------------------------------------------------- stitches, attachments
+
+
+def stitch_project_(x, lam, w, pairs, alpha, h, max_move, snap):
+    """Zero-length stitches ``C = x_a − x_b`` (3-vector), Jacobi-averaged per vertex, in place.
+
+    Each pass moves a stitched vertex by at most ``max_move`` [m] unless its gap is under ``snap`` [m]:
+    a wide-open seam then closes with a bounded pull that the membrane constraints can follow, instead
+    of yanking single vertices out of their triangles (which the Green-strain constraints cannot
+    recover from in a few iterations).
+
+    Args:
+        x: (Vs, 3) positions [m]; lam: (S, 3) multipliers; w: (Vs,) inverse masses [1/kg];
+        pairs: (S, 2) int64 stitched vertices; alpha: compliance [m/N]; h: substep [s];
+        max_move: [m]; snap: [m].
+    """
+    a, b = pairs[:, 0], pairs[:, 1]
+    wa, wb = w[a], w[b]
+    alpha_t = alpha / (h * h)
+    c = x[a] - x[b]
+    denom = (wa + wb + alpha_t)[:, None]
+    dlam = (-c - alpha_t * lam) / denom
+    move = torch.maximum(wa, wb) * dlam.norm(dim=-1)
+    # seams already within ``snap`` close without limit (the body cannot hold them open)
+    limit = torch.where(c.norm(dim=-1) < snap, move, torch.full_like(move, max_move)).clamp_min(max_move)
+    dlam = dlam * (limit / move.clamp_min(limit))[:, None]
+    lam += dlam
+    idx = torch.cat((a, b))
+    dx = torch.cat((wa[:, None] * dlam, -wb[:, None] * dlam))
+    total = torch.zeros_like(x).index_add_(0, idx, dx)
+    count = x.new_zeros(x.shape[0]).index_add_(0, idx, x.new_ones(idx.shape[0]))
+    x += total / count.clamp_min(1.0)[:, None]
+
+
+def attach_project_(x, lam, w, verts, height, alpha, h):
+    """Soft height constraints ``C = y − y_target`` (waist attachments), in place.
+
+    Args:
+        x: (Vs, 3) [m]; lam: (A,); w: (Vs,) [1/kg]; verts: (A,) int64 distinct vertex ids;
+        height: (A,) target y [m]; alpha: compliance [m/N]; h: substep [s].
+    """
+    wv = w[verts]
+    alpha_t = alpha / (h * h)
+    c = x[verts, 1] - height
+    dlam = torch.where(wv > 0, (-c - alpha_t * lam) / (wv + alpha_t), torch.zeros_like(c))
+    lam += dlam
+    x[verts, 1] += wv * dlam
+
+
+# ------------------------------------------------------------------------------------- fused substeps
+
+
+def xpbd_substeps_(
+    x: torch.Tensor,
+    v: torch.Tensor,
+    vert_inv_mass: torch.Tensor,
+    tri_vertices: torch.Tensor,
+    tri_rest_inv: torch.Tensor,
+    tri_compliance: torch.Tensor,
+    tri_order: torch.Tensor,
+    tri_color_offsets: torch.Tensor,
+    edge_quads: torch.Tensor,
+    edge_rest_angle: torch.Tensor,
+    edge_compliance: torch.Tensor,
+    edge_order: torch.Tensor,
+    edge_color_offsets: torch.Tensor,
+    stitch_vertices: torch.Tensor,
+    attach_vertices: torch.Tensor,
+    attach_height: torch.Tensor,
+    body_verts: torch.Tensor,
+    body_faces: torch.Tensor,
+    contact_vert: torch.Tensor,
+    contact_tri: torch.Tensor,
+    contact_bary: torch.Tensor,
+    gravity: list[float],
+    velocity_decay: float,
+    dt: float,
+    substeps: int,
+    iterations: int,
+    stitch_compliance: float,
+    stitch_max_move: float,
+    stitch_snap: float,
+    attach_compliance: float,
+    thickness: float,
+    friction: float,
+    jacobi: bool,
+    jacobi_omega: float,
+    num_threads: int,
+) -> None:
+    """XPBD substeps of one frame, in place on ``x`` and ``v`` (twin of the fused C++ op).
+
+    Per substep: ``v = (v · velocity_decay + gravity · dt) · [w > 0]``, ``x_start = x``, ``x += v · dt``,
+    multipliers reset to 0; then ``iterations`` × (stretch pass, bend pass (Gauss–Seidel over the
+    colourings, or Jacobi with ``jacobi_omega`` when ``jacobi``), `attach_project_`,
+    ``collision.project_contacts`` against the contact set, `stitch_project_`); then
+    ``collision.apply_friction`` with the summed contact depths (when ``friction`` > 0 and there are
+    contacts); finally ``v = (x − x_start) / dt``.
+
+    Args:
+        x, v: (Vs, 3) positions [m] and velocities [m/s], updated in place.
+        vert_inv_mass: (Vs,) [1/kg] (0 = pinned).
+        tri_vertices, tri_rest_inv, tri_compliance, tri_order, tri_color_offsets: as `stretch_project_`.
+        edge_quads, edge_rest_angle, edge_compliance, edge_order, edge_color_offsets: as `bend_project_`.
+        stitch_vertices: (S, 2) int64; attach_vertices: (A,) int64; attach_height: (A,) [m].
+        body_verts: (Vb, 3) [m]; body_faces: (Fb, 3) int64 (may be empty without contacts).
+        contact_vert: (C,) int64 distinct cloth vertices; contact_tri: (C,) int64 body faces;
+        contact_bary: (C, 3) barycentric contact points on them.
+        gravity: 3 floats [m/s²]; velocity_decay: damping factor per substep; dt: substep [s].
+        substeps, iterations: counts. stitch_compliance [m/N], stitch_max_move [m], stitch_snap [m],
+        attach_compliance [m/N]: as `stitch_project_` / `attach_project_`. thickness [m]; friction: μ.
+        jacobi, jacobi_omega: the Jacobi scheme. num_threads: used by the C++ op only.
+    """
+    compose_substeps(
+        _REFERENCE_KERNELS, x, v, vert_inv_mass, tri_vertices, tri_rest_inv, tri_compliance, tri_order,
+        tri_color_offsets, edge_quads, edge_rest_angle, edge_compliance, edge_order, edge_color_offsets,
+        stitch_vertices, attach_vertices, attach_height, body_verts, body_faces, contact_vert, contact_tri,
+        contact_bary, gravity, velocity_decay, dt, substeps, iterations, stitch_compliance, stitch_max_move,
+        stitch_snap, attach_compliance, thickness, friction, jacobi, jacobi_omega,
+    )  # fmt: skip
+
+
+def compose_substeps(
+    kernels, x, v, vert_inv_mass, tri_vertices, tri_rest_inv, tri_compliance, tri_order, tri_color_offsets,
+    edge_quads, edge_rest_angle, edge_compliance, edge_order, edge_color_offsets, stitch_vertices,
+    attach_vertices, attach_height, body_verts, body_faces, contact_vert, contact_tri, contact_bary, gravity,
+    velocity_decay, dt, substeps, iterations, stitch_compliance, stitch_max_move, stitch_snap,
+    attach_compliance, thickness, friction, jacobi, jacobi_omega,
+) -> None:  # fmt: skip
+    """`xpbd_substeps_` with the four projection passes taken from ``kernels`` (an object with
+    ``stretch_project_``, ``bend_project_``, ``stretch_project_jacobi_``, ``bend_project_jacobi_``).
+
+    The twin uses this module's kernels; the benchmark passes the per-constraint C++ ops to time the
+    solver's former (unfused) path.
+    """
+    from torch_diffavatar.sim import collision  # local: collision imports ops, which imports this module
+
+    w = vert_inv_mass
+    movable = (w > 0).to(x.dtype)[:, None]
+    g = x.new_tensor(list(gravity))
+    contacts = None
+    if contact_vert.numel():
+        contacts = collision.Contacts(contact_vert, contact_tri, contact_bary)
+    xs, vs = x.clone(), v.clone()
+    for _ in range(substeps):
+        x_start = xs
+        vs = (vs * velocity_decay + g * dt) * movable
+        xs = xs + vs * dt
+        lam_tri = xs.new_zeros(tri_vertices.shape[0], 3)
+        lam_edge = xs.new_zeros(edge_quads.shape[0])
+        lam_stitch = xs.new_zeros(stitch_vertices.shape[0], 3)
+        lam_attach = xs.new_zeros(attach_vertices.shape[0])
+        depth_sum = normal = None
+        for _ in range(iterations):
+            if jacobi:
+                kernels.stretch_project_jacobi_(
+                    xs, lam_tri, w, tri_vertices, tri_rest_inv, tri_compliance, dt, jacobi_omega
+                )
+                if lam_edge.numel():
+                    kernels.bend_project_jacobi_(
+                        xs, lam_edge, w, edge_quads, edge_rest_angle, edge_compliance, dt, jacobi_omega
+                    )
+            else:
+                kernels.stretch_project_(
+                    xs,
+                    lam_tri,
+                    w,
+                    tri_vertices,
+                    tri_rest_inv,
+                    tri_compliance,
+                    tri_order,
+                    tri_color_offsets,
+                    dt,
+                )
+                if lam_edge.numel():
+                    kernels.bend_project_(
+                        xs, lam_edge, w, edge_quads, edge_rest_angle, edge_compliance, edge_order,
+                        edge_color_offsets, dt,
+                    )  # fmt: skip
+            if lam_attach.numel():
+                attach_project_(xs, lam_attach, w, attach_vertices, attach_height, attach_compliance, dt)
+            if contacts is not None:
+                xs, depth, normal = collision.project_contacts(
+                    xs, w, body_verts, body_faces, contacts, thickness
+                )
+                depth_sum = depth if depth_sum is None else depth_sum + depth
+            # stitches last: a seam pressed onto the body still closes (the drape fixes contacts)
+            if lam_stitch.numel():
+                stitch_project_(
+                    xs, lam_stitch, w, stitch_vertices, stitch_compliance, dt, stitch_max_move, stitch_snap
+                )
+        if contacts is not None and friction > 0:
+            xs = collision.apply_friction(xs, x_start, contacts, normal, depth_sum, friction)
+        vs = (xs - x_start) / dt
+    x.copy_(xs)
+    v.copy_(vs)
+
+
+def max_abs_green_strain(
+    x: torch.Tensor, tri_vertices: torch.Tensor, tri_rest_inv: torch.Tensor
+) -> torch.Tensor:
+    """Largest ``|E00|``, ``|E11|`` or ``|E01|`` of the Green strain (the solver's blow-up test).
+
+    Args:
+        x: (Vs, 3) [m]; tri_vertices: (F, 3) int64; tri_rest_inv: (F, 2, 2) [1/m].
+
+    Returns:
+        0-dim tensor of x's dtype (0 when F = 0).
+    """
+    if tri_vertices.shape[0] == 0:
+        return x.new_zeros(())
+    xt = x[tri_vertices]
+    d0, d1 = xt[:, 0] - xt[:, 2], xt[:, 1] - xt[:, 2]
+    r = tri_rest_inv.reshape(-1, 4)
+    f0 = d0 * r[:, 0:1] + d1 * r[:, 2:3]
+    f1 = d0 * r[:, 1:2] + d1 * r[:, 3:4]
+    c = torch.stack(
+        (0.5 * ((f0 * f0).sum(-1) - 1.0), 0.5 * ((f1 * f1).sum(-1) - 1.0), 0.5 * (f0 * f1).sum(-1))
+    )
+    return c.abs().max()
+
+
+_REFERENCE_KERNELS = SimpleNamespace(
+    stretch_project_=stretch_project_,
+    bend_project_=bend_project_,
+    stretch_project_jacobi_=stretch_project_jacobi_,
+    bend_project_jacobi_=bend_project_jacobi_,
+)

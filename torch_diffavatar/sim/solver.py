@@ -5,6 +5,12 @@ One `XPBDSolver.step` is one frame of ``dt`` seconds: body contacts are detected
 constraints (stretch, bending, attachments, body contacts, stitches), friction, update velocities.
 Constraint passes are Gauss–Seidel over a graph colouring (default) or Jacobi. The solver keeps no
 state; `step` returns a new `ClothState`. Blow-ups raise `SimulationError`.
+
+All substeps of a frame run in one call of `ops.xpbd_substeps_`: the fused C++ op when the extension is
+built (about 0.5 ms of CPU per substep on the 64×64 benchmark sheet, `python -m
+torch_diffavatar.sim.benchmark`), else its PyTorch twin `reference.xpbd_substeps_`, which composes the
+per-constraint reference kernels, `reference.stitch_project_` / `attach_project_` and
+`collision.project_contacts` / `apply_friction` (the maths of record).
 """
 
 from __future__ import annotations
@@ -15,8 +21,8 @@ from dataclasses import dataclass
 import torch
 
 from torch_diffavatar.errors import SimulationError
-from torch_diffavatar.sim import collision, ops
-from torch_diffavatar.sim.constraints import RestData, green_strain
+from torch_diffavatar.sim import collision, ops, reference
+from torch_diffavatar.sim.constraints import RestData
 from torch_diffavatar.sim.model import ClothModel
 from torch_diffavatar.sim.state import ClothState
 
@@ -52,6 +58,9 @@ class XPBDConfig:
             blow-ups reach 10–100 within a frame or two, while a triangle pinched at a seam corner can
             sit at E ≈ 1 in a sane drape).
         use_extension: use the C++ ops when built (else the PyTorch reference kernels).
+        num_threads: OpenMP threads of the C++ substep op (0 = ``torch.get_num_threads()``). 1 by
+            default: its Gauss–Seidel colours need a barrier each, and on the shared 2-core development
+            machine a second thread made a substep slower, not faster (scripts/bench_kernels.py).
     """
 
     substeps: int = 40
@@ -67,6 +76,7 @@ class XPBDConfig:
     max_speed: float = 50.0
     max_strain: float = 3.0
     use_extension: bool = True
+    num_threads: int = 1
 
     def __post_init__(self):
         if self.scheme not in SCHEMES:
@@ -75,6 +85,8 @@ class XPBDConfig:
             raise ValueError(f"substeps and iterations must be >= 1, got {self.substeps}, {self.iterations}")
         if len(self.gravity) != 3:
             raise ValueError(f"XPBDConfig.gravity must have 3 components, got {self.gravity}")
+        if self.num_threads < 0:
+            raise ValueError(f"XPBDConfig.num_threads must be >= 0, got {self.num_threads}")
 
 
 class XPBDSolver:
@@ -129,15 +141,12 @@ class XPBDSolver:
             raise ValueError(f"dt must be > 0, got {dt}")
         h = dt / cfg.substeps
         mat = rest.material
-        x = state.x.detach().clone()
-        v = state.v.detach().clone()
+        x = state.x.detach().clone().contiguous()
+        v = state.v.detach().clone().contiguous()
         w = rest.vert_inv_mass.detach().contiguous()
-        movable = (w > 0).to(x.dtype)[:, None]
-        g = x.new_tensor(cfg.gravity) * gravity_scale
-        damp = math.exp(-float(mat.damping) * h)
         alpha_stitch = cfg.stitch_compliance if stitch_compliance is None else stitch_compliance
-        contacts = None
         with torch.no_grad():
+            contacts = None
             if body_verts is not None:
                 # the band also covers how far the fastest vertex can travel in this frame
                 reach = 1.5 * float(v.norm(dim=-1).max()) * dt if v.numel() else 0.0
@@ -145,95 +154,60 @@ class XPBDSolver:
                 contacts = collision.detect_contacts(
                     x, body_verts, body_faces, band, use_extension=cfg.use_extension
                 )
-                if contacts.count == 0:
-                    contacts = None
-            tri_c, edge_c = (
-                rest.tri_compliance.detach().contiguous(),
-                rest.edge_compliance.detach().contiguous(),
-            )
-            tri_inv, edge_rest = (
+            if contacts is not None and contacts.count:
+                bv = body_verts.detach().to(x.dtype).contiguous()
+                bf = body_faces.contiguous()
+                cv, ct, cb = contacts.vert, contacts.tri, contacts.bary.to(x.dtype).contiguous()
+            else:  # no contact this frame
+                bv, bf = x.new_zeros(0, 3), model.tri_vertices.new_zeros(0, 3)
+                cv = ct = model.tri_vertices.new_zeros(0)
+                cb = x.new_zeros(0, 3)
+            tc, ec = model.tri_coloring, model.edge_coloring
+            self._substeps(
+                x,
+                v,
+                w,
+                model.tri_vertices,
                 rest.tri_rest_inv.detach().contiguous(),
+                rest.tri_compliance.detach().contiguous(),
+                tc.order,
+                tc.color_offsets,
+                model.edge_quads,
                 rest.edge_rest_angle.detach().contiguous(),
+                rest.edge_compliance.detach().contiguous(),
+                ec.order,
+                ec.color_offsets,
+                model.stitch_vertices,
+                model.attach_vertices,
+                model.attach_height.detach(),
+                bv,
+                bf,
+                cv,
+                ct,
+                cb,
+                [gi * gravity_scale for gi in cfg.gravity],
+                math.exp(-float(mat.damping) * h),
+                h,
+                cfg.substeps,
+                cfg.iterations,
+                alpha_stitch,
+                cfg.stitch_max_speed * h / cfg.iterations,
+                cfg.stitch_snap,
+                cfg.attach_compliance,
+                float(mat.thickness),
+                float(mat.friction) * friction_scale,
+                cfg.scheme == "jacobi",
+                cfg.jacobi_omega,
+                cfg.num_threads,
             )
-            for _ in range(cfg.substeps):
-                x_start = x
-                v = (v * damp + g * h) * movable
-                x = (x + v * h).contiguous()
-                lam_tri = x.new_zeros(model.tri_count, 3)
-                lam_edge = x.new_zeros(model.edge_count)
-                lam_stitch = x.new_zeros(model.stitch_vertices.shape[0], 3)
-                lam_attach = x.new_zeros(model.attach_vertices.shape[0])
-                depth_sum = None
-                for _ in range(cfg.iterations):
-                    self._project_elastic(x, lam_tri, lam_edge, w, tri_inv, tri_c, edge_rest, edge_c, h)
-                    if lam_attach.numel():
-                        _project_attach(
-                            x,
-                            lam_attach,
-                            w,
-                            model.attach_vertices,
-                            model.attach_height,
-                            cfg.attach_compliance,
-                            h,
-                        )
-                    if contacts is not None:
-                        x, depth, normal = collision.project_contacts(
-                            x, w, body_verts, body_faces, contacts, mat.thickness
-                        )
-                        depth_sum = depth if depth_sum is None else depth_sum + depth
-                    # stitches last: a seam pressed onto the body still closes (the drape fixes contacts)
-                    if lam_stitch.numel():
-                        max_move = cfg.stitch_max_speed * h / cfg.iterations
-                        pairs = model.stitch_vertices
-                        _project_stitches(x, lam_stitch, w, pairs, alpha_stitch, h, max_move, cfg.stitch_snap)
-                mu = float(mat.friction) * friction_scale
-                if contacts is not None and mu > 0:
-                    x = collision.apply_friction(x, x_start, contacts, normal, depth_sum, mu)
-                v = (x - x_start) / h
             if velocity_scale != 1.0:
                 v = v * velocity_scale
             self._check(x, v, rest)
         return ClothState(x, v)
 
-    def _project_elastic(self, x, lam_tri, lam_edge, w, tri_inv, tri_c, edge_rest, edge_c, h):
-        model, cfg = self.model, self.config
-        ext = cfg.use_extension
-        if cfg.scheme == "gauss_seidel":
-            tc, ec = model.tri_coloring, model.edge_coloring
-            ops.stretch_project_(
-                x,
-                lam_tri,
-                w,
-                model.tri_vertices,
-                tri_inv,
-                tri_c,
-                tc.order,
-                tc.color_offsets,
-                h,
-                use_extension=ext,
-            )
-            if model.edge_count:
-                ops.bend_project_(
-                    x,
-                    lam_edge,
-                    w,
-                    model.edge_quads,
-                    edge_rest,
-                    edge_c,
-                    ec.order,
-                    ec.color_offsets,
-                    h,
-                    use_extension=ext,
-                )
-        else:
-            om = cfg.jacobi_omega
-            ops.stretch_project_jacobi_(
-                x, lam_tri, w, model.tri_vertices, tri_inv, tri_c, h, om, use_extension=ext
-            )
-            if model.edge_count:
-                ops.bend_project_jacobi_(
-                    x, lam_edge, w, model.edge_quads, edge_rest, edge_c, h, om, use_extension=ext
-                )
+    def _substeps(self, *args) -> None:
+        """Run the frame's substeps in place on x and v: `ops.xpbd_substeps_` (arguments in its order)."""
+        ops.xpbd_substeps_(*args, use_extension=self.config.use_extension)
 
     def _check(self, x, v, rest):
         cfg = self.config
@@ -247,7 +221,14 @@ class XPBDSolver:
                 f"simulation blew up: a vertex moves at {speed:.3g} m/s > max_speed {cfg.max_speed:g} m/s "
                 "(reduce dt or increase substeps)"
             )
-        strain = float(green_strain(x, self.model.tri_vertices, rest.tri_rest_inv.detach()).abs().max())
+        strain = float(
+            ops.max_abs_green_strain(
+                x,
+                self.model.tri_vertices,
+                rest.tri_rest_inv.detach().contiguous(),
+                use_extension=cfg.use_extension,
+            )
+        )
         if strain > cfg.max_strain:
             raise SimulationError(
                 f"simulation blew up: Green strain {strain:.3g} > max_strain {cfg.max_strain:g} "
@@ -255,37 +236,7 @@ class XPBDSolver:
             )
 
 
-def _project_stitches(x, lam, w, pairs, alpha, h, max_move, snap):
-    """Zero-length stitches ``C = x_a − x_b`` (3-vector), Jacobi-averaged per vertex, in place.
-
-    Each pass moves a stitched vertex by at most ``max_move`` [m] unless its gap is under ``snap`` [m]:
-    a wide-open seam then closes with a bounded pull that the membrane constraints can follow, instead
-    of yanking single vertices out of their triangles (which the Green-strain constraints cannot
-    recover from in a few iterations).
-    """
-    a, b = pairs[:, 0], pairs[:, 1]
-    wa, wb = w[a], w[b]
-    alpha_t = alpha / (h * h)
-    c = x[a] - x[b]
-    denom = (wa + wb + alpha_t)[:, None]
-    dlam = (-c - alpha_t * lam) / denom
-    move = torch.maximum(wa, wb) * dlam.norm(dim=-1)
-    # seams already within ``snap`` close without limit (the body cannot hold them open)
-    limit = torch.where(c.norm(dim=-1) < snap, move, torch.full_like(move, max_move)).clamp_min(max_move)
-    dlam = dlam * (limit / move.clamp_min(limit))[:, None]
-    lam += dlam
-    idx = torch.cat((a, b))
-    dx = torch.cat((wa[:, None] * dlam, -wb[:, None] * dlam))
-    total = torch.zeros_like(x).index_add_(0, idx, dx)
-    count = x.new_zeros(x.shape[0]).index_add_(0, idx, x.new_ones(idx.shape[0]))
-    x += total / count.clamp_min(1.0)[:, None]
-
-
-def _project_attach(x, lam, w, verts, height, alpha, h):
-    """Soft height constraints ``C = y − y_target`` (waist attachments), in place."""
-    wv = w[verts]
-    alpha_t = alpha / (h * h)
-    c = x[verts, 1] - height
-    dlam = torch.where(wv > 0, (-c - alpha_t * lam) / (wv + alpha_t), torch.zeros_like(c))
-    lam += dlam
-    x[verts, 1] += wv * dlam
+# The stitch and attachment projections live with the other PyTorch kernels (the fused op's twin
+# composes them); these names stay for callers that replay the solver's steps.
+_project_stitches = reference.stitch_project_
+_project_attach = reference.attach_project_
