@@ -28,7 +28,7 @@ def test_fit_body_cli_contract(capsys, tmp_path, dressed_scan, monkeypatch):
     # The fit's accuracy is tested in test_body_fit.py; here a short schedule checks the plumbing.
     import torch_diffavatar.body.fit as fit_module
 
-    short = fit_module.BodyFitConfig(placement_iters=3, shape_iters=3, pose_iters=3, all_iters=3)
+    short = fit_module.BodyFitConfig(placement_iters=3, pose_iters=3, final_rounds=1, final_iters=2)
     original = fit_module.fit_body
     monkeypatch.setattr(fit_module, "fit_body", lambda pts, **kw: original(pts, config=short, **kw))
     scan, path = dressed_scan

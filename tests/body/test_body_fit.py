@@ -3,6 +3,9 @@
 The clothed scans use a stand-in garment layer: the body's covered parts offset outward along the normals
 by a smooth 1–4 cm (plus a flare below the hips for a dress). It stands in for a draped garment until the
 XPBD drape exists; the body fit and the segmentation never see which parts it covers.
+
+One fixed seed per scan kind (bare 0, dressed 1: the seeds in use before the fit was reworked); for
+the spread over more seeds run ``scripts/body_fit_seeds.py`` (not every seed meets every target yet).
 """
 
 import numpy as np
@@ -44,7 +47,6 @@ def test_bare_body_vertices_are_recovered(bare):
     assert result.chamfer_m < 0.02  # residual: dominated by the 1 cm noise
 
 
-@pytest.mark.xfail(strict=False, reason="measured 1.02-1.20 cm height error on this scan; target 1 cm")
 def test_bare_body_height_is_recovered(bare):
     scan, result, _ = bare
     assert abs(result.height_m - scan.height) <= 0.01
@@ -55,7 +57,6 @@ def test_dressed_body_height(dressed):
     assert abs(result.height_m - scan.height) <= 0.02
 
 
-@pytest.mark.xfail(strict=False, reason="the body swells under the dress: 77-80 % of covered vertices inside")
 def test_dressed_body_stays_inside_the_garment(dressed, anny_model):
     scan, result, verts = dressed
     # Signed offset of the noise-free garment layer from the fitted body, along the true normals.
@@ -65,19 +66,7 @@ def test_dressed_body_stays_inside_the_garment(dressed, anny_model):
     assert gap.min() > -0.02
 
 
-@pytest.mark.parametrize(
-    "with_colour",
-    [
-        True,
-        pytest.param(
-            False,
-            marks=pytest.mark.xfail(
-                strict=False,
-                reason="without colour the swollen body hides the cloth offset: recall 0.65-0.72",
-            ),
-        ),
-    ],
-)
+@pytest.mark.parametrize("with_colour", [True, False])
 def test_segmentation_of_a_dressed_scan(dressed, anny_model, with_colour):
     scan, result, verts = dressed
     seg = segment_garment(
@@ -101,3 +90,18 @@ def test_segmentation_of_a_dressed_scan(dressed, anny_model, with_colour):
     neck = next(loop for loop in seg.loops if loop.name == "neck")
     g = scan.points[seg.garment_indices]
     assert g[hem.point_indices, 1].mean() < g[neck.point_indices, 1].mean() - 0.5
+
+
+def test_surface_offsets_are_signed_distances(default_body):
+    from torch_diffavatar.body.segment import _surface_offsets
+
+    verts, faces = default_body
+    normals = vertex_normals(verts, faces)
+    idx = torch.arange(0, verts.shape[0], 7)
+    for shift in (0.005, -0.005):
+        points = (verts[idx] + shift * normals[idx]).numpy()
+        offsets = _surface_offsets(points, verts.numpy(), faces.numpy())
+        assert abs(np.median(offsets) - shift) < 1e-3
+        assert (np.sign(offsets) == np.sign(shift)).mean() > 0.97
+    far = _surface_offsets(np.array([[0.0, 5.0, 0.0]]), verts.numpy(), faces.numpy())
+    assert far[0] == pytest.approx(0.3)

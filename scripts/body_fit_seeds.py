@@ -1,0 +1,75 @@
+"""Report the initial body fit's accuracy over several random synthetic scans (issue #5's targets).
+
+For each seed: a bare scan (random Anny phenotypes and plausible pose, 20k surface samples, 20 % cut
+away in holes, 1 cm noise) and the same kind of scan under a stand-in dress layer. Prints one line per
+scan with the height error, the mean vertex error, the fraction of covered body vertices inside the
+garment layer, the colour-free segmentation recall/precision, and the CPU time of the fit (1 thread).
+
+    PYTHONPATH=. python scripts/body_fit_seeds.py --seeds 0 1 2 3 4
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import torch
+
+from torch_diffavatar.body.anny_model import load_anny
+from torch_diffavatar.body.fit import fit_body
+from torch_diffavatar.body.geometry import vertex_normals
+from torch_diffavatar.body.segment import segment_garment
+from torch_diffavatar.body.synthetic import make_scan
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
+    parser.add_argument("--garment", default="dress")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    anny_model = load_anny(dtype=torch.float64)
+    faces = anny_model.faces
+    rows = []
+    for seed in args.seeds:
+        for garment in (None, args.garment):
+            scan = make_scan(anny_model, seed=seed, garment=garment)
+            cpu = time.process_time()
+            result = fit_body(scan.points, anny_model=anny_model)
+            cpu = time.process_time() - cpu
+            with torch.no_grad():
+                verts = result.body().vertices[0].double().numpy()
+            row = {
+                "seed": seed,
+                "scan": garment or "bare",
+                "height_err_cm": 100 * (result.height_m - scan.height),
+                "vertex_err_cm": 100 * np.linalg.norm(verts - scan.body_vertices, axis=1).mean(),
+                "cpu_s": cpu,
+            }
+            if garment is not None:
+                normals = vertex_normals(torch.from_numpy(scan.body_vertices), faces).numpy()
+                gap = ((scan.layer_vertices - verts) * normals).sum(1)[scan.covered]
+                seg = segment_garment(
+                    scan.points, garment, verts, faces.numpy(), result.body.vertex_parts.numpy()
+                )
+                truth = scan.labels == 1
+                row["inside"] = float((gap >= 0).mean())
+                row["seg_recall"] = float((seg.labels & truth).sum() / truth.sum())
+                row["seg_precision"] = float((seg.labels & truth).sum() / max(seg.labels.sum(), 1))
+            rows.append(row)
+            print("  ".join(f"{k}={v:.3f}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()))
+    for kind in ("bare", args.garment):
+        sel = [r for r in rows if r["scan"] == kind]
+        worst_h = max(abs(r["height_err_cm"]) for r in sel)
+        worst_v = max(r["vertex_err_cm"] for r in sel)
+        line = f"{kind}: worst |height err| {worst_h:.2f} cm, worst vertex err {worst_v:.2f} cm"
+        if kind != "bare":
+            line += f", worst inside {min(r['inside'] for r in sel):.3f}"
+            line += f", worst seg recall {min(r['seg_recall'] for r in sel):.3f}"
+        line += f", max cpu {max(r['cpu_s'] for r in sel):.1f} s"
+        print(line)
+
+
+if __name__ == "__main__":
+    main()
