@@ -261,6 +261,67 @@ def _clean_cover(
     return out
 
 
+def _lower_rim(
+    garment_points: np.ndarray,
+    sel: np.ndarray,
+    side: str = "",
+    sectors: int = 36,
+    band: float = 0.015,
+    max_rise: float = 0.05,
+) -> np.ndarray:
+    """The garment points (indices into ``garment_points`` (G, 3)) on the lower rim of a bottom opening.
+
+    A loose hem hangs away from the body, so the points found near the body's loop (``sel``) cover the
+    whole lower part of the skirt. The rim is the garment's lower envelope instead: around the vertical
+    axis through the candidates (the garment points no higher than ``sel``, on the ``side`` ".L" (+x) or
+    ".R" (−x) of the garment's centre for a trouser leg), in each of ``sectors`` angular sectors, the
+    points within ``band`` [m] of the sector's lowest point. A sector whose lowest point lies more than
+    ``max_rise`` [m] above the median sector's is a hole in the scan, not the rim, and is skipped.
+    """
+    g = garment_points
+    cand = g[:, 1] <= g[sel, 1].max()
+    if side:
+        centre_x = np.median(g[:, 0])
+        cand &= (g[:, 0] > centre_x) if side == ".L" else (g[:, 0] < centre_x)
+    idx = np.flatnonzero(cand)
+    if len(idx) < sectors:
+        return sel
+    p = g[idx]
+    axis = p[:, [0, 2]].mean(0)
+    angle = np.arctan2(p[:, 2] - axis[1], p[:, 0] - axis[0])
+    sector = np.minimum(((angle + np.pi) / (2 * np.pi) * sectors).astype(np.int64), sectors - 1)
+    low = np.full(sectors, np.inf)
+    np.minimum.at(low, sector, p[:, 1])
+    seen = np.isfinite(low)
+    ok = seen & (low <= np.median(low[seen]) + max_rise)
+    keep = ok[sector] & (p[:, 1] <= low[sector] + band)
+    return idx[keep] if keep.any() else sel
+
+
+def _edge_points(
+    garment_points: np.ndarray, sel: np.ndarray, k: int = 16, min_gap_deg: float = 100.0, min_count: int = 12
+) -> np.ndarray:
+    """Of the garment points ``sel`` (indices into ``garment_points`` (G, 3)) near an opening, those on
+    the garment's edge: seen in its local tangent plane (PCA of its ``k`` nearest garment points), an
+    edge point's neighbours leave an angular gap wider than ``min_gap_deg`` (they lie on one side). The
+    band found from the body is a few centimetres wide; its edge points are the opening's rim. Falls back
+    to ``sel`` when fewer than ``min_count`` qualify.
+    """
+    g = garment_points
+    k = min(k, len(g))
+    if k < 4:
+        return sel
+    _, nbr = cKDTree(g).query(g[sel], k=k)
+    d = g[nbr] - g[sel][:, None, :]  # (S, k, 3)
+    centred = d - d.mean(1, keepdims=True)
+    _, vec = np.linalg.eigh(np.einsum("ski,skj->sij", centred, centred))
+    u, v = vec[:, :, 2], vec[:, :, 1]  # the two largest directions span the tangent plane
+    angle = np.sort(np.arctan2(np.einsum("ski,si->sk", d, v), np.einsum("ski,si->sk", d, u))[:, 1:], axis=1)
+    gaps = np.diff(np.concatenate([angle, angle[:, :1] + 2 * np.pi], axis=1), axis=1)
+    edge = gaps.max(1) > np.deg2rad(min_gap_deg)
+    return sel[edge] if edge.sum() >= min_count else sel
+
+
 def _boundary_loops(
     points: np.ndarray,
     labels: np.ndarray,
@@ -336,6 +397,10 @@ def _boundary_loops(
         sel = np.flatnonzero(np.isin(g_near, list(ring)))
         if len(sel) == 0:
             continue
+        if name == "hem" or name.startswith("leg"):
+            sel = _lower_rim(points[garment_idx], sel, side=name[-2:] if name.startswith("leg") else "")
+        else:
+            sel = _edge_points(points[garment_idx], sel)
         p = points[garment_idx[sel]]
         centre = p.mean(0)
         _, _, vt = np.linalg.svd(p - centre, full_matrices=False)
