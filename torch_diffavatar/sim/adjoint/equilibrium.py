@@ -29,6 +29,8 @@ from torch_diffavatar.sim.drape import drape_to_equilibrium
 from torch_diffavatar.sim.energy import EnergyParams, assemble_csr, drape_energy, hessian_elements
 from torch_diffavatar.sim.state import ClothState
 
+HESSIANS = ("exact", "projected")
+
 
 @dataclass(frozen=True)
 class EquilibriumOptions:
@@ -45,6 +47,13 @@ class EquilibriumOptions:
             (s − thickness).
         solve_method: adjoint solve method (`linsolve.SOLVE_METHODS`); newton_solve_method: the polish's.
         solve_tol: relative residual accepted for the adjoint solve (a larger one warns; > 1e-3 raises).
+        hessian: the adjoint system's matrix. ``"exact"``: ∇²ₓU, the exact implicit gradient at a
+            converged minimiser (what the gradchecks test). ``"projected"``: every element Hessian
+            projected to PSD plus ``regularization`` × its largest diagonal entry on the diagonal — an
+            approximation (Gauss–Newton-like) that stays solvable where the exact H is indefinite or
+            singular: drapes stopped by a speed test rather than polished to a minimiser, compressed
+            cloth, frictionless sliding modes. The fit uses it.
+        regularization: see ``hessian`` (relative to the largest diagonal entry) [-].
         use_extension: use the C++ solve op when built.
     """
 
@@ -57,12 +66,18 @@ class EquilibriumOptions:
     solve_method: str = "auto"
     newton_solve_method: str = "direct"
     solve_tol: float = 1e-8
+    hessian: str = "exact"
+    regularization: float = 1e-6
     use_extension: bool = True
 
     def __post_init__(self):
         for name in ("solve_method", "newton_solve_method"):
             if getattr(self, name) not in SOLVE_METHODS:
                 raise ValueError(f"EquilibriumOptions.{name} must be one of {SOLVE_METHODS}")
+        if self.hessian not in HESSIANS:
+            raise ValueError(f"EquilibriumOptions.hessian must be one of {HESSIANS}, got {self.hessian!r}")
+        if not self.regularization >= 0:
+            raise ValueError(f"EquilibriumOptions.regularization must be >= 0, got {self.regularization}")
 
 
 def _params(setup: DrapeSetup, opts: EquilibriumOptions) -> EnergyParams:
@@ -90,6 +105,14 @@ def _energy_grad(x, setup, rest, material, params, body_verts, contacts):
     return u.detach(), g
 
 
+def _diagonal_shift(elements, x, vert_count: int, relative: float):
+    """An element block adding ``relative`` × the largest diagonal entry of ``elements`` to every dof."""
+    diag = torch.cat([b.diagonal(dim1=1, dim2=2).reshape(-1) for _, b in elements])
+    mu = relative * float(diag.abs().max())
+    dofs = torch.arange(3 * vert_count, device=x.device)[:, None]
+    return dofs, x.new_full((dofs.shape[0], 1, 1), mu)
+
+
 def newton_polish(setup, rest, material, params, body_verts, contacts, x, opts, stats):
     """Projected Newton on U over the free dofs from ``x``; returns (x, iterations, force residual)."""
     model = setup.model
@@ -106,7 +129,6 @@ def newton_polish(setup, rest, material, params, body_verts, contacts, x, opts, 
         body_faces=setup.body_faces,
         contacts=contacts,
     )
-    all_dofs = torch.arange(3 * model.vert_count, device=x.device)[:, None]
     it, gmax = 0, float("inf")
     for it in range(opts.newton_iterations + 1):  # noqa: B007
         u0, g = _energy_grad(x, setup, rest, material, params, body_verts, contacts)
@@ -120,9 +142,7 @@ def newton_polish(setup, rest, material, params, body_verts, contacts, x, opts, 
                 x, model, rest, material, params,
                 body_verts=body_verts, body_faces=setup.body_faces, contacts=contacts, project=project,
             )  # fmt: skip
-            diag = torch.cat([b.diagonal(dim1=1, dim2=2).reshape(-1) for _, b in elements])
-            mu = 1e-10 * float(diag.abs().max())
-            elements.append((all_dofs, x.new_full((all_dofs.shape[0], 1, 1), mu)))
+            elements.append(_diagonal_shift(elements, x, model.vert_count, 1e-10))
             crow, col, val = assemble_csr(elements, free_index, nfree)
             method = "cg" if not project else opts.newton_solve_method
             # the exact-H CG attempt is capped: when it stalls, the projected Newton step is cheaper
@@ -260,6 +280,7 @@ def equilibrium_backward(
     params = _params(setup, opts)
     rest = model.rest_data(rest_uv.detach(), material)
     free_dof, free_index, nfree = _free(rest, model)
+    project = opts.hessian == "projected"
     elements = hessian_elements(
         x,
         model,
@@ -269,7 +290,10 @@ def equilibrium_backward(
         body_verts=body_verts,
         body_faces=setup.body_faces,
         contacts=contacts,
+        project=project,
     )
+    if project and opts.regularization > 0:
+        elements.append(_diagonal_shift(elements, x, model.vert_count, opts.regularization))
     crow, col, val = assemble_csr(elements, free_index, nfree)
     b = grad_x.reshape(-1)[free_dof].to(x.dtype)
     lam_free, info = solve_symmetric(
