@@ -4,6 +4,7 @@
 * `interior_loss`: Chamfer distance between the draped garment and the segmented scan garment [m²].
 * `seam_length_loss`: the two sides of every seam keep equal segment lengths (eq. 7) [m⁴].
 * `curvature_loss`: boundary curvature kept up to a per-vertex similarity transform (eq. 8) [m²].
+* `rest_area_loss`: a barrier that keeps rest triangles from collapsing or inverting [-].
 
 All are pure, differentiable functions in the style of pytorch3d's losses: ``reduction`` is one of
 ``"mean"``, ``"sum"``, ``"none"`` (checked up front) and optional per-item ``weights`` scale the items
@@ -292,3 +293,50 @@ def curvature_loss(
     fitted = a[..., None, None] * t + b[..., None, None] * t_perp  # T ē_k, (…, Nb, 2, 2)
     residual = (e - fitted).sum(-2)  # (…, Nb, 2)
     return _reduce((residual**2).sum(-1), weights, reduction)
+
+
+def rest_area_loss(
+    rest_uv: torch.Tensor,
+    template_uv: torch.Tensor,
+    tri_vertices: torch.Tensor,
+    *,
+    threshold: float = 0.5,
+    reduction: str = "sum",
+) -> torch.Tensor:
+    """Keeps rest triangles from collapsing: ``Σ_f relu(threshold − A_f / Ā_f)²``.
+
+    ``A_f`` is the signed area of rest triangle ``f`` and ``Ā_f`` its template area, so the term is 0
+    while every triangle keeps more than ``threshold`` of its area and grows smoothly as one shrinks
+    towards inversion (ratio ≤ 0). Handles of a control cage that pass each other would otherwise fold
+    the pattern; a hard rejection of such steps stalls the fit instead.
+
+    Args:
+        rest_uv: (V, 2) or (B, V, 2) rest coordinates [m]; template_uv: (V, 2) [m];
+        tri_vertices: (F, 3) int64 panel-vertex triangles (counter-clockwise or clockwise: the sign of
+            the template's area is divided out).
+        threshold: area ratio below which the penalty starts [-].
+        reduction: ``"sum"`` / ``"mean"`` over triangles, or ``"none"`` → (…, F).
+
+    Returns:
+        () or (B,) dimensionless (or (…, F) for ``"none"``).
+    """
+    _check_reduction(reduction)
+    if not 0.0 < threshold <= 1.0:
+        raise ValueError(f"threshold must be in (0, 1], got {threshold}")
+    ratio = rest_area_ratio(rest_uv, template_uv, tri_vertices)
+    return _reduce(torch.relu(threshold - ratio) ** 2, None, reduction)
+
+
+def signed_rest_areas(rest_uv: torch.Tensor, tri_vertices: torch.Tensor) -> torch.Tensor:
+    """(…, F) signed areas [m²] of the rest triangles in their panel frames ((…, V, 2) coords, (F, 3) ids)."""
+    p = rest_uv[..., tri_vertices, :]  # (…, F, 3, 2)
+    e1, e2 = p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :]
+    return 0.5 * (e1[..., 0] * e2[..., 1] - e1[..., 1] * e2[..., 0])
+
+
+def rest_area_ratio(
+    rest_uv: torch.Tensor, template_uv: torch.Tensor, tri_vertices: torch.Tensor
+) -> torch.Tensor:
+    """(…, F) signed rest area over the template's (1 = unchanged, <= 0 = inverted or collapsed)."""
+    ref = signed_rest_areas(template_uv.to(rest_uv), tri_vertices)
+    return signed_rest_areas(rest_uv, tri_vertices) / ref
