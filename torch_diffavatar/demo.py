@@ -19,6 +19,7 @@ from pathlib import Path
 DATA_DIR = Path(__file__).resolve().parent / "data"
 DEMO_SCAN = DATA_DIR / "demo_scan.ply"
 DEMO_TRUTH = DATA_DIR / "demo_truth.json"
+DEMO_TRUTH_PATTERN = DATA_DIR / "demo_truth_pattern.json"
 
 
 def register(subparsers) -> None:
@@ -58,6 +59,13 @@ def run_demo(args) -> dict:
     with contextlib.redirect_stdout(sys.stderr):
         report = fit_scan(DEMO_SCAN, config, args.out, resume=args.resume, progress=not args.no_progress)
     truth = json.loads(DEMO_TRUTH.read_text()) if DEMO_TRUTH.is_file() else {}
+    if DEMO_TRUTH_PATTERN.is_file():
+        from torch_diffavatar.assets import _write_json
+        from torch_diffavatar.evaluation import compare_with_truth
+
+        true_kb = truth.get("material", {}).get("bend_stiffness")
+        report.update(compare_with_truth(args.out, DEMO_TRUTH_PATTERN, true_kb))
+        _write_json(Path(args.out) / "report.json", report)
     summary = dict(report)
     summary["truth"] = truth
     if not args.json:
@@ -72,6 +80,11 @@ def run_demo(args) -> dict:
             f"bending stiffness: {kb['bend_stiffness_initial']:.3g} -> {kb['bend_stiffness_final']:.3g} N*m"
             + (f" (truth {true_kb:.3g})" if true_kb else "")
         )
+        if "pattern_outline_error_m" in report:
+            print(
+                f"pattern outline error: {1e2 * report['pattern_outline_error_m']:.2f} cm mean, "
+                f"{1e2 * report['pattern_outline_hausdorff_m']:.2f} cm max (worst panel)"
+            )
         print(f"assets: {args.out}")
     return summary
 

@@ -1,10 +1,12 @@
-"""Mesh measures: triangle quality and angles (differentiable torch functions, any dtype/device)."""
+"""Measures: triangle quality and angles (differentiable torch functions, any dtype/device), and the
+distance between sewing-pattern outlines (NumPy, after a rigid alignment)."""
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 
@@ -77,3 +79,90 @@ def quality_summary(verts: torch.Tensor, faces: torch.Tensor) -> QualitySummary:
     """Min and mean quality and the smallest angle of a (V, 2) or (V, 3) mesh."""
     q = triangle_quality(verts, faces)
     return QualitySummary(q.min(), q.mean(), min_angle_deg(verts, faces))
+
+
+# ------------------------------------------------------------------------------------ pattern outlines
+
+
+def _resample_closed(poly: np.ndarray, count: int) -> np.ndarray:
+    """``count`` points evenly spaced by arc length along the closed polygon ``poly`` (L, 2)."""
+    closed = np.concatenate([poly, poly[:1]])
+    seg = np.linalg.norm(np.diff(closed, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    t = np.arange(count) * (s[-1] / count)
+    return np.stack([np.interp(t, s, closed[:, k]) for k in range(2)], axis=1)
+
+
+def _closest_on_polygon(points: np.ndarray, poly: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Closest points (N, 2) on the edges of the closed polygon ``poly`` (L, 2) to ``points`` (N, 2),
+    and their distances (N,)."""
+    a, b = poly, np.roll(poly, -1, axis=0)
+    ab = b - a  # (L, 2)
+    ap = points[:, None, :] - a[None]  # (N, L, 2)
+    t = np.clip((ap * ab).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-30), 0.0, 1.0)
+    d = ap - t[..., None] * ab
+    d2 = (d * d).sum(-1)
+    k = d2.argmin(1)
+    rows = np.arange(len(points))
+    return a[k] + t[rows, k, None] * ab[k], np.sqrt(d2[rows, k])
+
+
+def outline_distance(a: np.ndarray, b: np.ndarray, *, samples: int = 400, icp_iters: int = 30):
+    """How far apart two closed 2D outlines are, after aligning ``a`` rigidly onto ``b``.
+
+    The alignment (rotation + translation, no scale: a panel's size is what a fit recovers) starts
+    from the centroids at a few rotations within ±30° and is refined by ICP (arc-length samples of
+    ``a`` matched to the nearest of ``b``'s dense samples); the best start wins. Then each outline's
+    samples are measured against the other outline's edges.
+
+    Args:
+        a, b: (La, 2) and (Lb, 2) closed polygons [m] (last point not repeated).
+
+    Returns:
+        (mean, max) [m]: the mean of the two directions' mean distances, and the symmetric Hausdorff
+        distance.
+    """
+    from scipy.spatial import cKDTree
+
+    pa, pb = _resample_closed(np.asarray(a, float), samples), _resample_closed(np.asarray(b, float), samples)
+    dense = _resample_closed(pb, 20 * samples)  # stands in for b's edges while matching
+    tree = cKDTree(dense)
+    best = None
+    for angle in np.deg2rad(np.arange(-30.0, 31.0, 10.0)):  # a few starts: ICP only finds a nearby optimum
+        c, s_ = np.cos(angle), np.sin(angle)
+        moved = (pa - pa.mean(0)) @ np.array([[c, s_], [-s_, c]]) + pb.mean(0)
+        for _ in range(icp_iters):
+            q = dense[tree.query(moved)[1]]
+            ca, cq = moved.mean(0), q.mean(0)
+            u, _, vt = np.linalg.svd((moved - ca).T @ (q - cq))
+            if np.linalg.det(u @ vt) < 0:  # a reflection is no rigid motion
+                vt[-1] *= -1
+            moved = (moved - ca) @ (u @ vt) + cq
+        _, d_ab = _closest_on_polygon(moved, pb)
+        _, d_ba = _closest_on_polygon(pb, moved)
+        score = (0.5 * (d_ab.mean() + d_ba.mean()), max(d_ab.max(), d_ba.max()))
+        best = score if best is None or score[0] < best[0] else best
+    return best
+
+
+def pattern_outline_errors(result, truth) -> dict[str, dict[str, float]]:
+    """Per-panel outline distance between two sewing patterns with the same panel names.
+
+    Args:
+        result, truth: `pattern.spec.Pattern` objects (metres).
+
+    Returns:
+        panel name -> ``{"mean_m", "max_m"}`` (see `outline_distance`).
+
+    Raises:
+        ValueError: the patterns do not have the same panels.
+    """
+    if set(result.panels) != set(truth.panels):
+        raise ValueError(
+            f"the patterns' panels differ: {sorted(set(result.panels) ^ set(truth.panels))} are in only one"
+        )
+    out = {}
+    for name, panel in result.panels.items():
+        mean, worst = outline_distance(panel.outline(), truth.panels[name].outline())
+        out[name] = {"mean_m": float(mean), "max_m": float(worst)}
+    return out
