@@ -14,7 +14,10 @@ from torch_diffavatar.losses import (
     boundary_triplets,
     curvature_loss,
     interior_loss,
+    rest_area_loss,
+    rest_area_ratio,
     seam_length_loss,
+    signed_rest_areas,
 )
 from torch_diffavatar.pattern import BoundaryLoop
 from torch_diffavatar.pattern.mesher import mesh_pattern
@@ -242,3 +245,133 @@ def test_interior_loss_gradcheck():
     x = torch.randn(30, 3, generator=gen, dtype=F64).requires_grad_()
     y = torch.randn(40, 3, generator=gen, dtype=F64)
     assert torch.autograd.gradcheck(lambda p: interior_loss(p, y, robust="huber", scale=0.5), (x,))
+
+
+# ----------------------------------------------------------------------------- rest-area barrier
+
+# two counter-clockwise triangles sharing an edge (a unit square), a separate counter-clockwise and a
+# separate clockwise one
+AREA_UV = torch.tensor(
+    [
+        [0.0, 0.0],
+        [1.0, 0.0],
+        [1.0, 1.0],
+        [0.0, 1.0],
+        [1.5, 0.0],
+        [2.5, 0.0],
+        [1.7, 0.8],
+        [2.0, 0.0],
+        [2.0, 1.0],
+        [4.0, 0.0],
+    ],
+    dtype=F64,
+)
+AREA_TRIS = torch.tensor([[0, 1, 2], [0, 2, 3], [4, 5, 6], [7, 8, 9]])  # areas +0.5, +0.5, +0.4, −1
+AREAS = torch.tensor([0.5, 0.5, 0.4, -1.0], dtype=F64)
+
+
+def _shrink(uv: torch.Tensor, tri: torch.Tensor, ratio: float) -> torch.Tensor:
+    """``uv`` with triangle ``tri``'s vertices scaled about its centroid so its area is ``ratio`` times
+    as large (a negative ratio mirrors it through the centroid's line along its first edge)."""
+    out = uv.clone()
+    p = uv[tri]
+    c = p.mean(0)
+    q = (p - c) * math.sqrt(abs(ratio)) + c
+    if ratio < 0:  # reflect across the line through c along edge 0→1
+        d = (p[1] - p[0]) / (p[1] - p[0]).norm()
+        r = q - c
+        q = c + 2 * (r @ d)[:, None] * d - r
+    out[tri] = q
+    return out
+
+
+def test_signed_rest_areas_and_ratio_values():
+    torch.testing.assert_close(signed_rest_areas(AREA_UV, AREA_TRIS), AREAS)
+    torch.testing.assert_close(rest_area_ratio(AREA_UV, AREA_UV, AREA_TRIS), torch.ones(4, dtype=F64))
+    scaled = rest_area_ratio(AREA_UV * 0.6 + 3.0, AREA_UV, AREA_TRIS)  # similarity: ratio 0.36 everywhere
+    torch.testing.assert_close(scaled, torch.full((4,), 0.36, dtype=F64))
+    # a mirror inverts every triangle, clockwise templates included (the template's sign divides out)
+    mirrored = AREA_UV * torch.tensor([-1.0, 1.0], dtype=F64)
+    torch.testing.assert_close(rest_area_ratio(mirrored, AREA_UV, AREA_TRIS), -torch.ones(4, dtype=F64))
+    for r in (0.3, 0.0, -0.5):
+        torch.testing.assert_close(
+            rest_area_ratio(_shrink(AREA_UV, AREA_TRIS[3], r), AREA_UV, AREA_TRIS)[3],
+            torch.tensor(r, dtype=F64),
+            atol=1e-12,
+            rtol=0,
+        )
+
+
+def test_rest_area_loss_is_zero_at_the_template_and_above_the_threshold():
+    assert float(rest_area_loss(AREA_UV, AREA_UV, AREA_TRIS)) == 0.0
+    for scale in (0.75, 1.0, 1.6):  # area ratios 0.5625, 1, 2.56: all above 0.5
+        assert float(rest_area_loss(AREA_UV * scale, AREA_UV, AREA_TRIS)) == 0.0
+    assert float(rest_area_loss(AREA_UV * 0.75, AREA_UV, AREA_TRIS, threshold=0.6)) > 0
+
+
+@pytest.mark.parametrize("threshold", [0.5, 0.8, 1.0])
+@pytest.mark.parametrize("tri", [2, 3])  # counter-clockwise and clockwise templates
+def test_rest_area_loss_of_a_shrunk_triangle(threshold, tri):
+    for r in (0.45, 0.2, 0.0):
+        uv = _shrink(AREA_UV, AREA_TRIS[tri], r)
+        value = rest_area_loss(uv, AREA_UV, AREA_TRIS, threshold=threshold)
+        assert value.shape == ()
+        assert float(value) == pytest.approx((threshold - r) ** 2, rel=1e-9, abs=1e-15)
+        per_tri = rest_area_loss(uv, AREA_UV, AREA_TRIS, threshold=threshold, reduction="none")
+        assert per_tri.shape == (4,)
+        assert float(per_tri.sum()) == pytest.approx(float(value))
+        assert int((per_tri > 0).sum()) == 1 and float(per_tri[tri]) > 0
+        mean = rest_area_loss(uv, AREA_UV, AREA_TRIS, threshold=threshold, reduction="mean")
+        assert float(mean) == pytest.approx(float(value) / 4)
+
+
+def test_rest_area_loss_inverted_is_worse_than_collapsed():
+    losses = [
+        float(rest_area_loss(_shrink(AREA_UV, AREA_TRIS[2], r), AREA_UV, AREA_TRIS)) for r in (0.3, 0.0, -1.0)
+    ]
+    assert losses[0] < losses[1] < losses[2]
+    assert losses[1] == pytest.approx(0.25) and losses[2] == pytest.approx(2.25)  # (0.5 − 0)², (0.5 + 1)²
+
+
+def test_rest_area_loss_batched():
+    batch = torch.stack([AREA_UV, _shrink(AREA_UV, AREA_TRIS[2], 0.1), _shrink(AREA_UV, AREA_TRIS[2], -0.4)])
+    value = rest_area_loss(batch, AREA_UV, AREA_TRIS)
+    assert value.shape == (3,)
+    expected = torch.stack([rest_area_loss(uv, AREA_UV, AREA_TRIS) for uv in batch])
+    torch.testing.assert_close(value, expected)
+    torch.testing.assert_close(value, torch.tensor([0.0, 0.4**2, 0.9**2], dtype=F64))
+    assert rest_area_loss(batch, AREA_UV, AREA_TRIS, reduction="none").shape == (3, 4)
+    assert signed_rest_areas(batch, AREA_TRIS).shape == (3, 4)
+    # a float32 template is cast to the rest coordinates' dtype
+    torch.testing.assert_close(rest_area_loss(batch, AREA_UV.float(), AREA_TRIS), value)
+
+
+def test_rest_area_loss_gradient_pushes_a_shrinking_triangle_apart():
+    uv = _shrink(AREA_UV, AREA_TRIS[2], 0.2).requires_grad_(True)
+    loss = rest_area_loss(uv, AREA_UV, AREA_TRIS)
+    (grad,) = torch.autograd.grad(loss, uv)
+    others = torch.ones(len(AREA_UV), dtype=torch.bool)
+    others[AREA_TRIS[2]] = False
+    assert float(grad[others].abs().max()) == 0.0  # the other triangles feel nothing
+    assert float(grad[AREA_TRIS[2]].norm(dim=1).min()) > 0
+    stepped = (uv - 1e-2 * grad).detach()
+    assert float(rest_area_loss(stepped, AREA_UV, AREA_TRIS)) < float(loss.detach())
+    tri = AREA_TRIS[2]
+    for i, j in ((0, 1), (1, 2), (2, 0)):  # every edge of the triangle gets longer
+        before = (uv.detach()[tri[i]] - uv.detach()[tri[j]]).norm()
+        after = (stepped[tri[i]] - stepped[tri[j]]).norm()
+        assert float(after) > float(before)
+    ratio_after = rest_area_ratio(stepped, AREA_UV, AREA_TRIS)[2]
+    assert float(ratio_after) > 0.2
+    # and it is the gradient: float64 gradcheck (away from the relu's kink)
+    assert torch.autograd.gradcheck(
+        lambda x: rest_area_loss(x, AREA_UV, AREA_TRIS), (uv.detach().requires_grad_(),)
+    )
+
+
+def test_rest_area_loss_rejects_bad_arguments():
+    for threshold in (0.0, -0.2, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="threshold"):
+            rest_area_loss(AREA_UV, AREA_UV, AREA_TRIS, threshold=threshold)
+    with pytest.raises(ValueError, match="reduction"):
+        rest_area_loss(AREA_UV, AREA_UV, AREA_TRIS, reduction="max")

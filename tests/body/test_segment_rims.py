@@ -1,0 +1,134 @@
+"""The rim helpers of the segmentation on synthetic garments: `_lower_rim` (a skirt's hem as its lower
+envelope) and `_edge_points` (the points on an opening's edge)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from torch_diffavatar.body.segment import _edge_points, _lower_rim
+
+RADIUS, Y0, Y1 = 0.25, 0.5, 1.0  # the skirt: an open cylinder about the y axis [m]
+BAND = 0.015  # `_lower_rim`'s default band [m]
+NOISE = 0.001  # [m]
+SECTORS = 36
+# The band is measured from each angular sector's lowest point, which at this density (~550 points per
+# sector) lies up to a few mm above the hem, and the points carry 1 mm noise: so the highest rim point
+# may lie up to 1 cm above ``Y0 + BAND`` (measured: 0.517–0.522 m over six seeds), the hole's upper
+# edge (0.6 m) far above.
+TOP = Y0 + BAND + 0.01
+
+
+def _skirt(seed: int = 0, count: int = 20000, centre=(0.03, -0.02)) -> np.ndarray:
+    """(count, 3) points on the cylinder, uniform by area, with 1 mm Gaussian noise."""
+    rng = np.random.default_rng(seed)
+    theta = rng.uniform(-np.pi, np.pi, count)
+    y = rng.uniform(Y0, Y1, count)
+    p = np.stack([centre[0] + RADIUS * np.cos(theta), y, centre[1] + RADIUS * np.sin(theta)], axis=1)
+    return p + rng.normal(0.0, NOISE, p.shape)
+
+
+def _angle(points: np.ndarray, centre=(0.03, -0.02)) -> np.ndarray:
+    return np.arctan2(points[:, 2] - centre[1], points[:, 0] - centre[0])
+
+
+def _sectors_hit(angles: np.ndarray, sectors: int = SECTORS) -> np.ndarray:
+    """(sectors,) bool: some angle falls in each of ``sectors`` equal sectors of [−π, π)."""
+    k = np.minimum(((angles + np.pi) / (2 * np.pi) * sectors).astype(int), sectors - 1)
+    return np.bincount(k, minlength=sectors) > 0
+
+
+def test_lower_rim_of_a_skirt_is_its_hem():
+    g = _skirt()
+    sel = np.flatnonzero(g[:, 1] < 0.7)  # what the body's loop finds: the whole lower part
+    rim = _lower_rim(g, sel)
+    assert 0 < len(rim) < len(sel)
+    p = g[rim]
+    assert float(p[:, 1].max()) <= TOP
+    assert _sectors_hit(_angle(p)).all()  # all the way round
+    # and every point of the hem's lowest centimetre is in it
+    hem = np.flatnonzero(g[:, 1] < Y0 + 0.01)
+    assert np.isin(hem, rim).mean() > 0.99
+
+
+def test_lower_rim_skips_a_hole_in_the_hem():
+    g = _skirt(seed=1)
+    angle = _angle(g)
+    hole = (np.abs(angle - 1.0) < np.deg2rad(20.0)) & (g[:, 1] < 0.6)  # 40° wide, 10 cm high
+    g = g[~hole]
+    angle = angle[~hole]
+    sel = np.flatnonzero(g[:, 1] < 0.7)
+    rim = _lower_rim(g, sel)
+    p, a = g[rim], angle[rim]
+    # none from the hole's upper edge (y ≈ 0.6): the hem only
+    assert float(p[:, 1].max()) <= TOP
+    inside = np.abs(a - 1.0) < np.deg2rad(20.0 - 3.0)  # a margin for the sector boundaries
+    assert not inside.any()
+    # the rim in every sector away from the hole
+    centres = np.linspace(-np.pi, np.pi, SECTORS, endpoint=False) + np.pi / SECTORS
+    away = np.abs(np.angle(np.exp(1j * (centres - 1.0)))) > np.deg2rad(20.0 + 10.0)
+    assert away.sum() >= 28
+    assert _sectors_hit(a)[away].all()
+
+
+@pytest.mark.parametrize("side", [".L", ".R"])
+def test_lower_rim_of_one_trouser_side(side):
+    g = _skirt(seed=2)
+    sel = np.flatnonzero(g[:, 1] < 0.7)
+    rim = _lower_rim(g, sel, side=side)
+    p = g[rim]
+    centre_x = np.median(g[:, 0])
+    assert len(rim) > 50
+    if side == ".L":
+        assert bool((p[:, 0] > centre_x).all())
+    else:
+        assert bool((p[:, 0] < centre_x).all())
+    assert float(p[:, 1].max()) <= TOP
+    # the whole half of the hem: its points below 1 cm on that side are all kept
+    half = (g[:, 1] < Y0 + 0.01) & ((g[:, 0] > centre_x) if side == ".L" else (g[:, 0] < centre_x))
+    assert np.isin(np.flatnonzero(half), rim).mean() > 0.99
+
+
+def test_edge_points_of_a_disc_are_its_rim():
+    rng = np.random.default_rng(3)
+    R, spacing = 0.2, 0.01  # [m]
+    ticks = np.arange(-R, R + 1e-9, spacing)
+    xy = np.stack(np.meshgrid(ticks, ticks), axis=-1).reshape(-1, 2)
+    xy = xy + rng.uniform(-0.3, 0.3, xy.shape) * spacing  # a jittered grid
+    xy = xy[np.linalg.norm(xy, axis=1) <= R]
+    # tilted out of the horizontal, 1 mm noise across it
+    tilt = np.deg2rad(35.0)
+    g = np.stack([xy[:, 0], xy[:, 1] * np.sin(tilt), xy[:, 1] * np.cos(tilt)], axis=1) + [0.1, 1.0, 0.0]
+    normal = np.array([0.0, np.cos(tilt), -np.sin(tilt)])
+    g = g + rng.normal(0.0, NOISE, (len(g), 1)) * normal
+    r = np.linalg.norm(xy, axis=1)
+    sel = np.arange(len(g))
+    edge = _edge_points(g, sel)
+    assert len(edge) < len(sel)  # not the fallback
+    assert float(r[edge].min()) >= R - 0.015  # on the rim, none from the interior
+    # and the rim is found all the way round
+    rim_angles = np.arctan2(xy[edge, 1], xy[edge, 0])
+    assert _sectors_hit(rim_angles, 24).all()
+    # from a band near the edge too (what the body's loop gives)
+    band = np.flatnonzero(r > R - 0.04)
+    edge_band = _edge_points(g, band)
+    assert len(edge_band) < len(band) and float(r[edge_band].min()) >= R - 0.015
+
+
+@pytest.mark.xfail(
+    strict=True,
+    raises=AssertionError,
+    reason="DEFECT: on randomly (Poisson) sampled points, as a scan sampled by area is, the angular-gap "
+    "test flags ~15 % of interior points too (15 random neighbours leave a gap > 100° that often): "
+    "measured 51-61 % of the returned points lie > 1.5 cm inside the rim (1250 points, seeds 0-3), "
+    "67 % at 5000 points",
+)
+def test_edge_points_of_a_randomly_sampled_disc_are_its_rim():
+    rng = np.random.default_rng(0)
+    R, count = 0.2, 1250  # [m]; about the demo scan's density (~1 point/cm²)
+    r = R * np.sqrt(rng.uniform(0.0, 1.0, count))  # uniform by area
+    theta = rng.uniform(0.0, 2 * np.pi, count)
+    g = np.stack([r * np.cos(theta), r * np.sin(theta), rng.normal(0.0, NOISE, count)], axis=1)
+    edge = _edge_points(g, np.arange(count))
+    assert len(edge) < count  # not the fallback
+    assert np.mean(r[edge] >= R - 0.015) >= 0.9
