@@ -15,7 +15,12 @@ Files written by `write_assets` (names in `ASSET_FILES`):
 * ``body.obj`` + ``body.json`` (Anny parameters, phenotypes by name);
 * ``material.json`` (every `ClothMaterial` field with its unit);
 * ``report.json`` (final metrics, see `torch_diffavatar.fit`);
-* ``before_after.png``: front and back views of the first and the last drape on their bodies.
+* ``before_after.png``: front and back views of the first and the last drape on their bodies;
+* ``seams.json``: the garment topology beside the OBJs (panel of each rest vertex, seam vertex pairs,
+  stitched edge pairs, rest-vertex -> draped-vertex map, labels, openings);
+* ``asset.json``: the manifest (format version, frame, units, files, material with meanings, counts).
+
+`load_assets` reads such a folder back into our objects (`Assets`); docs/ASSETS.md documents the format.
 """
 
 from __future__ import annotations
@@ -23,7 +28,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -53,7 +58,12 @@ ASSET_FILES = {
     "material_json": "material.json",
     "report_json": "report.json",
     "before_after_png": "before_after.png",
+    "seams_json": "seams.json",
+    "manifest_json": "asset.json",
 }
+
+ASSET_FORMAT = "torch_diffavatar.assets"
+ASSET_FORMAT_VERSION = 1
 
 MATERIAL_UNITS = {
     "areal_density": "kg/m^2",
@@ -65,6 +75,21 @@ MATERIAL_UNITS = {
     "damping": "1/s",
     "friction": "-",
     "thickness": "m",
+}
+
+MATERIAL_MEANINGS = {
+    "areal_density": "mass per rest area; vertex masses are lumped from the rest triangle areas",
+    "k_uu": "membrane stretch stiffness along the pattern's u axis (rest.obj vt first coordinate, warp): "
+    "energy density 1/2 k_uu E00^2 per rest area, E = Green strain of the triangle w.r.t. its vt shape",
+    "k_vv": "membrane stretch stiffness along the pattern's v axis (vt second coordinate, weft): "
+    "1/2 k_vv E11^2",
+    "k_uv": "in-plane shear stiffness: energy density 2 k_uv E01^2 (= 1/2 k_uv gamma^2, gamma = 2 E01)",
+    "poisson": "coupling nu in [0, 1): energy term nu sqrt(k_uu k_vv) E00 E11",
+    "bend_stiffness": "discrete-shell bending stiffness k_b: energy 1/2 k_b 3|e|^2/(A1+A2) (theta-theta0)^2 "
+    "per interior edge of the draped mesh, theta0 = 0 (flat pattern, also across seams)",
+    "damping": "velocity damping rate: v *= exp(-damping dt) every substep of dt seconds",
+    "friction": "Coulomb friction coefficient cloth-body",
+    "thickness": "collision offset: cloth vertices are kept this far outside the body surface",
 }
 
 
@@ -292,16 +317,261 @@ def write_assets(
     write_obj(paths["body_obj"], body_verts.detach().cpu().double(), body_faces.cpu())
     _write_json(paths["body_json"], body_params)
     _write_json(paths["material_json"], material_dict(material))
-    written = [k for k in ASSET_FILES if k not in ("report_json", "before_after_png")]
+    _write_json(paths["seams_json"], seams_dict(garment))
+    written = [k for k in ASSET_FILES if k not in ("report_json", "before_after_png", "manifest_json")]
     if before is not None:
         from torch_diffavatar.render import save_png
 
         after = (draped_x, garment.sim_faces, body_verts, body_faces)
         save_png(render_before_after(before, after, size=png_size), paths["before_after_png"])
         written.append("before_after_png")
-    written.append("report_json")
+    written += ["report_json", "manifest_json"]
     report = dict(report)
     report["pattern_export_max_deviation_m"] = pattern_deviation(fitted, garment, uv)
     report["files"] = {k: str(paths[k]) for k in written}
     _write_json(paths["report_json"], report)
+    _write_json(
+        paths["manifest_json"],
+        manifest_dict(garment, material, body_verts, body_faces, {k: ASSET_FILES[k] for k in written}),
+    )
     return report["files"]
+
+
+# ---------------------------------------------------------------------------------------------------
+# The asset format for other simulators: seams.json + asset.json, and the loader
+# ---------------------------------------------------------------------------------------------------
+
+FILE_CONTENTS = {
+    "pattern_json": "GarmentCode sewing pattern of the fitted garment (panels, curves, stitches) [cm]",
+    "pattern_svg": "picture of the pattern",
+    "pattern_png": "picture of the pattern",
+    "rest_obj": "panel meshes, one vertex per panel vertex (seams NOT merged): v = panel placed in 3D "
+    "by its panel rotation/translation [m], vt = 2D rest coordinates of the vertex in its panel [m]",
+    "draped_obj": "the sewn garment at equilibrium on the body: v = seam-merged vertices [m]; faces "
+    "'f v/vt' pair each corner's draped vertex with its rest vertex (vt indexes rest.obj's vertices)",
+    "body_obj": "the body mesh the garment was draped on [m] (closed, outward normals)",
+    "body_json": "Anny body parameters (BodyModel.parameters_dict: phenotypes, per-bone axis-angle "
+    "[rad], global orientation [rad], translation [m], scale)",
+    "material_json": "cloth material, every field with its SI unit",
+    "report_json": "metrics of the fit",
+    "before_after_png": "first and final drape of the fit",
+    "seams_json": "garment topology: panel of each rest vertex, seam vertex pairs, stitched edge pairs, "
+    "rest vertex -> draped vertex map, edge labels, openings",
+    "manifest_json": "this manifest",
+}
+
+
+def stitched_edges(garment: GarmentMesh) -> np.ndarray:
+    """(Se, 4) int64 pairs of sewn boundary edges ``(a0, a1, b0, b1)`` of the panel meshes.
+
+    Boundary edge (a0, a1) of one panel is sewn to boundary edge (b0, b1) when a0–b0 and a1–b1 are both
+    stitched vertex pairs (panel-vertex ids, i.e. rows of rest.obj). Each pair is listed once.
+    """
+    tri = garment.tri_vertices.cpu().numpy()
+    e = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
+    key, count = np.unique(np.sort(e, axis=1), axis=0, return_counts=True)
+    boundary = {(int(a), int(b)) for a, b in key[count == 1]}
+    partners: dict[int, set[int]] = {}
+    for a, b in garment.stitch_pairs.cpu().numpy().reshape(-1, 2):
+        partners.setdefault(int(a), set()).add(int(b))
+        partners.setdefault(int(b), set()).add(int(a))
+    out = set()
+    for a0, a1 in boundary:
+        for b0 in partners.get(a0, ()):
+            for b1 in partners.get(a1, ()):
+                if b0 != b1 and (min(b0, b1), max(b0, b1)) in boundary:
+                    first, second = (a0, a1), (b0, b1)
+                    out.add((*first, *second) if first < (min(b0, b1), max(b0, b1)) else (*second, *first))
+    return np.array(sorted(out), dtype=np.int64).reshape(-1, 4)
+
+
+def seams_dict(garment: GarmentMesh) -> dict:
+    """JSON-friendly garment topology (see ``FILE_CONTENTS["seams_json"]``); indices are 0-based."""
+
+    def ints(t):
+        return [int(i) for i in t.cpu().reshape(-1).tolist()]
+
+    return {
+        "panel_names": list(garment.panel_names),
+        "garment_type": garment.garment_type,
+        "spacing_m": float(garment.spacing),
+        "panel_vertex_count": garment.vert_count,
+        "sim_vertex_count": int(garment.sim_vert_count),
+        "vert_panel": ints(garment.vert_panel),
+        "vert_to_sim": ints(garment.vert_to_sim),
+        "stitch_pairs": garment.stitch_pairs.cpu().reshape(-1, 2).tolist(),
+        "stitched_edges": stitched_edges(garment).tolist(),
+        "vert_labels": {k: ints(v) for k, v in garment.vert_labels.items()},
+        "boundary_loops": [
+            {"name": b.name, "sim_vertices": ints(b.vertices)} for b in garment.boundary_loops
+        ],
+        "panel_boundary": [ints(t) for t in garment.panel_boundary],
+        "edge_vertices": [[name, int(k), ints(v)] for (name, k), v in garment.edge_vertices.items()],
+    }
+
+
+def manifest_dict(garment: GarmentMesh, material: ClothMaterial, body_verts, body_faces, files: dict) -> dict:
+    """The ``asset.json`` manifest: format, frame, units, files, counts, material with meanings."""
+    from torch_diffavatar.sim.drape import DrapeConfig
+
+    cfg = DrapeConfig()
+    mat = material_dict(material)
+    for name, entry in mat.items():
+        entry["meaning"] = MATERIAL_MEANINGS.get(name, "")
+    return {
+        "format": ASSET_FORMAT,
+        "version": ASSET_FORMAT_VERSION,
+        "frame": {
+            "up": "+Y",
+            "forward": "+Z (the body faces +Z)",
+            "left": "+X (the body's left side)",
+            "ground": "feet on y = 0",
+            "handedness": "right-handed",
+        },
+        "units": {"length": "m", "mass": "kg", "time": "s", "angle": "rad", "pattern_json": "cm"},
+        "files": {k: {"path": v, "content": FILE_CONTENTS.get(k, "")} for k, v in files.items()},
+        "garment": {
+            "type": garment.garment_type,
+            "panels": list(garment.panel_names),
+            "rest_vertex_count": garment.vert_count,
+            "draped_vertex_count": int(garment.sim_vert_count),
+            "triangle_count": garment.tri_count,
+            "stitch_pair_count": int(garment.stitch_pairs.reshape(-1, 2).shape[0]),
+            "triangle_winding": "counter-clockwise seen from outside the garment (right-hand normal out)",
+        },
+        "material": mat,
+        "body": {
+            "model": "Anny (anny 0.6.2), topology anny-noeyes-notongue",
+            "vertex_count": int(body_verts.shape[0]),
+            "triangle_count": int(body_faces.shape[0]),
+        },
+        "simulation": {
+            "note": "settings of our XPBD drape that produced draped.obj (for reference, not required)",
+            "frame_dt_s": cfg.dt,
+            "substeps": cfg.xpbd.substeps,
+            "iterations": cfg.xpbd.iterations,
+            "gravity_m_s2": list(cfg.xpbd.gravity),
+            "velocity_scale_per_frame": cfg.drape_velocity_scale,
+        },
+    }
+
+
+@dataclass
+class Assets:
+    """A simulation-ready asset folder read back by `load_assets`.
+
+    Attributes:
+        garment: the garment: ``vert_uv`` (V, 2) = rest coordinates [m], ``vert_pos`` (V, 3) = the drape
+            at each rest vertex [m], seams, labels, openings (float64 / int64, CPU).
+        rest_uv: (V, 2) float64 rest coordinates [m] (= ``garment.vert_uv``).
+        rest_pos: (V, 3) float64 panels placed in 3D (rest.obj ``v``) [m].
+        draped_x: (Vs, 3) float64 draped seam-merged vertices [m].
+        body_verts: (Vb, 3) float64 [m]; body_faces: (Fb, 3) int64.
+        body_params: body.json (`BodyModel.parameters_dict`, plus ``phenotypes_by_name``).
+        material: the `ClothMaterial`.
+        pattern: the fitted `Pattern` (pattern.json), or None when the file is absent.
+        manifest: asset.json.
+        stitched_edges: (Se, 4) int64 sewn boundary edge pairs (seams.json).
+        path: the folder.
+    """
+
+    garment: GarmentMesh
+    rest_uv: torch.Tensor
+    rest_pos: torch.Tensor
+    draped_x: torch.Tensor
+    body_verts: torch.Tensor
+    body_faces: torch.Tensor
+    body_params: dict
+    material: ClothMaterial
+    pattern: Pattern | None
+    manifest: dict
+    stitched_edges: torch.Tensor
+    path: Path
+
+
+def _read_json(path: Path) -> dict:
+    from torch_diffavatar.errors import InputError
+
+    if not path.is_file():
+        raise InputError(f"{path}: missing (not an asset folder written by write_assets?)")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise InputError(f"{path}: not valid JSON ({exc})") from exc
+
+
+def load_assets(asset_dir: str | os.PathLike) -> Assets:
+    """Read an asset folder written by `write_assets` (needs asset.json and seams.json, format v1).
+
+    Raises:
+        InputError: a missing or inconsistent file (the message names it).
+    """
+    from torch_diffavatar.errors import InputError
+    from torch_diffavatar.mesh_io import read_obj
+    from torch_diffavatar.pattern.garment_mesh import BoundaryLoop
+    from torch_diffavatar.pattern.garmentcode import load_pattern
+
+    root = Path(asset_dir)
+    if not root.is_dir():
+        raise InputError(f"{root}: no such asset folder")
+    manifest = _read_json(root / ASSET_FILES["manifest_json"])
+    if manifest.get("format") != ASSET_FORMAT or int(manifest.get("version", -1)) > ASSET_FORMAT_VERSION:
+        raise InputError(
+            f"{root / 'asset.json'}: format {manifest.get('format')!r} v{manifest.get('version')}, expected "
+            f"{ASSET_FORMAT!r} v{ASSET_FORMAT_VERSION} or older"
+        )
+    files = {k: root / v["path"] for k, v in manifest["files"].items()}
+    seams = _read_json(files["seams_json"])
+    rest = read_obj(files["rest_obj"])
+    draped = read_obj(files["draped_obj"])
+    body = read_obj(files["body_obj"])
+    V, Vs = int(seams["panel_vertex_count"]), int(seams["sim_vertex_count"])
+    if rest.verts.shape[0] != V or rest.uv is None or rest.uv.shape[0] != V:
+        raise InputError(f"{files['rest_obj']}: expected {V} vertices and {V} vt records (seams.json)")
+    if draped.verts.shape[0] != Vs or draped.uv_faces is None:
+        raise InputError(f"{files['draped_obj']}: expected {Vs} vertices with 'f v/vt' faces (seams.json)")
+    tri = draped.uv_faces  # panel-vertex triangles
+    if not torch.equal(tri, rest.faces):
+        raise InputError(f"{files['draped_obj']}: its vt indices do not match the faces of rest.obj")
+    vert_to_sim = torch.tensor(seams["vert_to_sim"], dtype=torch.int64)
+    if not torch.equal(vert_to_sim[tri], draped.faces):
+        raise InputError(f"{files['draped_obj']}: faces disagree with seams.json vert_to_sim")
+    uv = rest.uv.to(torch.float64)
+    garment = GarmentMesh(
+        panel_names=list(seams["panel_names"]),
+        vert_uv=uv,
+        vert_panel=torch.tensor(seams["vert_panel"], dtype=torch.int64),
+        vert_pos=draped.verts[vert_to_sim].clone(),
+        tri_vertices=tri.clone(),
+        stitch_pairs=torch.tensor(seams["stitch_pairs"], dtype=torch.int64).reshape(-1, 2),
+        vert_to_sim=vert_to_sim,
+        sim_vert_count=Vs,
+        boundary_loops=[
+            BoundaryLoop(b["name"], torch.tensor(b["sim_vertices"], dtype=torch.int64))
+            for b in seams.get("boundary_loops", [])
+        ],
+        panel_boundary=[torch.tensor(t, dtype=torch.int64) for t in seams.get("panel_boundary", [])],
+        edge_vertices={
+            (name, int(k)): torch.tensor(v, dtype=torch.int64)
+            for name, k, v in seams.get("edge_vertices", [])
+        },
+        vert_labels={k: torch.tensor(v, dtype=torch.int64) for k, v in seams.get("vert_labels", {}).items()},
+        garment_type=seams.get("garment_type"),
+        spacing=float(seams.get("spacing_m", 0.015)),
+    )
+    material = material_from_dict(_read_json(files["material_json"]))
+    pattern = load_pattern(files["pattern_json"]) if files.get("pattern_json", Path()).is_file() else None
+    return Assets(
+        garment=garment,
+        rest_uv=uv,
+        rest_pos=rest.verts,
+        draped_x=draped.verts,
+        body_verts=body.verts,
+        body_faces=body.faces,
+        body_params=_read_json(files["body_json"]),
+        material=material,
+        pattern=pattern,
+        manifest=manifest,
+        stitched_edges=torch.tensor(seams.get("stitched_edges", []), dtype=torch.int64).reshape(-1, 4),
+        path=root,
+    )

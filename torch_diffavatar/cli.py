@@ -16,6 +16,7 @@ _COMMAND_MODULES = (
     "torch_diffavatar.body.commands",
     "torch_diffavatar.fit_commands",
     "torch_diffavatar.demo",
+    "torch_diffavatar.animate",
 )
 
 
