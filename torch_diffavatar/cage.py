@@ -488,3 +488,33 @@ class ControlCage(nn.Module):
         return (
             f"panels={len(self.panel_names)}, handles={self.handle_count}, vertices={self.vert_count}{tied}"
         )
+
+
+class FreeVertices(nn.Module):
+    """The pattern without a cage (the paper's "w/o cage" ablation): every panel vertex's rest coordinate
+    is a parameter of its own.
+
+    Same interface as `ControlCage` for the fit: ``handles`` (V, 2) nn.Parameter [m] (initialised to the
+    template ``vert_uv``), ``handle_rest`` the template, ``forward(handles=None)`` → (V, 2) or (B, V, 2)
+    rest coordinates [m]. Nothing ties mirrored panels or seams.
+    """
+
+    def __init__(self, garment: GarmentMesh):
+        super().__init__()
+        uv = garment.vert_uv.detach().clone()
+        self.handles = nn.Parameter(uv.clone())
+        self.register_buffer("handle_rest", uv)
+
+    @property
+    def handle_count(self) -> int:
+        return self.handles.shape[0]
+
+    def forward(self, handles: torch.Tensor | None = None) -> torch.Tensor:
+        """Rest coordinates [m]: the parameter, or ``handles`` (V, 2) / (B, V, 2) overriding it."""
+        z = self.handles if handles is None else handles
+        if z.dim() not in (2, 3) or z.shape[-2:] != (self.handle_count, 2):
+            raise ValueError(
+                f"handles must have shape ({self.handle_count}, 2) or (B, {self.handle_count}, 2), "
+                f"got {tuple(z.shape)}"
+            )
+        return z

@@ -39,7 +39,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from torch_diffavatar.cage import ControlCage, seam_segments
+from torch_diffavatar.cage import ControlCage, FreeVertices, seam_segments
 from torch_diffavatar.chamfer import nearest_indices, surface_chamfer_m
 from torch_diffavatar.errors import InputError, SimulationError
 from torch_diffavatar.losses import (
@@ -129,7 +129,9 @@ class FitConfig:
         max_retries: halvings of a rejected step before it is dropped [-].
         lr_final: every learning rate decays along a cosine from its value at the first iteration to
             ``lr_final`` times that value at the last one [-] (1: constant).
-        tie_mirrored, tie_seams: `ControlCage` tying options.
+        cage: parameterise the pattern by a `ControlCage` (the method); False optimises every panel
+            vertex's rest coordinate directly (`cage.FreeVertices`, the paper's "w/o cage" ablation).
+        tie_mirrored, tie_seams: `ControlCage` tying options (ignored without the cage).
         image_every: iterations between TensorBoard pictures (0: only first and last).
         seed: seed of the scan subsampling.
     """
@@ -156,6 +158,7 @@ class FitConfig:
     max_drape_jump: float = 0.15
     max_retries: int = 3
     lr_final: float = 1.0
+    cage: bool = True
     tie_mirrored: bool = True
     tie_seams: bool = True
     image_every: int = 5
@@ -305,7 +308,7 @@ class FitParameters(nn.Module):
     """The fit variables: a `ControlCage` (pattern), an optional `BodyModel`, the log bending stiffness.
 
     Args:
-        cage: the pattern's control cage (its ``handles`` parameter is optimised).
+        cage: the pattern's control cage, or `FreeVertices` (its ``handles`` parameter is optimised).
         body: a `BodyModel` (batch 1) whose vertices are the drape's body, or None for a fixed body.
         log_bend_stiffness: initial log k_b (k_b in [N·m]).
 
@@ -436,7 +439,11 @@ class Fitter:
         self.template_uv = garment.vert_uv.to(dtype)
         self.material = material if material is not None else ClothMaterial()
         self.model: ClothModel = ClothModelBuilder(self.material).add_garment(garment).finalize(dtype=dtype)
-        cage = ControlCage(garment, tie_mirrored=config.tie_mirrored, tie_seams=config.tie_seams).to(dtype)
+        if config.cage:
+            cage = ControlCage(garment, tie_mirrored=config.tie_mirrored, tie_seams=config.tie_seams)
+        else:
+            cage = FreeVertices(garment)
+        cage = cage.to(dtype)
         self.params = FitParameters(cage, body, math.log(config.initial_bend_stiffness))
         if body is not None:
             self.body_faces = body.faces
