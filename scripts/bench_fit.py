@@ -1,0 +1,102 @@
+#!/usr/bin/env python
+"""Fit benchmark: seconds per iteration of the fit loop on the dress (the demo scan), by mesh spacing.
+
+For each ``--spacings`` value: the demo's set-up (body fit, garment points and openings of the bundled
+scan; run once, cached) with the ``dress`` template meshed at that spacing, then `Fitter` with
+``configs/dress.yaml`` for ``--iters`` iterations. Reported per spacing: garment vertices, the first
+(sew and) drape, and the median / mean seconds per iteration, wall and CPU (this process), with the
+adjoint's solve statistics. Iteration = one warm-started drape + loss + backward (the adjoint) + the
+Adam step with its guards.
+
+    PYTHONPATH=. python scripts/bench_fit.py --spacings 0.03 0.02 0.015 --iters 8
+
+Prints one JSON line per spacing. One intra-op thread (measured faster on the 2-core machine).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from dataclasses import replace
+
+import torch
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--spacings", type=float, nargs="+", default=[0.03, 0.02, 0.015])
+    parser.add_argument("--iters", type=int, default=8)
+    parser.add_argument("--adjoint", default=None, help="override the config's adjoint")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+
+    from torch_diffavatar.body.anny_model import load_anny
+    from torch_diffavatar.body.model import BodyModel
+    from torch_diffavatar.demo import DEMO_SCAN
+    from torch_diffavatar.fit import Fitter, load_config
+    from torch_diffavatar.fit_commands import match_boundaries, prepare
+    from torch_diffavatar.pattern import load_template, mesh_pattern
+    from torch_diffavatar.sim.material import ClothMaterial
+    from torch_diffavatar.sim.placement import place_garment
+
+    anny = load_anny(dtype=torch.float32)
+    base = load_config(garment="dress")
+    if args.adjoint:
+        base = replace(base, adjoint=args.adjoint)
+    t0 = time.perf_counter()
+    setup = prepare(DEMO_SCAN, base, anny_model=anny)
+    setup_s = time.perf_counter() - t0
+    target = setup["target"]
+    for spacing in args.spacings:
+        config = replace(base, spacing=spacing, iterations=args.iters)
+        body = BodyModel(anny_model=anny)
+        body.load_parameters_dict(setup["body_params"])
+        with torch.no_grad():
+            body_verts = body().vertices[0].double()
+        garment = place_garment(mesh_pattern(load_template("dress"), spacing=spacing), body_verts, body.faces)
+        # the scan's openings were found once; only their names are matched to this mesh's loops
+        scan_loops = {name: pts.numpy() for name, pts in target.boundaries.items()}
+        target_s = replace(target, boundaries=match_boundaries(garment, scan_loops))
+        material = ClothMaterial(bend_stiffness=config.initial_bend_stiffness)
+        fitter = Fitter(garment, target_s, config, body=body, material=material, progress=False)
+        t1 = time.perf_counter()
+        start = fitter._first_state()
+        first_s = time.perf_counter() - t1
+        ev = fitter.evaluate(start)
+        wall, cpu, stats = [], [], []
+        for _ in range(args.iters):
+            w0, c0 = time.perf_counter(), time.process_time()
+            ev, start, _ = fitter.step(ev, start)
+            fitter.iteration += 1
+            wall.append(time.perf_counter() - w0)
+            cpu.append(time.process_time() - c0)
+            stats.append(dict(ev.stats))
+        last = stats[-1]
+        print(
+            json.dumps(
+                {
+                    "spacing_m": spacing,
+                    "vertices": garment.sim_vert_count,
+                    "faces": garment.tri_count,
+                    "adjoint": config.adjoint,
+                    "iterations": args.iters,
+                    "setup_s": round(setup_s, 2),
+                    "first_drape_s": round(first_s, 2),
+                    "s_per_iter_median": round(statistics.median(wall), 3),
+                    "s_per_iter_mean": round(sum(wall) / len(wall), 3),
+                    "cpu_s_per_iter_median": round(statistics.median(cpu), 3),
+                    "rejected_steps": fitter.rejected_steps,
+                    "adjoint_failures": fitter.adjoint_failures,
+                    "last_iteration_stats": {
+                        k: v for k, v in last.items() if isinstance(v, int | float | str | bool)
+                    },
+                }
+            ),
+            flush=True,
+        )
+
+
+if __name__ == "__main__":
+    main()
