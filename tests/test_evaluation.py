@@ -87,12 +87,6 @@ def test_different_panels_raise_input_error(tmp_path):
         compare_with_truth(folder, _pattern(a=SQUARE), truth_bend_stiffness=1e-5)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=FileNotFoundError,
-    reason="DEFECT: compare_with_truth documents InputError for a missing file, but a missing "
-    "material.json (with truth_bend_stiffness given) escapes as FileNotFoundError from read_text()",
-)
 def test_missing_material_raises_input_error(tmp_path):
     folder = _write_assets(tmp_path / "fit", _pattern(a=SQUARE))  # pattern.json only
     with pytest.raises(InputError, match="material.json"):

@@ -50,6 +50,9 @@ def compare_with_truth(assets_dir, truth_pattern, truth_bend_stiffness: float | 
     if truth_bend_stiffness is not None:
         from torch_diffavatar.assets import material_from_dict
 
-        material = material_from_dict(json.loads((folder / "material.json").read_text()))
+        material_path = folder / "material.json"
+        if not material_path.is_file():
+            raise InputError(f"{material_path} is missing: is {folder} the output folder of a fit?")
+        material = material_from_dict(json.loads(material_path.read_text()))
         out["bending_stiffness_ratio"] = float(material.bend_stiffness) / float(truth_bend_stiffness)
     return out

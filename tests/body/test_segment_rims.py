@@ -115,14 +115,6 @@ def test_edge_points_of_a_disc_are_its_rim():
     assert len(edge_band) < len(band) and float(r[edge_band].min()) >= R - 0.015
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=AssertionError,
-    reason="DEFECT: on randomly (Poisson) sampled points, as a scan sampled by area is, the angular-gap "
-    "test flags ~15 % of interior points too (15 random neighbours leave a gap > 100° that often): "
-    "measured 51-61 % of the returned points lie > 1.5 cm inside the rim (1250 points, seeds 0-3), "
-    "67 % at 5000 points",
-)
 def test_edge_points_of_a_randomly_sampled_disc_are_its_rim():
     rng = np.random.default_rng(0)
     R, count = 0.2, 1250  # [m]; about the demo scan's density (~1 point/cm²)
