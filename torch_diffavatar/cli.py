@@ -17,6 +17,8 @@ _COMMAND_MODULES = (
     "torch_diffavatar.fit_commands",
     "torch_diffavatar.demo",
     "torch_diffavatar.animate",
+    "torch_diffavatar.synthetic_scans",
+    "torch_diffavatar.evaluation",
 )
 
 

@@ -1,7 +1,9 @@
 """Fitted assets against a known ground truth (the demo's bundled answer, synthetic scans).
 
-`compare_with_truth` reads the assets a fit wrote (``pattern.json``, ``material.json``) and measures them
-against the true pattern and material:
+`evaluate_assets` (the ``diffavatar eval ASSETS_DIR --gt GT_DIR`` command) measures everything against a
+``diffavatar make-scan`` ground truth. Its pattern and material part, `compare_with_truth`, reads the
+assets a fit wrote (``pattern.json``, ``material.json``) and measures them against the true pattern and
+material:
 
 * ``pattern_outline_error_m``: per panel, the mean distance between the fitted and the true outline after
   a rigid alignment of the panel (`metrics.outline_distance`); the value is the worst panel's [m];
@@ -14,6 +16,8 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+
+import torch
 
 from torch_diffavatar.errors import InputError
 
@@ -55,4 +59,116 @@ def compare_with_truth(assets_dir, truth_pattern, truth_bend_stiffness: float | 
             raise InputError(f"{material_path} is missing: is {folder} the output folder of a fit?")
         material = material_from_dict(json.loads(material_path.read_text()))
         out["bending_stiffness_ratio"] = float(material.bend_stiffness) / float(truth_bend_stiffness)
+    return out
+
+
+def seam_length_mismatch(pattern) -> dict[str, float]:
+    """How much the two sides of the pattern's seams differ in length (darts included).
+
+    Returns:
+        ``{"mean_m", "max_m"}``: absolute length differences of the stitched edge pairs [m]
+        (``{0, 0}`` without stitches).
+    """
+    diffs = [
+        abs(pattern.panels[s.a.panel].edge_length(s.a.edge) - pattern.panels[s.b.panel].edge_length(s.b.edge))
+        for s in pattern.stitches
+    ]
+    if not diffs:
+        return {"mean_m": 0.0, "max_m": 0.0}
+    return {"mean_m": float(sum(diffs) / len(diffs)), "max_m": float(max(diffs))}
+
+
+def _mesh_distance(a_verts, a_faces, b_verts, b_faces, samples: int = 50000) -> float:
+    """Symmetric mean surface-to-surface distance [m] between two triangle meshes (seeded samples)."""
+    from torch_diffavatar.chamfer import sample_surface
+    from torch_diffavatar.sim.ops import closest_point_on_mesh
+
+    gen = torch.Generator().manual_seed(0)
+    out = []
+    for (sv, sf), (tv, tf) in (
+        ((a_verts, a_faces), (b_verts, b_faces)),
+        ((b_verts, b_faces), (a_verts, a_faces)),
+    ):
+        pts = sample_surface(sv, sf, samples, generator=gen)
+        _, _, dist = closest_point_on_mesh(pts.contiguous(), tv.contiguous(), tf.contiguous(), 10.0)
+        out.append(float(dist.mean()))
+    return 0.5 * sum(out)
+
+
+def evaluate_assets(assets_dir, gt_dir) -> dict:
+    """Every measure of a fit's assets against a synthetic scan's ground truth (`diffavatar eval`).
+
+    Args:
+        assets_dir: the output folder of ``diffavatar fit`` (`assets.write_assets`).
+        gt_dir: the output folder of ``diffavatar make-scan`` (``scan.ply`` and ``truth/``).
+
+    Returns:
+        a dict: ``units`` ("m"), ``chamfer_scan_m`` (scan garment points ↔ fitted drape, on the surface,
+        `chamfer.surface_chamfer_m`, not squared), ``chamfer_truth_drape_m`` (fitted ↔ true drape,
+        symmetric mean surface-to-surface distance), the pattern errors of `compare_with_truth`,
+        ``seam_length_mismatch`` (fitted pattern, `seam_length_mismatch`), ``body_height_error_m``
+        (fitted − true), ``body_mean_vertex_error_m``, ``bending_stiffness_ratio``, ``rest_quality`` and
+        ``draped_quality`` (min, mean), ``inverted_rest_triangles`` (from the fit's report).
+    """
+    from torch_diffavatar.assets import material_from_dict
+    from torch_diffavatar.chamfer import surface_chamfer_m
+    from torch_diffavatar.mesh_io import read_obj
+    from torch_diffavatar.metrics import triangle_quality
+    from torch_diffavatar.pattern.garmentcode import load_pattern
+    from torch_diffavatar.scan import load_scan
+
+    folder, gt = Path(assets_dir), Path(gt_dir)
+    truth = gt / "truth"
+    for path in (folder / "draped.obj", folder / "body.obj", gt / "scan.ply", truth / "pattern.json"):
+        if not path.is_file():
+            raise InputError(f"{path} is missing (ASSETS_DIR: a fit's output; --gt: a make-scan output)")
+    true_material = material_from_dict(json.loads((truth / "material.json").read_text()))
+    out: dict = {"units": "m"}
+    draped = read_obj(folder / "draped.obj")
+    scan = load_scan(gt / "scan.ply")
+    if scan.labels is None:
+        raise InputError(f"{gt / 'scan.ply'} has no 'label' property: is --gt a make-scan output?")
+    garment_points = torch.as_tensor(scan.points[scan.labels == 1])
+    out["chamfer_scan_m"] = surface_chamfer_m(draped.verts, draped.faces, garment_points)["symmetric"]
+    true_drape = read_obj(truth / "draped.obj")
+    out["chamfer_truth_drape_m"] = _mesh_distance(
+        draped.verts, draped.faces, true_drape.verts, true_drape.faces
+    )
+    out.update(compare_with_truth(folder, truth / "pattern.json", float(true_material.bend_stiffness)))
+    out["seam_length_mismatch"] = seam_length_mismatch(load_pattern(folder / "pattern.json"))
+    body, true_body = read_obj(folder / "body.obj"), read_obj(truth / "body.obj")
+    height = lambda v: float(v[:, 1].max() - v[:, 1].min())  # noqa: E731
+    out["body_height_error_m"] = height(body.verts) - height(true_body.verts)
+    if body.verts.shape == true_body.verts.shape:  # same Anny topology: vertex to vertex
+        out["body_mean_vertex_error_m"] = float((body.verts - true_body.verts).norm(dim=1).mean())
+    q_draped = triangle_quality(draped.verts, draped.faces)
+    out["draped_quality"] = {"min": float(q_draped.min()), "mean": float(q_draped.mean())}
+    rest = read_obj(folder / "rest.obj")
+    if rest.uv is not None:
+        q_rest = triangle_quality(rest.uv, rest.uv_faces)
+        out["rest_quality"] = {"min": float(q_rest.min()), "mean": float(q_rest.mean())}
+    report = folder / "report.json"
+    if report.is_file():
+        out["inverted_rest_triangles"] = json.loads(report.read_text()).get("inverted_rest_triangles")
+    return out
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "eval",
+        help="measure a fit's assets against a synthetic scan's ground truth",
+        description="Chamfer distances, pattern, body and material errors and mesh quality of the assets "
+        "in ASSETS_DIR (a 'diffavatar fit' output) against --gt (a 'diffavatar make-scan' output).",
+    )
+    p.add_argument("assets", help="the fit's output folder")
+    p.add_argument("--gt", required=True, help="the make-scan output folder (scan.ply, truth/)")
+    p.add_argument("--json", action="store_true", help="print the measures as one JSON line")
+    p.set_defaults(func=_eval_command)
+
+
+def _eval_command(args) -> dict:
+    out = evaluate_assets(args.assets, args.gt)
+    if not args.json:
+        for key, value in out.items():
+            print(f"{key}: {value}")
     return out

@@ -299,13 +299,14 @@ def _lower_rim(
 
 
 def _edge_points(
-    garment_points: np.ndarray, sel: np.ndarray, k: int = 32, min_gap_deg: float = 120.0, min_count: int = 12
+    garment_points: np.ndarray, sel: np.ndarray, k: int = 32, min_gap_deg: float = 120.0, min_count: int = 24
 ) -> np.ndarray:
     """Of the garment points ``sel`` (indices into ``garment_points`` (G, 3)) near an opening, those on
     the garment's edge: seen in its local tangent plane (PCA of its ``k`` nearest garment points), an
     edge point's neighbours leave an angular gap wider than ``min_gap_deg`` (they lie on one side). The
     band found from the body is a few centimetres wide; its edge points are the opening's rim. Falls back
-    to ``sel`` when fewer than ``min_count`` qualify. Why k = 32 and 120°: n random directions leave a
+    to ``sel`` when fewer than ``min_count`` qualify (a very noisy scan: a rim that sparse is a worse
+    target than the whole band). Why k = 32 and 120°: n random directions leave a
     gap wider than θ with probability ≈ n (1 − θ/2π)^(n−1) — 16 % for 15 neighbours and 100° (interior
     points of an area-sampled scan got flagged), 0.02 % for 31 and 120°; an edge point's gap is ~180°.
     """
