@@ -1,0 +1,115 @@
+"""Synthetic clothed scans (`diffavatar make-scan`) and the evaluation against their truth
+(`diffavatar eval`)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from torch_diffavatar.cli import main
+from torch_diffavatar.evaluation import evaluate_assets, seam_length_mismatch
+from torch_diffavatar.pattern.garmentcode import load_pattern
+from torch_diffavatar.pattern.library import load_template
+from torch_diffavatar.synthetic_scans import changed_pattern, make_draped_scan, write_scan
+
+PHENOTYPES = {"gender": 0.5, "age": 0.5, "muscle": 0.5, "weight": 0.45, "height": 0.55, "proportions": 0.5}
+
+
+def test_changed_pattern_reproduces_the_demo_truth():
+    """The demo's truth was made by raising the dress's skirt hem 8 cm and widening it 12 %."""
+    from torch_diffavatar.demo import DEMO_TRUTH_PATTERN
+
+    changed = changed_pattern(load_template("dress"), hem_up=0.08, hem_widen=0.12)
+    truth = load_pattern(DEMO_TRUTH_PATTERN)
+    for name, panel in truth.panels.items():
+        np.testing.assert_allclose(changed.panels[name].vertices, panel.vertices, atol=1e-9)
+
+
+def test_changed_pattern_moves_only_the_hem_corners():
+    base = load_template("tshirt")
+    changed = changed_pattern(base, hem_up=0.04, hem_widen=0.0)
+    moved = {n: np.abs(changed.panels[n].vertices - p.vertices).max() for n, p in base.panels.items()}
+    assert all(moved[n] == pytest.approx(0.04) for n in moved if "torso" in n)
+    assert all(moved[n] == 0.0 for n in moved if "sleeve" in n)
+    # front and back shorten alike, so the side seams still match
+    assert seam_length_mismatch(changed)["max_m"] == pytest.approx(
+        seam_length_mismatch(base)["max_m"], abs=1e-9
+    )
+
+
+@pytest.fixture(scope="module")
+def skirt_scan(anny_model):
+    torch.manual_seed(0)
+    return make_draped_scan(
+        "skirt",
+        anny_model=anny_model,
+        seed=3,
+        phenotypes=PHENOTYPES,
+        spacing=0.05,
+        garment_points=4000,
+        body_points=4000,
+        noise=0.002,
+        hole_fraction=0.1,
+    )
+
+
+@pytest.mark.anny
+@pytest.mark.slow
+def test_draped_scan_is_labelled_noisy_and_holey(skirt_scan):
+    scan = skirt_scan
+    labels = scan.labels
+    assert set(np.unique(labels)) == {0, 1}
+    assert scan.info["drape"]["converged"] and scan.info["drape"]["max_stitch_gap_m"] < 0.002
+    # holes: 10 % in round holes plus the two under-arm holes
+    assert len(scan.points) < 0.9 * 8000
+    # noise: garment points lie ~2 mm off the noise-free drape
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(scan.cloth_x).query(scan.points[labels == 1])
+    assert 0.0015 < np.median(d) < 0.03
+    # no skin point is under the skirt: skin points are far from the cloth or outside it
+    assert scan.points[labels == 0, 1].max() > 1.5 and scan.points[labels == 1, 1].max() < 1.2
+
+
+@pytest.mark.anny
+@pytest.mark.slow
+def test_eval_of_the_truth_itself_is_exact(skirt_scan, tmp_path):
+    """Assets that *are* the truth: every error is ~0 and the scan Chamfer is at the noise level."""
+    from torch_diffavatar.assets import write_assets
+    from torch_diffavatar.sim.material import ClothMaterial
+
+    scan = skirt_scan
+    write_scan(scan, tmp_path / "gt")
+    write_assets(
+        tmp_path / "fit",
+        pattern=scan.pattern,
+        garment=scan.garment,
+        rest_uv=scan.garment.vert_uv,
+        draped_x=torch.as_tensor(scan.cloth_x),
+        body_verts=torch.as_tensor(scan.body_vertices),
+        body_faces=torch.as_tensor(scan.body_faces),
+        body_params=scan.body_params,
+        material=ClothMaterial(bend_stiffness=scan.bend_stiffness),
+        report={"inverted_rest_triangles": 0},
+    )
+    out = evaluate_assets(tmp_path / "fit", tmp_path / "gt")
+    assert out["pattern_outline_error_m"] < 1e-4 and out["pattern_outline_hausdorff_m"] < 1e-3
+    assert out["chamfer_truth_drape_m"] < 1e-4
+    assert out["bending_stiffness_ratio"] == pytest.approx(1.0)
+    assert abs(out["body_height_error_m"]) < 1e-6 and out["body_mean_vertex_error_m"] < 1e-6
+    assert 0.001 < out["chamfer_scan_m"] < 0.01  # the noise (2 mm) and the scan's point spacing
+    assert out["draped_quality"]["min"] > 0.2 and out["rest_quality"]["min"] > 0.4
+    # the command prints the same as one JSON line; a missing truth folder is one error line, exit 2
+    assert main(["eval", str(tmp_path / "fit"), "--gt", str(tmp_path / "gt"), "--json"]) == 0
+    assert main(["eval", str(tmp_path / "fit"), "--gt", str(tmp_path / "nowhere"), "--json"]) == 2
+    truth = json.loads((tmp_path / "gt" / "truth" / "truth.json").read_text())
+    assert truth["design_change"] == {"hem_up_m": 0.05, "hem_widen": 0.1}
+
+
+def test_make_scan_rejects_bad_phenotypes(capsys):
+    assert main(["make-scan", "skirt", "--out", "/tmp/unused", "--phenotypes", "wieght=0.3"]) == 2
+    assert "unknown phenotype 'wieght'" in capsys.readouterr().err
+    assert main(["make-scan", "skirt", "--out", "/tmp/unused", "--phenotypes", "weight=1.5"]) == 2
