@@ -97,6 +97,30 @@ def test_every_template_starts_outside_the_default_body(name, body, meshes):
 
 
 @pytest.mark.anny
+@pytest.mark.parametrize("name", [n for n in TEMPLATES if n in ("tshirt", "longsleeve", "polo")])
+def test_sleeve_panels_do_not_cross_under_the_arm(name, body, meshes):
+    """A sleeve's front panel starts in front of its back panel along their shared seams.
+
+    On the long tapered sleeve the old single centre line put the cap off-centre: its underarm corner
+    wrapped past the bottom of the arm, the front and back panels crossed there, and sewing pulled cloth
+    through the arm (the longsleeve's sewing phase never closed).
+    """
+    verts, faces, lm = body
+    garment = meshes[name]
+    pos = place_garment(garment, verts, faces, body_landmarks=lm).vert_pos.numpy()
+    names, vp = garment.panel_names, garment.vert_panel.numpy()
+    for a, b in garment.stitch_pairs.numpy():
+        pa, pb = names[vp[a]], names[vp[b]]
+        if "sleeve" not in pa or "sleeve" not in pb:
+            continue
+        front, back = (a, b) if pa.endswith("_f") else (b, a)
+        assert pos[front, 2] > pos[back, 2] - 0.005, (
+            f"{name}: sleeve seam crossed at {pos[front].round(3)}: front z {pos[front, 2]:.3f} behind "
+            f"back z {pos[back, 2]:.3f}"
+        )
+
+
+@pytest.mark.anny
 @pytest.mark.parametrize("phenotypes", [{"height": 0.15}, {"height": 0.9}, {"gender": 0.0, "weight": 0.9}])
 def test_other_bodies(phenotypes, anny_model, meshes):
     kwargs = {k: torch.tensor([v], dtype=torch.float64) for k, v in phenotypes.items()}

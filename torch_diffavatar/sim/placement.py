@@ -65,6 +65,8 @@ _SLICE_STEP = 0.005  # [m] spacing of the horizontal cross-sections
 _SMOOTH_WINDOW = 0.03  # [m] each cross-section encloses the body within ± this height
 _CENTRE_WINDOW = 0.08  # [m] cross-section centres are averaged over ± this height
 _ARM_GAP = 0.015  # [m] free space kept between the torso wrap and the arms
+_SLEEVE_SEAM_MARGIN = 0.01  # [m] sleeve panels start at least this far from the top / bottom of the arm
+_CUFF_MARGIN = 0.01  # [m] a sleeve longer than the arm starts with its cuff this far before the axis end
 _MAX_SLOPE = 0.3  # largest change of a wrap radius per metre along the body / arm (near-isometric)
 
 
@@ -811,6 +813,17 @@ def _wrap_arm(ctx: _Context, kind: str, out: np.ndarray, shift: float = 0.0) -> 
     radii = np.interp(arc * raw_arc[-1] / max(arc[-1], 1e-9), raw_arc, radii)
     tang, e1s, e2s = _rotation_minimizing_frames(poly)
     sets = _side_sets(ctx, panels)
+    # a sleeve longer than the arm's axis polyline (which ends inside the hand, where the fingers part) is
+    # compressed along the arm to end before it, instead of being laid straight on past the hand with its
+    # front and back panels far apart around it. Sewing lets the compressed sleeve relax.
+    along = (pos - root_gc) @ d_gc + shift
+    end = arc[-1] - _CUFF_MARGIN
+    squeeze = min(1.0, end / along.max()) if along.max() > end else 1.0
+
+    def arm_coord(p):
+        a = (p - root_gc) @ d_gc + shift
+        return np.where(a > 0, a * squeeze, a)
+
     profiles = []
     grid = np.arange(-0.3, arc[-1] + 0.5, 0.005)
     need = np.zeros(len(grid))
@@ -819,7 +832,7 @@ def _wrap_arm(ctx: _Context, kind: str, out: np.ndarray, shift: float = 0.0) -> 
             profiles.append(None)
             continue
         rel = ctx.gc_pos[verts] - root_gc
-        c, lo, hi = _lateral_profile(rel @ d_gc + shift, rel @ n_gc)
+        c, lo, hi = _lateral_profile(arm_coord(ctx.gc_pos[verts]), rel @ n_gc)
         profiles.append((c, lo, hi))
         need += _width_on(grid, c, hi - lo)
     r_body = np.interp(grid, arc, radii)
@@ -829,9 +842,21 @@ def _wrap_arm(ctx: _Context, kind: str, out: np.ndarray, shift: float = 0.0) -> 
         if len(verts) == 0:
             continue
         rel = ctx.gc_pos[verts] - root_gc
-        a, lat = rel @ d_gc + shift, rel @ n_gc
+        a, lat = arm_coord(ctx.gc_pos[verts]), rel @ n_gc
         c, lo, hi = profiles[g]
-        mid = np.median(0.5 * (lo + hi))  # one lateral centre line: the wrap of a tube stays isometric
+        # the panel's lateral centre at each arm position (smoothed, like the leg wraps), so that front and
+        # back panels meet on top of the arm and underneath it all along the sleeve. One centre line for
+        # the whole panel (the exact isometry) puts the cap off-centre on long tapered sleeves: their cap's
+        # underarm corner then wraps past the bottom of the arm onto the other side, the front and back
+        # panels cross under the arm, and sewing them to the armhole pulls cloth through the arm. The
+        # smoothed centre moves slowly along the sleeve (a small shear, not a stretch).
+        # The smoothing must not push the wide cap past the top or the bottom of the arm: each bin's centre
+        # is clamped so that the panel stays within its half of the tube, with a margin.
+        mid_profile = _moving_average(0.5 * (lo + hi), int(round(_CENTRE_WINDOW / 0.01)))
+        quarter = 0.5 * math.pi * np.interp(c, grid, r) - _SLEEVE_SEAM_MARGIN
+        low, high = hi - quarter, lo + quarter
+        mid_profile = np.where(low <= high, np.clip(mid_profile, low, high), 0.5 * (lo + hi))
+        mid = np.interp(a, c, mid_profile)
         # axis point and frame at arc length a (straight extension beyond the ends)
         k = np.clip(np.searchsorted(arc, a) - 1, 0, len(arc) - 2)
         f = np.clip((a - arc[k]) / np.maximum(arc[k + 1] - arc[k], 1e-12), 0.0, 1.0)
