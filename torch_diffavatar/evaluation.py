@@ -172,3 +172,39 @@ def _eval_command(args) -> dict:
         for key, value in out.items():
             print(f"{key}: {value}")
     return out
+
+
+OVERLAY_COLOURS = {"template": (150, 150, 150), "truth": (0, 150, 0), "result": (210, 30, 30)}
+
+
+def save_pattern_overlay(patterns: dict, path, scale: float = 400.0) -> None:
+    """A PNG of patterns drawn over each other, panel by panel in each panel's own 2D frame.
+
+    Args:
+        patterns: name -> `Pattern` with the same panels; ``"template"``, ``"truth"`` and ``"result"``
+            get grey, green and red (`OVERLAY_COLOURS`), others black; later ones are drawn on top.
+        path: output PNG.
+        scale: pixels per metre.
+    """
+    import numpy as np
+    from PIL import Image, ImageDraw
+
+    names = list(next(iter(patterns.values())).panels)
+    boxes = []
+    for panel in names:
+        pts = np.concatenate([p.panels[panel].outline() for p in patterns.values()])
+        boxes.append((pts.min(0), pts.max(0)))
+    pad = 12
+    width = int(sum(scale * (hi[0] - lo[0]) + pad for lo, hi in boxes)) + pad
+    height = int(max(scale * (hi[1] - lo[1]) for lo, hi in boxes)) + 2 * pad + 16
+    img = Image.new("RGB", (width, height), "white")
+    draw = ImageDraw.Draw(img)
+    x0 = pad
+    for panel, (lo, hi) in zip(names, boxes):
+        for key, pattern in patterns.items():
+            o = pattern.panels[panel].outline() - lo
+            pts = [(x0 + scale * x, height - pad - scale * y) for x, y in o]
+            draw.polygon(pts, outline=OVERLAY_COLOURS.get(key, (0, 0, 0)), width=2)
+        draw.text((x0, 2), panel, fill=(0, 0, 0))
+        x0 += scale * (hi[0] - lo[0]) + pad
+    img.save(path)

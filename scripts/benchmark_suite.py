@@ -1,0 +1,218 @@
+#!/usr/bin/env python
+"""End-to-end results: synthetic scans with ground truth → fit → evaluation, and the ablations.
+
+For each garment: `synthetic_scans.make_draped_scan` (its template with the hem raised ``--hem-up`` and
+widened ``--hem-widen``, bending stiffness 2e-5 N·m, on a random moderate Anny body, seeded), then the fit
+(`fit_commands.fit_scan` with ``configs/<garment>.yaml``) and `evaluation.evaluate_assets`; for the
+``--ablation-garments`` also the fit without the cage, without the seam-length term and without the
+curvature term. Writes ``docs/RESULTS.md`` (tables like the paper's Tables 1 and 2, with the command and
+date) and pictures in ``docs/results/`` (before/after drapes, pattern overlays of template, result and
+truth). Everything is seeded: a rerun with the same arguments reproduces the numbers.
+
+    PYTHONPATH=. python scripts/benchmark_suite.py --out /tmp/suite
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import time
+import traceback
+from pathlib import Path
+
+import torch
+
+ABLATIONS = {
+    "w/o cage": {"cage": False},
+    "w/o seam length": {"weights": {"seam_length": 0.0}},
+    "w/o curvature": {"weights": {"curvature": 0.0}},
+}
+
+
+def _fit_and_eval(scan_dir: Path, out: Path, config, anny) -> dict:
+    from torch_diffavatar.evaluation import evaluate_assets
+    from torch_diffavatar.fit_commands import fit_scan
+
+    t0 = time.perf_counter()
+    report = fit_scan(scan_dir / "scan.ply", config, out, progress=False, anny_model=anny)
+    seconds = time.perf_counter() - t0
+    ev = evaluate_assets(out, scan_dir)
+    return {"report": report, "eval": ev, "seconds": seconds}
+
+
+def _initial(template: str, scan_dir: Path, first: dict) -> dict:
+    """Measures of the starting point: the template (pattern, material) and the fit's first drape."""
+    from torch_diffavatar.metrics import pattern_outline_errors
+    from torch_diffavatar.pattern import load_pattern, load_template
+
+    truth = json.loads((scan_dir / "truth" / "truth.json").read_text())
+    errors = pattern_outline_errors(
+        load_template(template), load_pattern(scan_dir / "truth" / "pattern.json")
+    )
+    return {
+        "chamfer_scan_m": first["report"]["chamfer_initial"],
+        "pattern_outline_error_m": max(e["mean_m"] for e in errors.values()),
+        "pattern_outline_hausdorff_m": max(e["max_m"] for e in errors.values()),
+        "bending_stiffness_ratio": first["report"]["material"]["bend_stiffness_initial"]
+        / truth["material"]["bend_stiffness"],
+    }
+
+
+def _overlay(template: str, result_dir: Path, scan_dir: Path, path: Path) -> None:
+    from torch_diffavatar.evaluation import save_pattern_overlay
+    from torch_diffavatar.pattern import load_pattern, load_template
+
+    save_pattern_overlay(
+        {
+            "template": load_template(template),
+            "result": load_pattern(result_dir / "pattern.json"),
+            "truth": load_pattern(scan_dir / "truth" / "pattern.json"),
+        },
+        path,
+    )
+
+
+def _cm(v) -> str:
+    return "—" if v is None else f"{100 * v:.2f}"
+
+
+def _mm(v) -> str:
+    return "—" if v is None else f"{1000 * v:.2f}"
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--out", default="/tmp/benchmark_suite", help="work folder (scans, fits)")
+    p.add_argument("--garments", nargs="+", default=["dress", "longsleeve", "polo", "tshirt"])
+    p.add_argument("--ablation-garments", nargs="*", default=["dress"])
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--hem-up", type=float, default=0.05)
+    p.add_argument("--hem-widen", type=float, default=0.1)
+    p.add_argument("--scan-spacing", type=float, default=0.02, help="drape spacing of the scans [m]")
+    p.add_argument("--results", default="docs/RESULTS.md")
+    args = p.parse_args()
+    torch.set_num_threads(1)
+
+    from torch_diffavatar.body.anny_model import load_anny
+    from torch_diffavatar.fit import config_from_dict, load_config
+    from torch_diffavatar.synthetic_scans import make_draped_scan, write_scan
+
+    anny = load_anny(dtype=torch.float32)
+    work = Path(args.out)
+    pictures = Path(args.results).parent / "results"
+    pictures.mkdir(parents=True, exist_ok=True)
+    started = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+    rows, ablation_rows = [], []
+    for garment in args.garments:
+        scan_dir = work / garment / "scan"
+        row = {"garment": garment}
+        try:
+            t0 = time.perf_counter()
+            scan = make_draped_scan(
+                garment,
+                anny_model=anny,
+                seed=args.seed,
+                hem_up=args.hem_up,
+                hem_widen=args.hem_widen,
+                spacing=args.scan_spacing,
+            )
+            write_scan(scan, scan_dir)
+            row["scan_seconds"] = time.perf_counter() - t0
+            config = load_config(garment=garment)
+            fit = _fit_and_eval(scan_dir, work / garment / "fit", config, anny)
+            row.update(initial=_initial(garment, scan_dir, fit), final=fit["eval"], seconds=fit["seconds"])
+            row["iterations"] = fit["report"]["iterations"]
+            shutil.copy(work / garment / "fit" / "before_after.png", pictures / f"{garment}_before_after.png")
+            _overlay(garment, work / garment / "fit", scan_dir, pictures / f"{garment}_patterns.png")
+            if garment in args.ablation_garments:
+                ablation_rows.append({"garment": garment, "name": "full", "eval": fit["eval"]})
+                for name, change in ABLATIONS.items():
+                    cfg = config_from_dict(change, base=config)
+                    ab = _fit_and_eval(scan_dir, work / garment / name.replace(" ", "_"), cfg, anny)
+                    ablation_rows.append({"garment": garment, "name": name, "eval": ab["eval"]})
+        except Exception as exc:  # a garment that fails is a result too: record it and go on
+            row["error"] = f"{type(exc).__name__}: {exc}"
+            traceback.print_exc()
+        rows.append(row)
+        print(json.dumps(row, default=str), flush=True)
+    (work / "suite.json").write_text(
+        json.dumps({"rows": rows, "ablations": ablation_rows}, default=str, indent=1)
+    )
+    _write_results(Path(args.results), rows, ablation_rows, args, started)
+    return 0
+
+
+def _write_results(path: Path, rows: list, ablations: list, args, started: str) -> None:
+    cmd = "PYTHONPATH=. python scripts/benchmark_suite.py " + " ".join(sys.argv[1:])
+    lines = [
+        "# Results: synthetic scans with ground truth",
+        "",
+        f"Command: `{cmd}` — started {started}, on the 2-core development machine (one thread).",
+        "",
+        f"Each scan: the garment's template with its hem raised {args.hem_up * 100:.0f} cm and widened "
+        f"{args.hem_widen * 100:.0f} %, bending stiffness 2e-5 N·m (4× the fit's start), draped by our "
+        f"simulator at {args.scan_spacing * 100:.0f} cm on a random Anny body (seed {args.seed}, phenotypes "
+        "uniform in [0.35, 0.65]), sampled as 14k cloth + 12k skin points, 3 mm noise, 10 % of the points "
+        "cut away in holes plus a hole under each arm (`diffavatar make-scan`). The fit starts from the "
+        "plain "
+        "template with `configs/<garment>.yaml`; `diffavatar eval` measures it.",
+        "",
+        "Units: Chamfer distances are symmetric mean surface distances in mm, not squared "
+        "(`chamfer.surface_chamfer_m`); pattern outline errors in cm after a rigid alignment of each panel "
+        "(`metrics.outline_distance`: the worst panel's mean distance, and its largest distance).",
+        "",
+        "## Table 1: initial (template) vs ours",
+        "",
+        "| garment | Chamfer to scan, initial → ours [mm] | outline mean, initial → ours [cm] | outline max, "
+        "initial → ours [cm] | bending stiffness ratio, initial → ours | body height error [cm] | "
+        "draped quality min | inverted rest triangles | fit time [s] |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        if "error" in r:
+            lines.append(f"| {r['garment']} | failed: {r['error'][:160]} | | | | | | | |")
+            continue
+        i, f = r["initial"], r["final"]
+        lines.append(
+            f"| {r['garment']} | {_mm(i['chamfer_scan_m'])} → {_mm(f['chamfer_scan_m'])} "
+            f"({100 * (1 - f['chamfer_scan_m'] / i['chamfer_scan_m']):.0f} % lower) | "
+            f"{_cm(i['pattern_outline_error_m'])} → {_cm(f['pattern_outline_error_m'])} | "
+            f"{_cm(i['pattern_outline_hausdorff_m'])} → {_cm(f['pattern_outline_hausdorff_m'])} | "
+            f"{i['bending_stiffness_ratio']:.2f} → {f['bending_stiffness_ratio']:.2f} | "
+            f"{_cm(f['body_height_error_m'])} | {f['draped_quality']['min']:.2f} | "
+            f"{f.get('inverted_rest_triangles')} | {r['seconds']:.0f} |"
+        )
+    lines += [
+        "",
+        "## Table 2: ablations",
+        "",
+        "| garment | variant | Chamfer to scan [mm] | outline mean [cm] | outline max [cm] | "
+        "rest quality min | inverted rest triangles | seam length mismatch max [mm] |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for a in ablations:
+        e = a["eval"]
+        rest_min = e.get("rest_quality", {}).get("min", float("nan"))
+        lines.append(
+            f"| {a['garment']} | {a['name']} | {_mm(e['chamfer_scan_m'])} | "
+            f"{_cm(e['pattern_outline_error_m'])} | {_cm(e['pattern_outline_hausdorff_m'])} | "
+            f"{rest_min:.2f} | "
+            f"{e.get('inverted_rest_triangles')} | {_mm(e['seam_length_mismatch']['max_m'])} |"
+        )
+    lines += ["", "## Pictures", ""]
+    for r in rows:
+        if "error" not in r:
+            g = r["garment"]
+            lines += [
+                f"**{g}**: first and last drape (front, back) — ![{g}](results/{g}_before_after.png); "
+                "patterns "
+                f"(grey template, green truth, red result) — ![{g} patterns](results/{g}_patterns.png)",
+                "",
+            ]
+    path.write_text("\n".join(lines) + "\n")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
