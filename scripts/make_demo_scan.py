@@ -16,32 +16,15 @@ Usage: ``PYTHONPATH=. python scripts/make_demo_scan.py [--out torch_diffavatar/d
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 
 PHENOTYPES = {"gender": 0.5, "age": 0.5, "muscle": 0.5, "weight": 0.57, "height": 0.56, "proportions": 0.5}
 BEND_STIFFNESS = 2.0e-5  # [N·m], 4× the default medium cotton
-
-
-def changed_dress(hem_up: float, hem_widen: float):
-    """The dress template with its skirt hem raised by ``hem_up`` [m] and widened by ``hem_widen`` [-]."""
-    from torch_diffavatar.pattern import load_template
-
-    pattern = copy.deepcopy(load_template("dress"))
-    for name in ("skirt_front", "skirt_back"):
-        panel = pattern.panels[name]
-        v = panel.vertices
-        hem = v[:, 1] < 1e-6
-        centre = v[hem, 0].mean()
-        v[hem, 0] = centre + (v[hem, 0] - centre) * (1.0 + hem_widen)
-        v[hem, 1] += hem_up
-    return pattern
 
 
 def area_sample(verts: np.ndarray, faces: np.ndarray, count: int, rng) -> tuple[np.ndarray, np.ndarray]:
@@ -53,22 +36,6 @@ def area_sample(verts: np.ndarray, faces: np.ndarray, count: int, rng) -> tuple[
     s = np.sqrt(r1)
     bary = np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
     return (bary[:, :, None] * tri[face]).sum(1), face
-
-
-def covered_by(
-    points: np.ndarray, normals: np.ndarray, cloth: np.ndarray, lateral=0.02, depth=0.12
-) -> np.ndarray:
-    """(N,) bool: a cloth vertex lies above the point (along its normal, within ``lateral`` of the line)."""
-    tree = cKDTree(cloth)
-    out = np.zeros(len(points), dtype=bool)
-    for i, nbrs in enumerate(tree.query_ball_point(points, depth)):
-        if not nbrs:
-            continue
-        d = cloth[nbrs] - points[i]
-        along = d @ normals[i]
-        side = np.linalg.norm(d - along[:, None] * normals[i], axis=1)
-        out[i] = bool(((along > 0) & (side < lateral)).any())
-    return out
 
 
 def main() -> None:
@@ -89,11 +56,12 @@ def main() -> None:
     from torch_diffavatar.body.anny_model import load_anny
     from torch_diffavatar.body.geometry import vertex_normals
     from torch_diffavatar.body.model import BodyModel
-    from torch_diffavatar.pattern import mesh_pattern, save_pattern
+    from torch_diffavatar.pattern import load_template, mesh_pattern, save_pattern
     from torch_diffavatar.scan import save_ply
     from torch_diffavatar.sim.drape import sew_and_drape
     from torch_diffavatar.sim.material import ClothMaterial
     from torch_diffavatar.sim.placement import place_garment
+    from torch_diffavatar.synthetic_scans import changed_pattern, covered_by
 
     t0 = time.perf_counter()
     out = Path(args.out)
@@ -106,7 +74,7 @@ def main() -> None:
         body.translation[0, 1] -= verts[:, 1].min()  # feet on the floor
         verts = body().vertices[0]
         vn = vertex_normals(verts, body.faces)
-    pattern = changed_dress(args.hem_up, args.hem_widen)
+    pattern = changed_pattern(load_template("dress"), args.hem_up, args.hem_widen)
     garment = place_garment(mesh_pattern(pattern, spacing=args.spacing), verts.double(), body.faces)
     material = ClothMaterial(bend_stiffness=BEND_STIFFNESS)
     result = sew_and_drape(garment, body_verts=verts, body_faces=body.faces, material=material)

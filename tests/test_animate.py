@@ -9,7 +9,7 @@ import math
 import pytest
 import torch
 
-from torch_diffavatar.animate import MovingBodySolver, animate
+from torch_diffavatar.animate import animate
 from torch_diffavatar.assets import load_assets, write_assets
 from torch_diffavatar.body.model import POSE_BONES
 from torch_diffavatar.errors import InputError
@@ -76,12 +76,12 @@ def test_moving_body_does_not_tunnel_where_a_static_step_does():
     rest = model.rest_data(sheet.vert_uv.float())
     faces = _plane(0.0)[1]
     dt, rise = 1 / 60, 0.05
-    moving, static = MovingBodySolver(model), XPBDSolver(model)
+    solver = XPBDSolver(model)
     s_mov = s_sta = model.initial_state()
     for k in range(4):
         start, end = _plane(k * rise)[0], _plane((k + 1) * rise)[0]
-        s_mov = moving.step_moving(s_mov, rest, dt, body_start=start, body_end=end, body_faces=faces)
-        s_sta = static.step(s_sta, rest, dt, body_verts=end, body_faces=faces)
+        s_mov = solver.step(s_mov, rest, dt, body_verts=start, body_faces=faces, body_verts_end=end)
+        s_sta = solver.step(s_sta, rest, dt, body_verts=end, body_faces=faces)
         floor = (k + 1) * rise
         assert float(s_mov.x[:, 1].min()) > floor, k  # carried on top of the floor
     assert float(s_sta.x[:, 1].max()) < floor  # the per-frame static collider let it through

@@ -5,7 +5,7 @@ the material and the Anny parameters of the body. The body is posed along a `tor
 motion (pose offsets on top of its own pose), and the draped garment is simulated with our XPBD solver
 on the seam-merged mesh, starting from the drape.
 
-Moving body, no tunnelling: `MovingBodySolver.step_moving` detects contacts once per simulated frame
+Moving body, no tunnelling: `XPBDSolver.step` with ``body_verts_end`` detects contacts once per frame
 (closest body triangle of every cloth vertex, in a band widened by how far the body and the cloth move
 in that frame) and then runs the frame's substeps one by one with the body vertices linearly
 interpolated between the frame's start and end poses, so the contact planes move with the body in
@@ -27,117 +27,12 @@ import numpy as np
 import torch
 
 from torch_diffavatar.errors import InputError
-from torch_diffavatar.sim import collision, ops
-from torch_diffavatar.sim.constraints import RestData
+from torch_diffavatar.sim import ops
 from torch_diffavatar.sim.solver import XPBDConfig, XPBDSolver
-from torch_diffavatar.sim.state import ClothState
 
 # A body vertex may move this far [m] from the pose the asset's body.obj was written in before the
 # reconstruction from body.json counts as wrong (the files disagree).
 _BODY_MATCH_TOL = 2e-3
-
-
-class MovingBodySolver(XPBDSolver):
-    """`XPBDSolver` whose collider moves during the frame (linear in time between two body poses)."""
-
-    def step_moving(
-        self,
-        state: ClothState,
-        rest: RestData,
-        dt: float,
-        *,
-        body_start: torch.Tensor,
-        body_end: torch.Tensor,
-        body_faces: torch.Tensor,
-        velocity_scale: float = 1.0,
-    ) -> ClothState:
-        """Advance one frame while the body moves from ``body_start`` to ``body_end``.
-
-        Args:
-            state: positions / velocities (Vs, 3) [m], [m/s] at the frame start.
-            rest: `ClothModel.rest_data(rest_uv, material)`.
-            dt: frame time [s], split into ``config.substeps`` substeps.
-            body_start, body_end: (Vb, 3) body vertices [m] at the frame's start and end.
-            body_faces: (Fb, 3) int64 body triangles (outward normals).
-            velocity_scale: factor on the velocities at the end of the frame.
-
-        Returns:
-            the new `ClothState`.
-
-        Raises:
-            SimulationError: NaN/inf, runaway speed or strain (see `XPBDSolver.step`).
-        """
-        cfg, model = self.config, self.model
-        if body_start.shape != body_end.shape or body_start.ndim != 2 or body_start.shape[1] != 3:
-            raise ValueError(
-                f"body_start and body_end must both be (Vb, 3), got {tuple(body_start.shape)} and "
-                f"{tuple(body_end.shape)}"
-            )
-        n_sub = cfg.substeps
-        h = dt / n_sub
-        mat = rest.material
-        x = state.x.detach().clone().contiguous()
-        v = state.v.detach().clone().contiguous()
-        w = rest.vert_inv_mass.detach().contiguous()
-        b0 = body_start.detach().to(x.dtype).contiguous()
-        b1 = body_end.detach().to(x.dtype).contiguous()
-        bf = body_faces.to(torch.int64).contiguous()
-        with torch.no_grad():
-            # The band covers the cloth's own reach in the frame and the body's largest displacement.
-            reach = 1.5 * float(v.norm(dim=-1).max()) * dt if v.numel() else 0.0
-            body_move = float((b1 - b0).norm(dim=-1).max())
-            band = float(mat.thickness) + max(cfg.collision_band, reach) + body_move
-            contacts = collision.detect_contacts(x, b0, bf, band, use_extension=cfg.use_extension)
-            if contacts.count:
-                cv, ct, cb = contacts.vert, contacts.tri, contacts.bary.to(x.dtype).contiguous()
-            else:
-                cv = ct = model.tri_vertices.new_zeros(0)
-                cb = x.new_zeros(0, 3)
-            tc, ec = model.tri_coloring, model.edge_coloring
-            for k in range(n_sub):
-                s = (k + 1) / n_sub
-                bk = (b0 + s * (b1 - b0)).contiguous() if contacts.count else x.new_zeros(0, 3)
-                self._substeps(
-                    x,
-                    v,
-                    w,
-                    model.tri_vertices,
-                    rest.tri_rest_inv.detach().contiguous(),
-                    rest.tri_compliance.detach().contiguous(),
-                    tc.order,
-                    tc.color_offsets,
-                    model.edge_quads,
-                    rest.edge_rest_angle.detach().contiguous(),
-                    rest.edge_compliance.detach().contiguous(),
-                    ec.order,
-                    ec.color_offsets,
-                    model.stitch_vertices,
-                    model.attach_vertices,
-                    model.attach_height.detach(),
-                    bk,
-                    bf if contacts.count else model.tri_vertices.new_zeros(0, 3),
-                    cv,
-                    ct,
-                    cb,
-                    list(cfg.gravity),
-                    math.exp(-float(mat.damping) * h),
-                    h,
-                    1,
-                    cfg.iterations,
-                    cfg.stitch_compliance,
-                    cfg.stitch_max_speed * h / cfg.iterations,
-                    cfg.stitch_snap,
-                    cfg.attach_compliance,
-                    float(mat.thickness),
-                    float(mat.friction),
-                    cfg.scheme == "jacobi",
-                    cfg.jacobi_omega,
-                    cfg.num_threads,
-                )
-            if velocity_scale != 1.0:
-                v = v * velocity_scale
-            self._check(x, v, rest)
-        return ClothState(x, v)
 
 
 def _body_model(assets, anny_model=None):
@@ -260,7 +155,7 @@ def animate(
         .finalize(dtype=torch.float32)
     )
     rest = model.rest_data(assets.rest_uv.to(torch.float32))
-    solver = MovingBodySolver(model, config)
+    solver = XPBDSolver(model, config)
     state = model.initial_state(assets.draped_x.to(torch.float32))
     tri_sim = garment.sim_faces
     out = Path(out_dir) if out_dir is not None else None
@@ -328,13 +223,13 @@ def animate(
 
         iterator = tqdm(iterator, desc="animate", unit="frame")
     for i in iterator:
-        state = solver.step_moving(
+        state = solver.step(
             state,
             rest,
             dt,
-            body_start=bodies[i],
-            body_end=bodies[i + 1],
+            body_verts=bodies[i],
             body_faces=faces,
+            body_verts_end=bodies[i + 1],
             velocity_scale=velocity_scale,
         )
         p = penetration(state.x, bodies[i + 1])

@@ -89,6 +89,10 @@ class XPBDConfig:
             raise ValueError(f"XPBDConfig.num_threads must be >= 0, got {self.num_threads}")
 
 
+# positions of the body vertices and of the substep count in `ops.xpbd_substeps_`'s arguments
+_BODY_ARG, _SUBSTEPS_ARG = 16, 24
+
+
 class XPBDSolver:
     """Steps a `ClothModel` (static data) from one `ClothState` to the next.
 
@@ -113,6 +117,7 @@ class XPBDSolver:
         stitch_compliance: float | None = None,
         velocity_scale: float = 1.0,
         friction_scale: float = 1.0,
+        body_verts_end: torch.Tensor | None = None,
     ) -> ClothState:
         """Advance one frame.
 
@@ -127,6 +132,11 @@ class XPBDSolver:
             velocity_scale: extra factor on the velocities at the end of the frame (sewing damping).
             friction_scale: multiplies the material's friction (0 while sewing, so that seams pulled
                 over the body can slide into place).
+            body_verts_end: (Vb, 3) the body at the end of the frame, for a moving body: then
+                ``body_verts`` is its start, and substep k sees the body interpolated linearly to
+                (k + 1) / substeps of the way, so cloth in contact takes on the body's velocity instead
+                of being overtaken by it (no tunnelling). The contacts are detected once, at the start,
+                in a band widened by the body's largest displacement.
 
         Returns:
             the new `ClothState`.
@@ -145,15 +155,20 @@ class XPBDSolver:
         v = state.v.detach().clone().contiguous()
         w = rest.vert_inv_mass.detach().contiguous()
         alpha_stitch = cfg.stitch_compliance if stitch_compliance is None else stitch_compliance
+        if body_verts_end is not None and (body_verts is None or body_verts_end.shape != body_verts.shape):
+            raise ValueError("body_verts_end needs body_verts of the same (Vb, 3) shape")
         with torch.no_grad():
             contacts = None
             if body_verts is not None:
-                # the band also covers how far the fastest vertex can travel in this frame
+                # the band also covers how far the fastest vertex (and the body) can travel in this frame
                 reach = 1.5 * float(v.norm(dim=-1).max()) * dt if v.numel() else 0.0
                 band = float(mat.thickness) + max(cfg.collision_band, reach)
+                if body_verts_end is not None:
+                    band += float((body_verts_end - body_verts).norm(dim=-1).max())
                 contacts = collision.detect_contacts(
                     x, body_verts, body_faces, band, use_extension=cfg.use_extension
                 )
+            moving = contacts is not None and contacts.count and body_verts_end is not None
             if contacts is not None and contacts.count:
                 bv = body_verts.detach().to(x.dtype).contiguous()
                 bf = body_faces.contiguous()
@@ -163,7 +178,7 @@ class XPBDSolver:
                 cv = ct = model.tri_vertices.new_zeros(0)
                 cb = x.new_zeros(0, 3)
             tc, ec = model.tri_coloring, model.edge_coloring
-            self._substeps(
+            args = [
                 x,
                 v,
                 w,
@@ -199,7 +214,15 @@ class XPBDSolver:
                 cfg.scheme == "jacobi",
                 cfg.jacobi_omega,
                 cfg.num_threads,
-            )
+            ]
+            if not moving:
+                self._substeps(*args)
+            else:  # one substep per call, each against the body interpolated to its end
+                b1 = body_verts_end.detach().to(x.dtype)
+                args[_SUBSTEPS_ARG] = 1
+                for k in range(cfg.substeps):
+                    args[_BODY_ARG] = (bv + (k + 1) / cfg.substeps * (b1 - bv)).contiguous()
+                    self._substeps(*args)
             if velocity_scale != 1.0:
                 v = v * velocity_scale
             self._check(x, v, rest)
