@@ -7,7 +7,8 @@ widened ``--hem-widen``, bending stiffness 2e-5 N·m, on a random moderate Anny 
 ``--ablation-garments`` also the fit without the cage, without the seam-length term and without the
 curvature term. Writes ``docs/RESULTS.md`` (tables like the paper's Tables 1 and 2, with the command and
 date) and pictures in ``docs/results/`` (before/after drapes, pattern overlays of template, result and
-truth). Everything is seeded: a rerun with the same arguments reproduces the numbers.
+truth); a hand-written part of RESULTS.md after the line `DISCUSSION_MARKER` is kept across reruns.
+Everything is seeded: a rerun with the same arguments reproduces the numbers.
 
     PYTHONPATH=. python scripts/benchmark_suite.py --out /tmp/suite
 """
@@ -24,6 +25,7 @@ from pathlib import Path
 
 import torch
 
+DISCUSSION_MARKER = "<!-- discussion: hand-written, kept by benchmark_suite.py -->"
 ABLATIONS = {
     "w/o cage": {"cage": False},
     "w/o seam length": {"weights": {"seam_length": 0.0}},
@@ -211,7 +213,11 @@ def _write_results(path: Path, rows: list, ablations: list, args, started: str) 
                 f"(grey template, green truth, red result) — ![{g} patterns](results/{g}_patterns.png)",
                 "",
             ]
-    path.write_text("\n".join(lines) + "\n")
+    kept = ""
+    if path.is_file() and DISCUSSION_MARKER in path.read_text():
+        kept = path.read_text().split(DISCUSSION_MARKER, 1)[1]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(lines) + "\n" + DISCUSSION_MARKER + kept)
 
 
 if __name__ == "__main__":
