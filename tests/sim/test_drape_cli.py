@@ -81,3 +81,26 @@ def test_inverted_triangle_mask():
     squashed = x.clone()
     squashed[4] = torch.tensor([0.5, 0.001, 0.0], dtype=torch.float64)
     assert inverted_triangle_mask(squashed, faces, rest)[0]
+
+
+def test_sewing_finishes_with_an_unbounded_pull(monkeypatch):
+    """After the stiffness ramp, gaps under ``sew_finish_snap`` close without the bounded stitch pull."""
+    from torch_diffavatar.pattern.library import load_template
+    from torch_diffavatar.pattern.mesher import mesh_pattern
+    from torch_diffavatar.sim import drape
+    from torch_diffavatar.sim.model import ClothModelBuilder
+
+    snaps = []
+
+    class Spy(drape.XPBDSolver):
+        def step(self, *args, **kwargs):
+            snaps.append(self.config.stitch_snap)
+            return super().step(*args, **kwargs)
+
+    monkeypatch.setattr(drape, "XPBDSolver", Spy)
+    garment = mesh_pattern(load_template("skirt"), spacing=0.08)
+    model = ClothModelBuilder().add_garment(garment, merge_seams=False).finalize()
+    config = drape.DrapeConfig(sew_max_steps=6, sew_ramp_steps=3, sew_finish_snap=0.02)
+    drape.sew(model, garment.vert_uv.float(), config=config)
+    bounded = config.sew_xpbd.stitch_snap
+    assert snaps[:3] == [bounded] * 3 and set(snaps[3:]) == {0.02}

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import torch
 
@@ -43,6 +43,11 @@ class DrapeConfig:
         sew_ramp_steps: frames over which the stitch stiffness ramps (geometrically) from
             ``sew_stiffness_start`` to ``sew_stiffness_end`` [N/m].
         sew_gap_tol: sewing stops once the largest stitch gap is below this [m] (after the ramp).
+        sew_finish_snap: after the ramp, stitch gaps under this [m] close without the bounded pull of
+            ``sew_xpbd.stitch_max_speed`` (its ``stitch_snap`` is raised to this). The bound keeps wide-open
+            seams from yanking vertices out of their triangles, but once the seams are nearly closed it
+            let the cloth's own elastic pull win: the longsleeve's shoulder-tip junction (four panels) sat
+            at a 1 cm gap indefinitely, and so did the trousers' waist corners.
         sew_gravity_scale: gravity factor while sewing.
         sew_velocity_scale: velocity factor per frame while sewing (strong damping).
         sew_friction_scale: friction factor while sewing (0: seams pulled over the body slide freely).
@@ -63,6 +68,7 @@ class DrapeConfig:
     sew_stiffness_start: float = 5.0
     sew_stiffness_end: float = 1.0e5
     sew_gap_tol: float = 1.0e-3
+    sew_finish_snap: float = 0.015
     sew_gravity_scale: float = 0.0
     sew_velocity_scale: float = 0.7
     sew_friction_scale: float = 0.0
@@ -217,6 +223,8 @@ def sew(
     t0 = time.perf_counter()
     rest = model.rest_data(rest_uv, material)
     solver = XPBDSolver(model, config.sew_xpbd)
+    snap = max(config.sew_xpbd.stitch_snap, config.sew_finish_snap)
+    finisher = XPBDSolver(model, replace(config.sew_xpbd, stitch_snap=snap))
     state = model.initial_state()
     gap = max_stitch_gap(model, state.x)
     steps = 0
@@ -224,7 +232,7 @@ def sew(
     while steps < config.sew_max_steps:
         frac = min(1.0, steps / max(1, config.sew_ramp_steps))
         stiffness = k0 * (k1 / k0) ** frac
-        state = solver.step(
+        state = (finisher if frac >= 1.0 else solver).step(
             state,
             rest,
             config.dt,
