@@ -59,7 +59,7 @@ class DrapeConfig:
     xpbd: XPBDConfig = field(default_factory=XPBDConfig)
     sew_xpbd: XPBDConfig = field(default_factory=lambda: XPBDConfig(substeps=10, iterations=2))
     dt: float = 1.0 / 60.0
-    max_steps: int = 600
+    max_steps: int = 1000
     min_steps: int = 10
     speed_tol: float = 0.02
     settle_steps: int = 5
