@@ -119,7 +119,8 @@ def evaluate_assets(assets_dir, gt_dir) -> dict:
 
     folder, gt = Path(assets_dir), Path(gt_dir)
     truth = gt / "truth"
-    for path in (folder / "draped.obj", folder / "body.obj", gt / "scan.ply", truth / "pattern.json"):
+    needed = (folder / "draped.obj", folder / "body.obj", gt / "scan.ply", truth / "pattern.json")
+    for path in (*needed, truth / "material.json", truth / "draped.obj", truth / "body.obj"):
         if not path.is_file():
             raise InputError(f"{path} is missing (ASSETS_DIR: a fit's output; --gt: a make-scan output)")
     true_material = material_from_dict(json.loads((truth / "material.json").read_text()))

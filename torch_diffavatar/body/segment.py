@@ -228,6 +228,19 @@ def _opening_name(extremity: str, kind: str) -> str:
     return "hem"
 
 
+def _components(mask: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """(Vb,) connected-component id of every vertex in ``mask`` over the mesh ``edges`` (E, 2); −1
+    outside the mask."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(mask)
+    keep = mask[edges[:, 0]] & mask[edges[:, 1]]
+    graph = sp.coo_matrix((np.ones(int(keep.sum())), (edges[keep, 0], edges[keep, 1])), shape=(n, n))
+    _, comp = connected_components(graph, directed=False)
+    return np.where(mask, comp, -1)
+
+
 def _clean_cover(
     covered: np.ndarray, body_faces: np.ndarray, vertex_parts: np.ndarray, area: np.ndarray
 ) -> np.ndarray:
@@ -236,28 +249,19 @@ def _clean_cover(
     An uncovered patch that reaches no extremity is a hole in the labels (a scan hole, noise) and is
     filled; a covered patch of less than a fifth of the largest one's area is dropped.
     """
-    import scipy.sparse as sp
-    from scipy.sparse.csgraph import connected_components
-
-    e = np.concatenate([body_faces[:, [0, 1]], body_faces[:, [1, 2]], body_faces[:, [2, 0]]])
-    n = len(covered)
+    edges = np.concatenate([body_faces[:, [0, 1]], body_faces[:, [1, 2]], body_faces[:, [2, 0]]])
     out = covered.copy()
-    extremity = np.isin(vertex_parts, [PART_NAMES.index(p) for p in _EXTREMITIES])
-    for value in (False, True):
-        mask = out == value
-        keep = mask[e[:, 0]] & mask[e[:, 1]]
-        graph = sp.coo_matrix((np.ones(int(keep.sum())), (e[keep, 0], e[keep, 1])), shape=(n, n))
-        _, comp = connected_components(graph, directed=False)
-        comp = np.where(mask, comp, -1)
-        ids = np.unique(comp[mask])
-        if value is False:
-            reaches = np.zeros(comp.max() + 1, dtype=bool)
-            reaches[comp[mask & extremity]] = True
-            out[mask & ~reaches[np.maximum(comp, 0)]] = True
-        elif len(ids):
-            comp_area = np.bincount(comp[mask], weights=area[mask], minlength=comp.max() + 1)
-            small = comp_area < 0.2 * comp_area.max()
-            out[mask & small[np.maximum(comp, 0)]] = False
+    if (~out).any():  # fill the uncovered patches that lead to no extremity
+        comp = _components(~out, edges)
+        extremity = np.isin(vertex_parts, [PART_NAMES.index(p) for p in _EXTREMITIES])
+        reaches = np.zeros(comp.max() + 1, dtype=bool)
+        reaches[comp[~out & extremity]] = True
+        out[(comp >= 0) & ~reaches[np.maximum(comp, 0)]] = True
+    if out.any():  # drop the small covered islands
+        comp = _components(out, edges)
+        comp_area = np.bincount(comp[out], weights=area[out], minlength=comp.max() + 1)
+        small = comp_area < 0.2 * comp_area.max()
+        out[(comp >= 0) & small[np.maximum(comp, 0)]] = False
     return out
 
 
