@@ -21,7 +21,12 @@ body at hand (only the initial 3D positions ``vert_pos`` change; the 2D rest sha
    back panels at the back centre. Trouser panels wrap the same way around one leg (one half of the
    hips above the crotch). Sleeves wrap around a tube along the arm's smoothed axis polyline (long
    sleeves follow the bent elbows of Anny's A-pose) and slide outward until their caps clear the
-   shoulder. Panels that are neither (e.g. a horizontal collar) move rigidly to their stitch partners.
+   shoulder. Panels sewn on another panel rather than around the body (collars, and any panel whose
+   GarmentCode placement is not flat facing front or back) are laid on their partner through the 2D map
+   of their shared seam (`_attachments`): a seam whose edges run the same way (a collar turned down over
+   the bodice) folds the panel over its partner, just outside it, with the same surface orientation. A
+   collar laid standing up instead is pulled through a half turn by sewing and ends folded against
+   itself at the V-neck's point (flipped triangles).
 4. **Clearance**: tops are lifted until their shoulder seams clear the shoulders, torso / leg tubes are
    widened until no vertex is too close, and what remains is pushed out along the body normal with
    smooth bumps, until every panel vertex is ``vertex_clearance`` and the midpoint of every stitched
@@ -623,6 +628,7 @@ class _Context:
     vmap: object
     clearance: dict  # kind -> [m]
     regions: dict = field(default_factory=dict)
+    attached: dict = field(default_factory=dict)  # panel -> _Attachment
 
 
 def _region_sections(sec: _Sections, lm: BodyLandmarks, kind: str) -> _RegionSections:
@@ -835,8 +841,10 @@ def _wrap_arm(ctx: _Context, kind: str, out: np.ndarray, shift: float = 0.0) -> 
         c, lo, hi = _lateral_profile(arm_coord(ctx.gc_pos[verts]), rel @ n_gc)
         profiles.append((c, lo, hi))
         need += _width_on(grid, c, hi - lo)
+    # the tube follows the arm's measured radius to the axis end (the palm). Inflating it to the shoulder's
+    # radius over the hand made a cuff narrower than that tube start with its front and back panels ~10 cm
+    # apart around the forearm; sewing them shut folded the longsleeve's front panel through itself.
     r_body = np.interp(grid, arc, radii)
-    r_body = np.where(grid > arc[-1] - 0.02, radii.max(), r_body)  # the hand is wider than the wrist
     r = _slope_envelope(grid, np.maximum(r_body + ctx.clearance[kind], need / (2 * math.pi)), _MAX_SLOPE)
     for g, verts in enumerate(sets):
         if len(verts) == 0:
@@ -885,12 +893,179 @@ def _panel_rotation_angle(garment: GarmentMesh, panel: int) -> float | None:
     return math.atan2(r[1, 0], r[0, 0])
 
 
-def _place_rigid(ctx: _Context, out: np.ndarray, placed: np.ndarray) -> None:
-    """Move each 'rigid' panel so its stitched vertices' centroid meets their placed partners'."""
-    pairs = ctx.garment.stitch_pairs.cpu().numpy()
-    for p, kind in enumerate(ctx.kinds):
-        if kind != "rigid":
+def _uv_orientation(garment: GarmentMesh) -> np.ndarray:
+    """(P,) +1 / −1: the sign of each panel's triangle areas in its own 2D frame (the mesher orients
+    triangles so that their 3D normals point out of the garment, so back panels run clockwise)."""
+    t = garment.tri_vertices.cpu().numpy()
+    uv = garment.vert_uv.detach().cpu().numpy()
+    a, b = uv[t[:, 1]] - uv[t[:, 0]], uv[t[:, 2]] - uv[t[:, 0]]
+    area = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    vp = garment.vert_panel.cpu().numpy()[t[:, 0]]
+    total = np.bincount(vp, weights=area, minlength=len(garment.panel_names))
+    return np.where(total < 0, -1.0, 1.0)
+
+
+def _seam_map(src: np.ndarray, dst: np.ndarray, reflect: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares 2D rigid map u -> R u + t taking (n, 2) ``src`` onto ``dst``; R is a rotation, or a
+    reflection when ``reflect`` (Kabsch with the determinant fixed)."""
+    cs, cd = src.mean(0), dst.mean(0)
+    u, _, vt = np.linalg.svd((src - cs).T @ (dst - cd))
+    proper = np.sign(np.linalg.det(vt.T @ u.T))
+    r = vt.T @ np.diag([1.0, -proper if reflect else proper]) @ u.T
+    return r, cd - r @ cs
+
+
+class _PanelSurface:
+    """One panel's triangles in its 2D frame: locates 2D points on it and maps them to 3D."""
+
+    def __init__(self, garment: GarmentMesh, panel: int):
+        from scipy.spatial import cKDTree
+
+        t = garment.tri_vertices.cpu().numpy()
+        vp = garment.vert_panel.cpu().numpy()
+        self.tris = t[vp[t[:, 0]] == panel]
+        self.uv = garment.vert_uv.detach().cpu().numpy()
+        self.tree = cKDTree(self.uv[self.tris].mean(1))
+        self.k = min(8, len(self.tris))
+
+    def locate(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(n, 2) points -> triangle rows (n,) and barycentrics (n, 3) (negative outside the panel: the
+        nearest triangle's affine extension)."""
+        _, cand = self.tree.query(q, k=self.k)
+        cand = cand.reshape(len(q), self.k)
+        tri = self.uv[self.tris[cand]]  # (n, k, 3, 2)
+        e1, e2 = tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0]
+        rel = q[:, None] - tri[:, :, 0]
+        det = e1[..., 0] * e2[..., 1] - e1[..., 1] * e2[..., 0]
+        b1 = (rel[..., 0] * e2[..., 1] - rel[..., 1] * e2[..., 0]) / det
+        b2 = (e1[..., 0] * rel[..., 1] - e1[..., 1] * rel[..., 0]) / det
+        bary = np.stack([1.0 - b1 - b2, b1, b2], -1)
+        best = bary.min(-1).argmax(1)
+        rows = np.arange(len(q))
+        return cand[rows, best], bary[rows, best]
+
+    def to_3d(self, q: np.ndarray, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(n, 2) points -> (n, 3) points on (or extending) the placed panel and its (n, 3) unit normals
+        (right-hand normal of the panel's triangles in its 2D orientation)."""
+        row, bary = self.locate(q)
+        corners = pos[self.tris[row]]  # (n, 3, 3)
+        n = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-20)
+        return (bary[:, :, None] * corners).sum(1), n
+
+
+@dataclass
+class _Attachment:
+    """A panel laid on a partner panel through the 2D map of their shared seam (collars, cuffs ...)."""
+
+    partner: int
+    rot: np.ndarray  # (2, 2) own 2D frame -> the partner's 2D frame
+    shift: np.ndarray  # (2,)
+    seam: np.ndarray  # own panel vertices stitched to the partner
+
+
+def _attachments(garment: GarmentMesh, kinds: list[str]) -> dict[int, _Attachment]:
+    """Panels to lay on a stitch partner instead of wrapping them: every 'rigid' panel, and every panel
+    whose seam to a larger panel folds it over onto that panel.
+
+    The seam's 2D rigid map (own frame -> partner frame; a reflection between panels of opposite 2D
+    orientation) keeps the sewn surface consistently oriented. For an ordinary seam it lays the panel
+    beyond the partner's edge (the surface continues); for a seam whose two edges run the same way
+    (GarmentCode's ``right_wrong``, e.g. a collar turned down over the bodice) it lays the panel over the
+    partner: such a panel cannot be wrapped in line with the body like the panels it is sewn to.
+    """
+    pairs = garment.stitch_pairs.cpu().numpy()
+    if len(pairs) == 0:
+        return {}
+    vp = garment.vert_panel.cpu().numpy()
+    uv = garment.vert_uv.detach().cpu().numpy()
+    orient = _uv_orientation(garment)
+    area = np.zeros(len(kinds))
+    t = garment.tri_vertices.cpu().numpy()
+    a, b = uv[t[:, 1]] - uv[t[:, 0]], uv[t[:, 2]] - uv[t[:, 0]]
+    np.add.at(area, vp[t[:, 0]], 0.5 * np.abs(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]))
+    out = {}
+    for p in range(len(kinds)):
+        own_verts = np.nonzero(vp == p)[0]
+        loop_pos = np.full(len(vp), -1)
+        loop = garment.panel_boundary[p].cpu().numpy()
+        loop_pos[loop] = np.arange(len(loop))
+        best = None
+        for own, other, q in _seams_of(pairs, vp, p, loop_pos, len(loop)):
+            if len(own) < 2 or np.ptp(uv[own], axis=0).max() < 1e-6:
+                continue
+            rot, shift = _seam_map(uv[own], uv[other], orient[p] != orient[q])
+            mapped = uv[own_verts] @ rot.T + shift
+            _, bary = _PanelSurface(garment, q).locate(mapped)
+            folded = (bary.min(1) > -1e-6).mean() > 0.5 and area[p] < area[q]
+            if (kinds[p] == "rigid" or folded) and (best is None or len(own) > len(best.seam)):
+                best = _Attachment(q, rot, shift, np.unique(own))
+        if best is not None:
+            out[p] = best
+    return out
+
+
+def _seams_of(pairs: np.ndarray, vp: np.ndarray, p: int, loop_pos: np.ndarray, loop_len: int):
+    """Seams of panel ``p`` to other panels: (own vertices, partner vertices, partner panel) per run of
+    consecutive outline vertices stitched to the same partner (a two-panel tube has two seams)."""
+    for q in np.unique(vp[pairs[(vp[pairs[:, 0]] == p) | (vp[pairs[:, 1]] == p)]]):
+        if q == p:
             continue
+        rows, rows_r = (
+            (vp[pairs[:, 0]] == p) & (vp[pairs[:, 1]] == q),
+            (vp[pairs[:, 1]] == p) & (vp[pairs[:, 0]] == q),
+        )
+        own = np.concatenate([pairs[rows, 0], pairs[rows_r, 1]])
+        other = np.concatenate([pairs[rows, 1], pairs[rows_r, 0]])
+        pos = loop_pos[own]
+        if (pos < 0).any():  # not on the outline (should not happen): one seam
+            yield own, other, int(q)
+            continue
+        order = np.argsort(pos)
+        own, other, pos = own[order], other[order], pos[order]
+        breaks = np.nonzero(np.diff(pos) > 1)[0] + 1
+        runs = np.split(np.arange(len(own)), breaks)
+        if len(runs) > 1 and pos[0] == 0 and pos[-1] == loop_len - 1:  # a run across the loop's start
+            runs = [np.concatenate([runs[-1], runs[0]])] + runs[1:-1]
+        for run in runs:
+            yield own[run], other[run], int(q)
+
+
+def _place_attached(ctx: _Context, out: np.ndarray, placed: np.ndarray, dist, offset: float) -> None:
+    """Lay each attached panel on its (placed) partner through their seam map, ``offset`` outside it.
+
+    The offset (away from the body) grows from 0 at the seam to ``offset`` one ``offset`` away from it,
+    so that a panel folded over its partner starts as a layer just outside it, joined along the seam.
+    Panels whose partner is an attached panel wait for it; a panel whose partner never gets placed moves
+    rigidly to its stitch partners (`_place_rigid`).
+    """
+    from scipy.spatial import cKDTree
+
+    uv = ctx.garment.vert_uv.detach().cpu().numpy()
+    pending = dict(ctx.attached)
+    while pending:
+        ready = [p for p, att in pending.items() if placed[ctx.vert_panel == att.partner].all()]
+        if not ready:
+            break
+        for p in ready:
+            att = pending.pop(p)
+            verts = np.nonzero(ctx.vert_panel == p)[0]
+            q2d = uv[verts] @ att.rot.T + att.shift
+            point, normal = _PanelSurface(ctx.garment, att.partner).to_3d(q2d, out)
+            _, n_body = dist(point)
+            normal = np.where(((normal * n_body).sum(1) < 0)[:, None], -normal, normal)
+            d_seam = cKDTree(uv[att.seam]).query(uv[verts])[0]
+            out[verts] = point + (offset * np.minimum(1.0, d_seam / offset))[:, None] * normal
+            placed[verts] = True
+    leftover = [p for p in pending]
+    if leftover:
+        _place_rigid(ctx, out, placed, leftover)
+
+
+def _place_rigid(ctx: _Context, out: np.ndarray, placed: np.ndarray, panels: list[int]) -> None:
+    """Move each of ``panels`` so its stitched vertices' centroid meets their placed partners'."""
+    pairs = ctx.garment.stitch_pairs.cpu().numpy()
+    for p in panels:
         verts = np.nonzero(ctx.vert_panel == p)[0]
         mine = np.isin(pairs, verts)
         rows = np.nonzero(mine.any(1) & ~mine.all(1))[0]
@@ -952,6 +1127,8 @@ def place_garment(
     gc_pos = garment.vert_pos.detach().cpu().numpy().astype(np.float64)
     vert_panel = garment.vert_panel.cpu().numpy()
     kinds = _panel_kinds(garment, gc_pos)
+    attached = _attachments(garment, kinds)
+    kinds = ["attached" if p in attached else k for p, k in enumerate(kinds)]
     # front/back by the side of the GarmentCode layout's mid-plane
     z_mid = 0.5 * (gc_pos[:, 2].min() + gc_pos[:, 2].max())
     front = np.array([gc_pos[vert_panel == p, 2].mean() > z_mid for p in range(len(garment.panel_names))])
@@ -966,6 +1143,7 @@ def place_garment(
         sec,
         _vertical_map(lm),
         dict.fromkeys(kind_names, clearance),
+        attached=attached,
     )
     dist = _BodyDistance(verts, faces)
     pairs = garment.stitch_pairs.cpu().numpy()
@@ -995,8 +1173,14 @@ def place_garment(
             _wrap_torso_like(ctx, kind, lift, out)
         for kind, shift in arm_shift.items():
             _wrap_arm(ctx, kind, out, shift)
-        placed[:] = [k != "rigid" for k in np.array(kinds)[vert_panel]]
-        _place_rigid(ctx, out, placed)
+        placed[:] = [k not in ("rigid", "attached") for k in np.array(kinds)[vert_panel]]
+        _place_attached(ctx, out, placed, dist, vertex_clearance)
+        _place_rigid(
+            ctx,
+            out,
+            placed,
+            [p for p, k in enumerate(kinds) if k == "rigid" and not placed[vert_panel == p].any()],
+        )
         return out
 
     def deficits(pos):
