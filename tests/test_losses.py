@@ -247,6 +247,63 @@ def test_interior_loss_gradcheck():
     assert torch.autograd.gradcheck(lambda p: interior_loss(p, y, robust="huber", scale=0.5), (x,))
 
 
+def _grid_sheet(n: int = 5, size: float = 1.0):
+    """An n×n-vertex square sheet in the plane z = 0: verts (n², 3) float64, faces (2(n−1)², 3)."""
+    t = torch.linspace(0.0, size, n, dtype=F64)
+    gx, gy = torch.meshgrid(t, t, indexing="ij")
+    verts = torch.stack([gx.reshape(-1), gy.reshape(-1), torch.zeros(n * n, dtype=F64)], 1)
+    ids = torch.arange(n * n).reshape(n, n)
+    a, b, c, d = ids[:-1, :-1], ids[1:, :-1], ids[1:, 1:], ids[:-1, 1:]
+    faces = torch.cat([torch.stack([a, b, c], -1).reshape(-1, 3), torch.stack([a, c, d], -1).reshape(-1, 3)])
+    return verts, faces
+
+
+def test_interior_loss_to_the_surface_values():
+    verts, faces = _grid_sheet()
+    gen = torch.Generator().manual_seed(6)
+    # points above the sheet's interior, below it, and one beside it (nearest: the edge x = 1)
+    inside = torch.rand(40, 3, generator=gen, dtype=F64) * torch.tensor(
+        [1.0, 1.0, 0.2], dtype=F64
+    ) - 0.1 * torch.tensor([0, 0, 1.0], dtype=F64)
+    beside = torch.tensor([[1.3, 0.5, 0.4]], dtype=F64)
+    pts = torch.cat([inside, beside])
+    to_verts, to_surface = interior_loss(verts, pts, reduction="none", garment_faces=faces)
+    expected = torch.cat([inside[:, 2] ** 2, torch.tensor([0.3**2 + 0.4**2], dtype=F64)])
+    torch.testing.assert_close(to_surface, expected, rtol=1e-12, atol=1e-14)
+    # the garment → scan direction is the vertex one, unchanged
+    torch.testing.assert_close(to_verts, interior_loss(verts, pts, reduction="none")[0])
+    # to the surface is never farther than to the nearest vertex, and much nearer on a coarse mesh
+    to_nearest_vertex = interior_loss(verts, pts, reduction="none")[1]
+    assert bool((to_surface <= to_nearest_vertex + 1e-15).all())
+    assert float(to_surface[:-1].mean()) < 0.5 * float(to_nearest_vertex[:-1].mean())
+    total = interior_loss(verts, pts, garment_faces=faces)
+    torch.testing.assert_close(total, to_verts.mean() + to_surface.mean())
+    with pytest.raises(ValueError, match="garment_faces"):
+        interior_loss(verts, pts, garment_faces=faces[:, :2])
+
+
+def test_interior_loss_to_the_surface_gradcheck():
+    verts, faces = _grid_sheet(4)
+    gen = torch.Generator().manual_seed(7)
+    verts = verts + 0.05 * torch.randn(verts.shape, generator=gen, dtype=F64)  # a bumpy sheet
+    pts = torch.rand(25, 3, generator=gen, dtype=F64) * torch.tensor([1.0, 1.0, 0.3], dtype=F64)
+    x = verts.clone().requires_grad_()
+    assert torch.autograd.gradcheck(
+        lambda p: interior_loss(p, pts, garment_faces=faces, robust="huber", scale=0.1), (x,)
+    )
+
+
+def test_boundary_loss_robust_kernel_caps_a_stray_opening_point(sewn_tube):
+    x = sewn_tube.sim_positions()
+    loops = sewn_tube.boundary_loops
+    scan = {lp.name: x[lp.vertices].clone() for lp in loops}
+    assert float(boundary_loss(x, loops, scan)) == 0.0
+    stray = {k: torch.cat([v, v[:1] + torch.tensor([[0.0, 0.5, 0.0]], dtype=F64)]) for k, v in scan.items()}
+    l2 = boundary_loss(x, loops, stray)
+    huber = boundary_loss(x, loops, stray, robust="huber", scale=0.01)
+    assert float(huber) < 0.05 * float(l2)  # linear tail: 0.01·(2·0.5 − 0.01) against 0.25
+
+
 # ----------------------------------------------------------------------------- rest-area barrier
 
 # two counter-clockwise triangles sharing an edge (a unit square), a separate counter-clockwise and a
@@ -375,3 +432,20 @@ def test_rest_area_loss_rejects_bad_arguments():
             rest_area_loss(AREA_UV, AREA_UV, AREA_TRIS, threshold=threshold)
     with pytest.raises(ValueError, match="reduction"):
         rest_area_loss(AREA_UV, AREA_UV, AREA_TRIS, reduction="max")
+
+
+def test_boundary_loss_trim_drops_the_worst_points_only(sewn_tube):
+    x = sewn_tube.sim_positions()
+    loops = sewn_tube.boundary_loops[:1]
+    loop_x = x[loops[0].vertices]
+    n = loop_x.shape[0]
+    shifted = {loops[0].name: loop_x + torch.tensor([0.0, 0.01, 0.0], dtype=F64)}  # every point 1 cm off
+    base = boundary_loss(x, loops, shifted)
+    # a uniform offset is not an outlier: trimming a quarter keeps the same (mean of equal) values
+    torch.testing.assert_close(boundary_loss(x, loops, shifted, trim=0.25), base)
+    far = {loops[0].name: torch.cat([shifted[loops[0].name], loop_x[:2] + 1.0])}  # two stray points 1.7 m off
+    assert float(boundary_loss(x, loops, far)) > 10 * float(base)
+    trimmed = boundary_loss(x, loops, far, trim=2.5 / (n + 2))  # drops the two strays (and nothing else)
+    torch.testing.assert_close(trimmed, base, rtol=0.05, atol=0.0)
+    with pytest.raises(ValueError, match="trim"):
+        boundary_loss(x, loops, shifted, trim=1.0)

@@ -40,7 +40,7 @@ import torch
 from torch import nn
 
 from torch_diffavatar.cage import ControlCage, FreeVertices, seam_segments
-from torch_diffavatar.chamfer import nearest_indices, surface_chamfer_m
+from torch_diffavatar.chamfer import ROBUST_KERNELS, nearest_indices, surface_chamfer_m
 from torch_diffavatar.errors import InputError, SimulationError
 from torch_diffavatar.losses import (
     boundary_loss,
@@ -121,6 +121,13 @@ class FitConfig:
         drape_substeps: XPBD substeps per frame of the fit's drapes [-].
         first_max_steps: frames at most of the first (sew and) drape [-].
         max_scan_points: scan garment points used by the interior loss (a fixed random subset) [-].
+        interior_to_surface: the interior loss's scan → garment direction measures the distance to the
+            draped surface (`interior_loss` with ``garment_faces``), not to the nearest vertex [-].
+        boundary_robust, interior_robust: penalty kernel of the point distances in the boundary and in
+            the interior loss (``"l2"``, ``"huber"`` or ``"geman_mcclure"``, `chamfer.robust_penalty`);
+            robust_scale: the kernels' scale [m].
+        boundary_trim: fraction of the largest point distances left out of each direction of each
+            opening's Chamfer (`boundary_loss` ``trim``): scan openings pick up the rims of nearby holes [-].
         boundary_samples: points per loop edge of the boundary loss (`boundary_loss` samples_per_edge).
         min_rest_area_ratio: a step is rejected when a rest triangle's signed area falls below this
             fraction of its template area [-].
@@ -153,6 +160,11 @@ class FitConfig:
     drape_substeps: int = 10
     first_max_steps: int = 400
     max_scan_points: int = 4000
+    interior_to_surface: bool = True
+    boundary_robust: str = "l2"
+    interior_robust: str = "l2"
+    robust_scale: float = 0.01
+    boundary_trim: float = 0.0
     boundary_samples: int = 2
     min_rest_area_ratio: float = 0.1
     max_drape_jump: float = 0.15
@@ -193,6 +205,14 @@ class FitConfig:
             low = 0 if name in ("iterations", "polish_iterations") else 1
             if not isinstance(value, int) or value < low:
                 raise ValueError(f"FitConfig.{name} must be an integer >= {low}")
+        for name in ("boundary_robust", "interior_robust"):
+            kernel = getattr(self, name)
+            if kernel not in ROBUST_KERNELS:
+                raise ValueError(f"FitConfig.{name} must be one of {ROBUST_KERNELS}, got {kernel!r}")
+        if not 0.0 <= self.boundary_trim < 1.0:
+            raise ValueError(f"FitConfig.boundary_trim must be in [0, 1), got {self.boundary_trim}")
+        if not self.robust_scale > 0:
+            raise ValueError(f"FitConfig.robust_scale must be a positive length [m], got {self.robust_scale}")
         if not 0 < self.lr_final <= 1:
             raise ValueError(f"FitConfig.lr_final must be in (0, 1], got {self.lr_final}")
         for name in ("lr_cage", "lr_phenotypes", "lr_translation", "lr_pose", "lr_log_bend_stiffness"):
@@ -475,6 +495,7 @@ class Fitter:
         self.iteration = 0
         self.history: list[dict] = []
         self.rejected_steps = 0
+        self.rejection_reasons: dict[str, int] = {}  # why steps were rejected: reason -> count
         self.nan_gradients = 0
         self.adjoint_failures = 0
         self.first: dict | None = None  # x, body_verts, loss terms, chamfer of the first evaluation
@@ -541,10 +562,21 @@ class Fitter:
             stats=stats,
         )
         w = cfg.weights
-        terms = {"interior": interior_loss(x, self.scan_points)}
+        faces = self.garment.sim_faces if cfg.interior_to_surface else None
+        terms = {
+            "interior": interior_loss(
+                x, self.scan_points, garment_faces=faces, robust=cfg.interior_robust, scale=cfg.robust_scale
+            )
+        }
         if self.loops:
             terms["boundary"] = boundary_loss(
-                x, self.loops, self.scan_boundaries, samples_per_edge=cfg.boundary_samples
+                x,
+                self.loops,
+                self.scan_boundaries,
+                samples_per_edge=cfg.boundary_samples,
+                robust=cfg.boundary_robust,
+                scale=cfg.robust_scale,
+                trim=cfg.boundary_trim,
             )
         terms["seam_length"] = seam_length_loss(rest_uv, self.garment, segments=self.seam_segments)
         terms["curvature"] = curvature_loss(rest_uv, self.template_uv, self.garment)
@@ -556,16 +588,21 @@ class Fitter:
         return Evaluation(loss, terms, x, rest_uv, body_verts, kb, stats)
 
     def _checked_evaluate(self, start: ClothState) -> Evaluation | None:
-        """`evaluate`, or None when the drape blew up, jumped too far or gave non-finite values."""
+        """`evaluate`, or None when the drape blew up, jumped too far or gave non-finite values (the
+        reason is counted in `rejection_reasons`)."""
         try:
             ev = self.evaluate(start)
-        except SimulationError:
-            return None
+        except SimulationError as exc:
+            return self._reject(f"drape failed: {str(exc).split(' (')[0]}")  # without the advice
         if not (torch.isfinite(ev.x).all() and torch.isfinite(ev.loss)):
-            return None
+            return self._reject("non-finite drape or loss")
         if float((ev.x.detach() - start.x).norm(dim=1).max()) > self.config.max_drape_jump:
-            return None
+            return self._reject("drape jumped more than max_drape_jump")
         return ev
+
+    def _reject(self, reason: str) -> None:
+        self.rejection_reasons[reason] = self.rejection_reasons.get(reason, 0) + 1
+        return None
 
     def _rest_ok(self) -> bool:
         with torch.no_grad():
@@ -629,7 +666,11 @@ class Fitter:
             with torch.no_grad():
                 for p, b, d in zip(params, before, delta):
                     p.copy_(b + scale * d)
-            if self._params_finite() and self._rest_ok():
+            if not self._params_finite():
+                self._reject("non-finite parameters")
+            elif not self._rest_ok():
+                self._reject("rest triangle below min_rest_area_ratio")
+            else:
                 new = self._checked_evaluate(next_start)
                 if new is not None:
                     return new, next_start, rejected
@@ -742,6 +783,7 @@ class Fitter:
             "start_v": start.v.detach().clone(),
             "history": list(self.history),
             "rejected_steps": self.rejected_steps,
+            "rejection_reasons": dict(self.rejection_reasons),
             "nan_gradients": self.nan_gradients,
             "adjoint_failures": self.adjoint_failures,
             "lr_scale": self.lr_scale,
@@ -756,6 +798,7 @@ class Fitter:
         self.iteration = int(state["iteration"])
         self.history = list(state["history"])
         self.rejected_steps = int(state["rejected_steps"])
+        self.rejection_reasons = dict(state.get("rejection_reasons", {}))
         self.nan_gradients = int(state["nan_gradients"])
         self.adjoint_failures = int(state.get("adjoint_failures", 0))
         self.lr_scale = float(state.get("lr_scale", 1.0))
@@ -931,6 +974,7 @@ class Fitter:
             "inverted_rest_triangles": int((ratio <= 0).sum()),
             "min_rest_area_ratio": float(ratio.min()),
             "rejected_steps": self.rejected_steps,
+            "rejection_reasons": dict(self.rejection_reasons),
             "nan_gradients": self.nan_gradients,
             "adjoint_failures": self.adjoint_failures,
             "adjoint": self.config.adjoint,

@@ -19,7 +19,7 @@ from collections.abc import Mapping, Sequence
 import torch
 
 from torch_diffavatar.cage import seam_segments
-from torch_diffavatar.chamfer import REDUCTIONS, chamfer_distance, one_sided_chamfer
+from torch_diffavatar.chamfer import REDUCTIONS, chamfer_distance, one_sided_chamfer, robust_penalty
 from torch_diffavatar.pattern.garment_mesh import BoundaryLoop, GarmentMesh
 
 
@@ -87,6 +87,9 @@ def boundary_loss(
     samples_per_edge: int = 1,
     weights: torch.Tensor | None = None,
     reduction: str = "mean",
+    robust: str = "l2",
+    scale: float = 0.01,
+    trim: float = 0.0,
 ) -> torch.Tensor:
     """Boundary feature matching: each named garment opening vs the scan's opening of the same name.
 
@@ -104,6 +107,13 @@ def boundary_loss(
         weights: optional (len(loops),) per-loop weights, aligned with ``loops``.
         reduction: ``"mean"`` (weighted mean over matched loops), ``"sum"`` or ``"none"`` ((K,) one value
             per matched loop, in the order of ``loops``).
+        robust, scale: penalty kernel of the point distances and its scale [m]
+            (`torch_diffavatar.chamfer.robust_penalty`; ``"l2"``: squared distances). Scan openings are
+            broken where holes cut them and pick up the rims of those holes, so a kernel with linear tails
+            (``"huber"``) keeps those points from dominating.
+        trim: fraction in [0, 1) of the largest point penalties dropped in each direction of each loop
+            (a trimmed mean, as in trimmed ICP): the stray hole-rim points of a scan opening and the
+            garment points facing a gap in it are left out while the rest keep their full pull.
 
     Returns:
         scalar, or (K,) for ``"none"`` [m²].
@@ -113,6 +123,8 @@ def boundary_loss(
     """
     _check_reduction(reduction)
     _check_points(garment_x, "garment_x")
+    if not 0.0 <= trim < 1.0:
+        raise ValueError(f"trim must be in [0, 1), got {trim}")
     if not (isinstance(samples_per_edge, int) and samples_per_edge >= 1):
         raise ValueError(f"samples_per_edge must be an integer >= 1, got {samples_per_edge!r}")
     for name, pts in scan_boundaries.items():
@@ -128,7 +140,8 @@ def boundary_loss(
         loop = loops[k]
         x = _resample_loop(garment_x[loop.vertices.to(garment_x.device)], samples_per_edge)
         y = scan_boundaries[loop.name].to(garment_x)
-        values.append(chamfer_distance(x, y, reduction="mean"))
+        xy, yx = chamfer_distance(x, y, robust=robust, scale=scale, reduction="none")
+        values.append(_trimmed_mean(xy[0], trim) + _trimmed_mean(yx[0], trim))
     values = torch.stack(values)  # (K,)
     if weights is not None:
         if weights.shape != (len(loops),):
@@ -148,6 +161,7 @@ def interior_loss(
     scale: float = 0.01,
     weights: torch.Tensor | None = None,
     reduction: str = "mean",
+    garment_faces: torch.Tensor | None = None,
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """Interior feature matching: Chamfer distance between the garment and the segmented scan garment.
 
@@ -167,6 +181,11 @@ def interior_loss(
         reduction: ``"mean"`` (sum over directions of the (weighted) mean over points), ``"sum"`` (sum
             over directions and points) or ``"none"`` (per-point penalties: (Vs,), or the tuple
             ``((Vs,), (P,))`` when two-sided).
+        garment_faces: optional (F, 3) int64 triangles of ``garment_x``. With them the scan → garment
+            direction is the distance to the garment's *surface* (closest point on a triangle, found
+            without autograd, then rebuilt from its barycentrics so gradients reach the triangle's
+            vertices) instead of to its nearest vertex, whose distance never falls below about half the
+            mesh spacing even when the drape lies exactly on the scan.
 
     Returns:
         scalar [m²] (or per-point penalties for ``"none"``).
@@ -178,6 +197,10 @@ def interior_loss(
         raise ValueError(f"weights must have shape ({garment_x.shape[0]},), got {tuple(weights.shape)}")
     kw = dict(robust="l2" if robust is None else robust, scale=scale, reduction=reduction)
     y = scan_points.to(garment_x)
+    if two_sided and garment_faces is not None:
+        xy = one_sided_chamfer(garment_x, y, x_weights=weights, **kw)
+        yx = _point_to_surface(y, garment_x, garment_faces, kw["robust"], scale, reduction)
+        return (xy[0], yx) if reduction == "none" else xy + yx
     if two_sided:
         out = chamfer_distance(garment_x, y, x_weights=weights, **kw)
         return (out[0][0], out[1][0]) if reduction == "none" else out
@@ -187,6 +210,41 @@ def interior_loss(
 
 # ---------------------------------------------------------------------------------------------------------
 # Pattern regularizers
+
+
+def _trimmed_mean(values: torch.Tensor, trim: float) -> torch.Tensor:
+    """Mean of (N,) ``values`` without the ``floor(trim·N)`` largest ones (at least one is kept)."""
+    keep = max(values.shape[0] - int(trim * values.shape[0]), 1)
+    if keep == values.shape[0]:
+        return values.mean()
+    return torch.topk(values, keep, largest=False, sorted=False).values.mean()
+
+
+def _point_to_surface(
+    points: torch.Tensor, verts: torch.Tensor, faces: torch.Tensor, robust: str, scale: float, reduction: str
+) -> torch.Tensor:
+    """Penalized distance of every point (P, 3) to the surface of the mesh (verts (V, 3), faces (F, 3)).
+
+    The closest triangle and barycentrics come from `ops.closest_point_on_mesh` on detached copies; the
+    closest point is rebuilt as Σ bᵢ·verts[fᵢ], so the gradient is the point-to-plane one inside a
+    triangle and the point-to-edge/vertex one on its border (the assignment itself is not
+    differentiated, as for nearest neighbours). Returns a scalar [m²], or (P,) for ``"none"``.
+    """
+    from torch_diffavatar.sim import ops
+
+    if faces.dim() != 2 or faces.shape[1] != 3 or faces.shape[0] == 0:
+        raise ValueError(f"garment_faces must have shape (F, 3) with F >= 1, got {tuple(faces.shape)}")
+    faces = faces.to(device=verts.device, dtype=torch.int64)
+    with torch.no_grad():
+        tri, bary, _ = ops.closest_point_on_mesh(
+            points.detach().contiguous(), verts.detach().contiguous(), faces.contiguous(), float("inf")
+        )
+    corners = verts[faces[tri]]  # (P, 3 corners, 3)
+    closest = (bary.to(verts)[..., None] * corners).sum(1)
+    pen = robust_penalty(((points - closest) ** 2).sum(-1), robust, scale)
+    if reduction == "none":
+        return pen
+    return pen.sum() if reduction == "sum" else pen.mean()
 
 
 def seam_length_loss(
