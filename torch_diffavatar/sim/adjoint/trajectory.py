@@ -5,18 +5,22 @@ state (x, v) every ``checkpoint_every`` frames and the contact set (cloth vertex
 barycentrics) of EVERY frame — the contact set is frozen from the forward pass.
 
 Backward: reverse-mode through the discrete steps. Segment by segment, from the last to the first, the
-frames are replayed from their checkpoint under ``torch.enable_grad()`` with `replay_frame`, a
-differentiable (clone-then-in-place: the PyTorch reference kernels of `sim/reference.py` on fresh tensors)
-copy of the same step math, and the vector–Jacobian products come from `torch.autograd.grad`
-(torchdiffeq's adjoint pattern). This IS the adjoint recursion of eqs. 9–12 evaluated by the chain rule:
-the adjoint state (x̂_n, v̂_n) of a frame boundary is the VJP of the frame map with (x̂_{n+1}, v̂_{n+1});
-∂Δx/∂x̄ (rest shape, eqs. 13–19) is the VJP through ``tri_rest_inv``, the rest areas (compliances, masses)
-and the bending weights; ∂Δx/∂λ_b through the bending compliance; ∂Δx/∂x_body through the contact
-projection (contact point and face normal recomputed from the body vertices, paper eq. 6) and friction.
-The gradient is exact for the discrete trajectory up to the difference between the C++ kernels used in
-the forward and the reference kernels used in the replay (~1e-15 relative in float64).
+frame states are recomputed from their checkpoint, then the frames are replayed one at a time (last
+first) under ``torch.enable_grad()`` with `replay.ReplayPlan.frame` — the same step maths as the C++
+forward in few, batched torch ops per colour (`replay_frame`, the reference kernels, for the Jacobi
+scheme) — and the vector–Jacobian products come from `torch.autograd.grad` (torchdiffeq's adjoint
+pattern). This IS the adjoint recursion of eqs. 9–12 evaluated by the chain rule: the adjoint state
+(x̂_n, v̂_n) of a frame boundary is the VJP of the frame map with (x̂_{n+1}, v̂_{n+1}); ∂Δx/∂x̄ (rest
+shape, eqs. 13–19) is the VJP through ``tri_rest_inv``, the rest areas (compliances, masses) and the
+bending weights; ∂Δx/∂λ_b through the bending compliance; ∂Δx/∂x_body through the contact projection
+(contact point and face normal recomputed from the body vertices, paper eq. 6) and friction. The
+gradient is exact for the discrete trajectory up to the rounding difference between the C++ kernels of
+the forward and the replay (~1e-14 m in float64; the backward records the largest deviation it saw).
 
-Cost: one replayed forward plus its backward per frame; memory: the checkpoints plus one segment's graph.
+Cost: about three forward frames of the replay per frame (its no-grad recompute, its recorded forward,
+its backward): 1,280 colour passes per frame at the default 40 substeps on a 32-colour dress, Python-op
+bound (measured in scripts/bench_grad.py). Memory: the checkpoints, one segment's states and one
+frame's graph.
 Limitations: the Gauss–Seidel order, contact set and friction regime (static/kinetic) are those of the
 forward; the step count is fixed by the forward (speed criterion), so the derivative of "when the drape
 stops" is ignored.
@@ -32,6 +36,7 @@ import torch
 
 from torch_diffavatar.sim import collision, reference
 from torch_diffavatar.sim.adjoint.common import DrapeSetup, Gradients, material_with
+from torch_diffavatar.sim.adjoint.replay import ReplayPlan
 from torch_diffavatar.sim.collision import Contacts
 from torch_diffavatar.sim.constraints import RestData
 from torch_diffavatar.sim.model import ClothModel
@@ -127,8 +132,6 @@ def replay_frame(
                     reference.bend_project_jacobi_(
                         x, lam_edge, w, model.edge_quads, rest.edge_rest_angle, rest.edge_compliance, h, om
                     )
-            if lam_stitch.numel():
-                _project_stitches(x, lam_stitch, w, model.stitch_vertices, xpbd.stitch_compliance, h)
             if lam_attach.numel():
                 _project_attach(
                     x, lam_attach, w, model.attach_vertices, model.attach_height, xpbd.attach_compliance, h
@@ -138,6 +141,12 @@ def replay_frame(
                     x, w, body_verts, body_faces, contacts, mat.thickness
                 )
                 depth_sum = depth if depth_sum is None else depth_sum + depth
+            if lam_stitch.numel():  # stitches last, as in `reference.compose_substeps`
+                x = x.clone()
+                _project_stitches(
+                    x, lam_stitch, w, model.stitch_vertices, xpbd.stitch_compliance, h,
+                    xpbd.stitch_max_speed * h / xpbd.iterations, xpbd.stitch_snap,
+                )  # fmt: skip
         if contacts is not None and float(mat.friction) > 0:
             x = collision.apply_friction(x, x_start, contacts, normal, depth_sum, mat.friction)
         v = (x - x_start) / h
@@ -166,13 +175,22 @@ class Rollout:
     converged: bool
 
 
+def step_band(v: torch.Tensor, rest: RestData, xpbd: XPBDConfig, dt: float) -> float:
+    """The contact-detection band [m] of `XPBDSolver.step` for a frame starting with velocities ``v``.
+
+    The step detects its own contacts; the rollout records the same set (same positions, same band), so
+    the replay projects against exactly the contacts the forward used.
+    """
+    reach = 1.5 * float(v.norm(dim=-1).max()) * dt if v.numel() else 0.0
+    return float(rest.material.thickness) + max(xpbd.collision_band, reach)
+
+
 def rollout(
     setup: DrapeSetup, rest: RestData, body_verts: torch.Tensor | None, options: TrajectoryOptions
 ) -> Rollout:
     """The XPBD drape of `drape_to_equilibrium` (same stopping rule), keeping checkpoints and contacts."""
     model, cfg = setup.model, setup.config
     solver = XPBDSolver(model, cfg.xpbd)
-    band = float(rest.material.thickness) + cfg.xpbd.collision_band
     state = ClothState(setup.x0, setup.v0)
     checkpoints = {0: (state.x, state.v)}
     contacts_per_frame = []
@@ -183,7 +201,11 @@ def rollout(
             contacts = None
             if body_verts is not None:
                 contacts = collision.detect_contacts(
-                    state.x, body_verts, setup.body_faces, band, use_extension=cfg.xpbd.use_extension
+                    state.x,
+                    body_verts,
+                    setup.body_faces,
+                    step_band(state.v, rest, cfg.xpbd, cfg.dt),
+                    use_extension=cfg.xpbd.use_extension,
                 )
                 contacts = contacts if contacts.count else None
             contacts_per_frame.append(contacts)
@@ -243,11 +265,21 @@ def trajectory_backward(
 ) -> Gradients:
     """Vector–Jacobian product of the drape with ``grad_x`` (Vs, 3) (and ``grad_frames`` (T+1, Vs, 3)).
 
+    Segment by segment from the last: the frame states of a segment are recomputed from its checkpoint
+    (no grad), then its frames are replayed one at a time, last first, each with its own small graph
+    (`ReplayPlan.frame`, or `replay_frame` for the Jacobi scheme), and the adjoint state is pulled through
+    it with `torch.autograd.grad`. The gradients of the rest data (``_REST_LEAVES``) and of the body are
+    accumulated over the frames and mapped to ``rest_uv`` and the material once at the end.
+
     Args:
         setup: forward data; ``setup.saved["rollout"]`` is the `Rollout`.
         rest_uv: (V, 2) [m]; body_verts: (Vb, 3) [m] or None; material_values: differentiable material
             tensors (names in ``setup.material_names``).
         needs: whether rest_uv, body_verts and each material tensor need a gradient.
+
+    Records in ``setup.stats``: ``replay_max_deviation_m``, the largest difference between a replayed
+    segment end and the forward's state there (rounding of the C++ forward vs the replay; a larger value
+    means the replay does not reproduce the forward and the gradient is not that of the forward).
     """
     ro: Rollout = setup.saved["rollout"]
     model, cfg = setup.model, setup.config
@@ -258,66 +290,71 @@ def trajectory_backward(
         mat_leaves = tuple(m.detach().requires_grad_(n) for m, n in zip(material_values, need_mat))
         material = material_with(setup.material, setup.material_names, mat_leaves)
         rest_graph = model.rest_data(uv_leaf, material)
-        leaves = {name: getattr(rest_graph, name).detach().requires_grad_(need_rest) for name in _REST_LEAVES}
-        rest = dataclasses.replace(rest_graph, material=setup.material, **leaves)
-        rest = dataclasses.replace(rest, material=_floats(material))
-        body = body_verts.detach().requires_grad_(need_body) if body_verts is not None else None
-        acc_rest = {name: torch.zeros_like(t) for name, t in leaves.items()}
-        acc_body = torch.zeros_like(body) if body is not None else None
-        a_x, a_v = grad_x, torch.zeros_like(grad_x)
-        starts = sorted(ro.checkpoints)
-        for k in reversed(starts):
-            if k >= ro.steps:
-                continue
-            end = min(ro.steps, k + _segment(starts, k))
-            x0, v0 = ro.checkpoints[k]
-            x = x0.detach().requires_grad_(True)
-            v = v0.detach().requires_grad_(True)
-            outs, gouts = [], []
-            xs, vs = x, v
-            for n in range(k, end):
-                xs, vs = replay_frame(
-                    model,
-                    cfg.xpbd,
-                    xs,
-                    vs,
-                    rest,
-                    cfg.dt,
-                    contacts=ro.contacts[n],
-                    body_verts=body,
-                    body_faces=setup.body_faces,
-                    velocity_scale=cfg.drape_velocity_scale,
-                )
-                if grad_frames is not None and n + 1 < end:
-                    outs.append(xs)
-                    gouts.append(grad_frames[n + 1])
-            outs += [xs, vs]
-            gouts += [a_x, a_v]
-            inputs = [x, v] + [leaves[n] for n in _REST_LEAVES if need_rest]
-            if need_body and body is not None:
-                inputs.append(body)
-            grads = torch.autograd.grad(outs, inputs, gouts, allow_unused=True)
+    leaves = {name: getattr(rest_graph, name).detach().requires_grad_(need_rest) for name in _REST_LEAVES}
+    rest = dataclasses.replace(rest_graph, material=_floats(material), **leaves)
+    body = body_verts.detach().requires_grad_(need_body) if body_verts is not None else None
+    plan = None
+    if cfg.xpbd.scheme == "gauss_seidel":
+        plan = ReplayPlan(model, cfg.xpbd, rest.vert_inv_mass)
+
+    def frame(n, x, v):
+        kw = dict(
+            contacts=ro.contacts[n],
+            body_verts=body,
+            body_faces=setup.body_faces,
+            velocity_scale=cfg.drape_velocity_scale,
+        )
+        if plan is not None:
+            return plan.frame(x, v, rest, cfg.dt, **kw)
+        return replay_frame(model, cfg.xpbd, x, v, rest, cfg.dt, **kw)
+
+    inputs = [leaves[n] for n in _REST_LEAVES] if need_rest else []
+    if need_body and body is not None:
+        inputs.append(body)
+    acc = [torch.zeros_like(t) for t in inputs]
+    a_x, a_v = grad_x, torch.zeros_like(grad_x)
+    if grad_frames is not None:
+        a_x = a_x + grad_frames[ro.steps]
+    deviation = 0.0
+    starts = sorted(k for k in ro.checkpoints if k < ro.steps)
+    for k in reversed(starts):
+        end = min(ro.steps, k + _segment(starts, k))
+        states = [ro.checkpoints[k]]
+        with torch.no_grad():
+            for n in range(k, end - 1):
+                states.append(frame(n, *states[-1]))
+        for n in reversed(range(k, end)):
+            with torch.enable_grad():
+                x = states[n - k][0].detach().requires_grad_(True)
+                v = states[n - k][1].detach().requires_grad_(True)
+                xe, ve = frame(n, x, v)
+                if n == end - 1:
+                    target = ro.checkpoints[end][0] if end in ro.checkpoints else ro.x
+                    deviation = max(deviation, float((xe.detach() - target.detach()).abs().max()))
+                grads = torch.autograd.grad((xe, ve), [x, v, *inputs], (a_x, a_v), allow_unused=True)
             a_x, a_v = _zero_if_none(grads[0], x), _zero_if_none(grads[1], v)
             if grad_frames is not None:
-                a_x = a_x + grad_frames[k]
-            i = 2
-            if need_rest:
-                for name in _REST_LEAVES:
-                    if grads[i] is not None:
-                        acc_rest[name] += grads[i]
-                    i += 1
-            if need_body and body is not None and grads[i] is not None:
-                acc_body += grads[i]
-        out = Gradients(body_verts=acc_body if need_body else None, material=tuple(None for _ in need_mat))
-        if need_rest:
-            wrt = ([uv_leaf] if need_uv else []) + [m for m, n in zip(mat_leaves, need_mat) if n]
-            tensors = [getattr(rest_graph, name) for name in _REST_LEAVES]
-            pairs = [(t, acc_rest[n]) for t, n in zip(tensors, _REST_LEAVES) if t.requires_grad]
+                a_x = a_x + grad_frames[n]
+            for a, gr in zip(acc, grads[2:]):
+                if gr is not None:
+                    a += gr
+    setup.record(replay_max_deviation_m=deviation)
+    out = Gradients(body_verts=None, material=tuple(None for _ in need_mat))
+    if need_body and body is not None:
+        out.body_verts = acc[-1]
+    if need_rest:
+        wrt = ([uv_leaf] if need_uv else []) + [m for m, n in zip(mat_leaves, need_mat) if n]
+        pairs = [
+            (getattr(rest_graph, name), acc[i])
+            for i, name in enumerate(_REST_LEAVES)
+            if getattr(rest_graph, name).requires_grad
+        ]
+        with torch.enable_grad():
             grads = torch.autograd.grad([p[0] for p in pairs], wrt, [p[1] for p in pairs], allow_unused=True)
-            grads = [_zero_if_none(gr, t) for gr, t in zip(grads, wrt)]
-            if need_uv:
-                out.rest_uv = grads.pop(0)
-            out.material = tuple(grads.pop(0) if n else None for n in need_mat)
+        grads = [_zero_if_none(gr, t) for gr, t in zip(grads, wrt)]
+        if need_uv:
+            out.rest_uv = grads.pop(0)
+        out.material = tuple(grads.pop(0) if n else None for n in need_mat)
     return out
 
 
