@@ -11,13 +11,18 @@ Adam step with its guards.
     PYTHONPATH=. python scripts/bench_fit.py --spacings 0.03 0.02 0.015 --iters 8
 
 Prints one JSON line per spacing. One intra-op thread (measured faster on the 2-core machine).
+``--profile PREFIX`` runs the timed iterations under cProfile (CPU clock; slower, so compare its figures
+with each other only), writes ``PREFIX.<spacing>.prof`` and prints the CPU seconds per iteration by part.
 """
 
 from __future__ import annotations
 
 import argparse
+import cProfile
 import json
+import pstats
 import statistics
+import sys
 import time
 from dataclasses import replace
 
@@ -29,6 +34,7 @@ def main() -> None:
     parser.add_argument("--spacings", type=float, nargs="+", default=[0.03, 0.02, 0.015])
     parser.add_argument("--iters", type=int, default=8)
     parser.add_argument("--adjoint", default=None, help="override the config's adjoint")
+    parser.add_argument("--profile", default=None, metavar="PREFIX", help="cProfile the iterations")
     args = parser.parse_args()
     torch.set_num_threads(1)
 
@@ -66,6 +72,9 @@ def main() -> None:
         first_s = time.perf_counter() - t1
         ev = fitter.evaluate(start)
         wall, cpu, stats = [], [], []
+        profiler = cProfile.Profile(time.process_time) if args.profile else None  # CPU seconds
+        if profiler:
+            profiler.enable()
         for _ in range(args.iters):
             w0, c0 = time.perf_counter(), time.process_time()
             ev, start, _ = fitter.step(ev, start)
@@ -73,6 +82,11 @@ def main() -> None:
             wall.append(time.perf_counter() - w0)
             cpu.append(time.process_time() - c0)
             stats.append(dict(ev.stats))
+        if profiler:
+            profiler.disable()
+            path = f"{args.profile}.{spacing}.prof"
+            profiler.dump_stats(path)
+            _print_breakdown(pstats.Stats(path), args.iters, spacing)
         last = stats[-1]
         print(
             json.dumps(
@@ -96,6 +110,32 @@ def main() -> None:
             ),
             flush=True,
         )
+
+
+# Parts of one iteration, by the function that does them (cumulative time, so the parts overlap where
+# one calls another: "adjoint backward" contains the Hessians, the assembly and the solve).
+PARTS = {
+    "whole iteration (Fitter.step)": "fit.py:.*\\(step\\)",
+    "evaluate (drape + losses)": "fit.py:.*\\(evaluate\\)",
+    "  drape (warm-started XPBD)": "drape.py:.*\\(drape_to_equilibrium\\)",
+    "    XPBD substeps (C++)": "ops.py:.*\\(xpbd_substeps_\\)",
+    "    contact detection (closest point)": "collision.py:.*\\(detect_contacts\\)",
+    "adjoint backward": "equilibrium.py:.*\\(equilibrium_backward\\)",
+    "  element Hessians": "energy.py:.*\\((hessian_blocks|hessian_elements)\\)",
+    "  CSR assembly": "energy.py:.*\\((assemble|assemble_csr)\\)",
+    "  pattern build (first use)": "energy.py:.*\\(_build_pattern\\)",
+    "  sparse solve": "linsolve.py:.*\\(solve_symmetric\\)",
+}
+
+
+def _print_breakdown(st: pstats.Stats, iters: int, spacing: float) -> None:
+    import re
+
+    print(f"# cProfile breakdown at spacing {spacing} (s per iteration, cumulative):", file=sys.stderr)
+    for label, pattern in PARTS.items():
+        rx = re.compile(pattern)
+        total = sum(v[3] for k, v in st.stats.items() if rx.search(f"{k[0]}:{k[1]}({k[2]})"))
+        print(f"#   {label:40s} {total / iters:7.3f}", file=sys.stderr)
 
 
 if __name__ == "__main__":

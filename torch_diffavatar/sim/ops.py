@@ -14,11 +14,15 @@ from torch_diffavatar._ext import has_extension
 from torch_diffavatar.sim import reference
 
 __all__ = [
+    "bend_hessians",
     "bend_project_",
     "bend_project_jacobi_",
+    "block_cholesky_analyze",
+    "block_cholesky_solve",
     "closest_point_on_mesh",
     "extension_op",
     "max_abs_green_strain",
+    "stretch_hessians",
     "stretch_project_",
     "stretch_project_jacobi_",
     "xpbd_substeps_",
@@ -58,9 +62,26 @@ def _register_fake(name: str) -> None:
     def fake_scalar(x, *args):
         return x.new_empty(())
 
-    fake = {"closest_point_on_mesh": fake_closest, "max_abs_green_strain": fake_scalar}.get(
-        name, fake_inplace
-    )
+    def fake_stretch_hessians(x, tri_vertices, *args):
+        return x.new_empty((tri_vertices.shape[0], 9, 9))
+
+    def fake_bend_hessians(x, edge_quads, *args):
+        return x.new_empty((edge_quads.shape[0], 12, 12))
+
+    def fake_analyze(crow, col, perm):
+        return perm.new_empty(perm.shape), perm.new_empty((perm.shape[0] + 1,))
+
+    def fake_cholesky_solve(crow, col, val, b, *args):
+        return torch.empty_like(b), b.new_empty((4,), dtype=torch.float64)
+
+    fake = {
+        "closest_point_on_mesh": fake_closest,
+        "max_abs_green_strain": fake_scalar,
+        "stretch_hessians": fake_stretch_hessians,
+        "bend_hessians": fake_bend_hessians,
+        "block_cholesky_analyze": fake_analyze,
+        "block_cholesky_solve": fake_cholesky_solve,
+    }.get(name, fake_inplace)
     try:
         torch.library.register_fake(f"diffavatar::{name}")(fake)
     except RuntimeError:
@@ -249,3 +270,60 @@ def max_abs_green_strain(
 ) -> torch.Tensor:
     """0-dim tensor: the largest |Green strain component| (see `reference.max_abs_green_strain`)."""
     return _pick("max_abs_green_strain", x, use_extension)(x, tri_vertices, tri_rest_inv)
+
+
+def stretch_hessians(
+    x: torch.Tensor,
+    tri_vertices: torch.Tensor,
+    tri_rest_inv: torch.Tensor,
+    tri_area: torch.Tensor,
+    stiffness: torch.Tensor,
+    project: bool,
+    *,
+    use_extension: bool = True,
+) -> torch.Tensor:
+    """(F, 9, 9) membrane-energy Hessians per triangle, PSD-projected on request (see
+    `reference.stretch_hessians`)."""
+    return _pick("stretch_hessians", x, use_extension)(
+        x, tri_vertices, tri_rest_inv, tri_area, stiffness, bool(project)
+    )
+
+
+def bend_hessians(
+    x: torch.Tensor,
+    edge_quads: torch.Tensor,
+    edge_weight: torch.Tensor,
+    edge_rest_angle: torch.Tensor,
+    bend_stiffness: float,
+    project: bool,
+    *,
+    use_extension: bool = True,
+) -> torch.Tensor:
+    """(E, 12, 12) bending-energy Hessians per interior edge, PSD-projected on request (see
+    `reference.bend_hessians`)."""
+    return _pick("bend_hessians", x, use_extension)(
+        x, edge_quads, edge_weight, edge_rest_angle, float(bend_stiffness), bool(project)
+    )
+
+
+def block_cholesky_analyze(
+    crow: torch.Tensor, col: torch.Tensor, perm: torch.Tensor, *, use_extension: bool = True
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Symbolic 3×3-block sparse Cholesky: (parent, l_colptr) (see `reference.block_cholesky_analyze`)."""
+    return _pick("block_cholesky_analyze", crow, use_extension)(crow, col, perm)
+
+
+def block_cholesky_solve(
+    crow: torch.Tensor,
+    col: torch.Tensor,
+    val: torch.Tensor,
+    b: torch.Tensor,
+    perm: torch.Tensor,
+    parent: torch.Tensor,
+    l_colptr: torch.Tensor,
+    *,
+    use_extension: bool = True,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Sparse Cholesky solve of the SPD ``H x = b``: (x, info) (see `reference.block_cholesky_solve`,
+    whose dense twin is for small problems only)."""
+    return _pick("block_cholesky_solve", b, use_extension)(crow, col, val, b, perm, parent, l_colptr)

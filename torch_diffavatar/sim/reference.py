@@ -645,3 +645,170 @@ _REFERENCE_KERNELS = SimpleNamespace(
     stretch_project_jacobi_=stretch_project_jacobi_,
     bend_project_jacobi_=bend_project_jacobi_,
 )
+
+
+# ------------------------------------------------------------------------ element Hessians (adjoint)
+
+
+def _green_strain_one(xt: torch.Tensor, rest_inv: torch.Tensor) -> torch.Tensor:
+    d = torch.stack((xt[0] - xt[2], xt[1] - xt[2]), dim=-1)  # (3, 2)
+    f = d @ rest_inv
+    f0, f1 = f[:, 0], f[:, 1]
+    return torch.stack((0.5 * (f0 @ f0 - 1.0), 0.5 * (f1 @ f1 - 1.0), 0.5 * (f0 @ f1)))
+
+
+def _stretch_energy_one(xt, rest_inv, area, stiffness):
+    c = _green_strain_one(xt, rest_inv)
+    return 0.5 * area * (c @ stiffness @ c)
+
+
+def _bend_energy_one(xq, weight, rest_angle, bend_stiffness):
+    x0, x1, x2, x3 = xq.unbind(0)
+    e = x1 - x0
+    n1 = torch.linalg.cross(e, x2 - x0)
+    n2 = torch.linalg.cross(x0 - x1, x3 - x1)
+    theta = torch.atan2(torch.linalg.cross(n1, n2) @ (e / e.norm()), n1 @ n2)
+    return 0.5 * bend_stiffness * weight * (theta - rest_angle) ** 2
+
+
+def project_psd(h: torch.Tensor) -> torch.Tensor:
+    """(K, n, n) symmetric blocks projected to PSD: eigenvalues clamped at 0 (``torch.linalg.eigh``)."""
+    if h.shape[0] == 0:
+        return h
+    evals, evecs = torch.linalg.eigh(0.5 * (h + h.transpose(1, 2)))
+    return (evecs * evals.clamp_min(0.0)[:, None, :]) @ evecs.transpose(1, 2)
+
+
+def stretch_hessians(
+    x: torch.Tensor,
+    tri_vertices: torch.Tensor,
+    tri_rest_inv: torch.Tensor,
+    tri_area: torch.Tensor,
+    stiffness: torch.Tensor,
+    project: bool,
+) -> torch.Tensor:
+    """Per-triangle Hessians of the membrane energy ``Ā/2 Cᵀ K C`` (C as in the stretch kernel).
+
+    Args:
+        x: (Vs, 3) [m]; tri_vertices: (F, 3) int64; tri_rest_inv: (F, 2, 2) [1/m]; tri_area: (F,) [m²];
+        stiffness: (3, 3) K [N/m]; project: clamp each block's negative eigenvalues to 0.
+
+    Returns:
+        (F, 9, 9) [N/m], dofs ordered 3·corner + axis (``torch.func.hessian``, then `project_psd`).
+    """
+    from torch.func import hessian, vmap
+
+    h = vmap(hessian(_stretch_energy_one), in_dims=(0, 0, 0, None))(
+        x[tri_vertices], tri_rest_inv, tri_area, stiffness.to(x.dtype)
+    ).reshape(-1, 9, 9)
+    return project_psd(h) if project else h
+
+
+def bend_hessians(
+    x: torch.Tensor,
+    edge_quads: torch.Tensor,
+    edge_weight: torch.Tensor,
+    edge_rest_angle: torch.Tensor,
+    bend_stiffness: float,
+    project: bool,
+) -> torch.Tensor:
+    """Per-edge Hessians of the bending energy ``k_b w/2 (θ − θ̄)²`` (θ as in the bend kernel).
+
+    Args:
+        x: (Vs, 3) [m]; edge_quads: (E, 4) int64; edge_weight: (E,) [-]; edge_rest_angle: (E,) [rad];
+        bend_stiffness: k_b [N·m]; project: clamp each block's negative eigenvalues to 0.
+
+    Returns:
+        (E, 12, 12) [N/m], dofs ordered 3·quad vertex + axis.
+    """
+    from torch.func import hessian, vmap
+
+    kb = x.new_tensor(float(bend_stiffness))
+    h = vmap(hessian(_bend_energy_one), in_dims=(0, 0, 0, None))(
+        x[edge_quads], edge_weight, edge_rest_angle, kb
+    ).reshape(-1, 12, 12)
+    return project_psd(h) if project else h
+
+
+# ------------------------------------------------------------------- block sparse Cholesky (adjoint)
+
+
+def block_cholesky_analyze(
+    crow: torch.Tensor, col: torch.Tensor, perm: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Symbolic block Cholesky of a CSR matrix with 3×3 block structure, in vertex ordering ``perm``.
+
+    Args:
+        crow: (n+1,) int64; col: (nnz,) int64 sorted per row, whole column triples, rows 3v..3v+2 alike.
+        perm: (n/3,) int64 new → old vertex ordering.
+
+    Returns:
+        parent (n/3,) int64 elimination tree of the permuted vertex graph (−1 at roots), l_colptr
+        (n/3+1,) int64 block column pointers of L (diagonal block included). Plain loops: small problems.
+    """
+    nb = (crow.shape[0] - 1) // 3
+    c, cl = crow.tolist(), col.tolist()
+    pinv = [0] * nb
+    for i, p in enumerate(perm.tolist()):
+        pinv[p] = i
+    perm_l = perm.tolist()
+    nbrs = [[pinv[cl[t] // 3] for t in range(c[3 * r], c[3 * r + 1], 3)] for r in perm_l]  # permuted rows
+    parent = [-1] * nb
+    for k in range(nb):  # Liu's algorithm: hang the root of each lower neighbour's subtree below k
+        for i in nbrs[k]:
+            if i >= k:
+                continue
+            while parent[i] not in (-1, k):
+                i = parent[i]
+            if parent[i] == -1:
+                parent[i] = k
+    count = [1] * nb
+    for k in range(nb):
+        seen = {k}
+        for i in nbrs[k]:
+            while i < k and i not in seen:
+                seen.add(i)
+                count[i] += 1
+                i = parent[i]
+    colptr = [0]
+    for k in range(nb):
+        colptr.append(colptr[-1] + count[k])
+    return torch.tensor(parent, dtype=torch.int64), torch.tensor(colptr, dtype=torch.int64)
+
+
+def block_cholesky_solve(
+    crow: torch.Tensor,
+    col: torch.Tensor,
+    val: torch.Tensor,
+    b: torch.Tensor,
+    perm: torch.Tensor,
+    parent: torch.Tensor,
+    l_colptr: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Solve the SPD system ``H x = b`` by a Cholesky factorisation (dense here: small problems only).
+
+    Args:
+        crow, col, val: H in CSR (both triangles); b: (n,); perm, parent, l_colptr: from
+        `block_cholesky_analyze` (unused by this dense twin, which needs no ordering).
+
+    Returns:
+        x (n,), info (4,) float64 = [0, |b − H x| / |b|, flag (0 ok, 3 H not positive definite),
+        smallest pivot of the factorisation (squared diagonal of L; it depends on the ordering)].
+    """
+    n = b.shape[0]
+    row = torch.repeat_interleave(torch.arange(n), crow[1:] - crow[:-1])
+    h = torch.zeros(n, n, dtype=torch.float64)
+    h[row, col] = val.double()
+    h = torch.tril(h) + torch.tril(h, -1).T  # the lower triangle, as the C++ factorisation reads it
+    info = torch.zeros(4, dtype=torch.float64)
+    chol, err = torch.linalg.cholesky_ex(h)
+    if int(err) != 0:
+        info[1], info[2] = float("inf"), 3
+        return torch.full_like(b, float("nan")), info
+    x = torch.cholesky_solve(b.double()[:, None], chol)[:, 0]
+    hx = torch.zeros(n, n, dtype=torch.float64)
+    hx[row, col] = val.double()
+    nb_ = float(b.double().norm())
+    info[1] = float((b.double() - hx @ x).norm()) / (nb_ if nb_ > 0 else 1.0)
+    info[3] = float(chol.diagonal().min() ** 2)
+    return x.to(b.dtype), info

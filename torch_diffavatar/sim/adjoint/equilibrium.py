@@ -7,7 +7,10 @@ contact set (vertices within ``contact_tol`` of the body's surface offset), then
 (per-element Hessians projected to PSD, sparse solve, backtracking line search) to a tight force
 residual, with primal active-set updates (release contacts that pull, add vertices that penetrate).
 Backward: ``H λ = ∂φ/∂x`` with the exact sparse Hessian H = ∇²ₓU (free dofs), then
-``dφ/dθ = −λᵀ ∂(∇ₓU)/∂θ`` by one double-backward through ∇ₓU with λ detached.
+``dφ/dθ = −λᵀ ∂(∇ₓU)/∂θ`` by one double-backward through ∇ₓU with λ detached. H is built from
+closed-form float64 element Hessians (`energy.hessian_blocks`, C++) scattered through the model's cached
+CSR pattern (`energy.hessian_pattern`), and the fit's projected H is solved by the block sparse Cholesky
+of `linsolve` whose ordering and symbolic analysis are computed once per model.
 
 Limitations: the result is the minimiser of U, which the XPBD drape approximates (finite iterations,
 friction, damping); friction is not in U, so a frictionless minimiser must exist (pinned or attached
@@ -26,7 +29,7 @@ from torch_diffavatar.sim.adjoint.common import DrapeSetup, Gradients, contacts_
 from torch_diffavatar.sim.adjoint.linsolve import SOLVE_METHODS, check_solve, solve_symmetric
 from torch_diffavatar.sim.collision import Contacts
 from torch_diffavatar.sim.drape import drape_to_equilibrium
-from torch_diffavatar.sim.energy import EnergyParams, assemble_csr, drape_energy, hessian_elements
+from torch_diffavatar.sim.energy import EnergyParams, drape_energy, hessian_blocks, hessian_pattern
 from torch_diffavatar.sim.state import ClothState
 
 HESSIANS = ("exact", "projected")
@@ -105,18 +108,10 @@ def _energy_grad(x, setup, rest, material, params, body_verts, contacts):
     return u.detach(), g
 
 
-def _diagonal_shift(elements, x, vert_count: int, relative: float):
-    """An element block adding ``relative`` × the largest diagonal entry of ``elements`` to every dof."""
-    diag = torch.cat([b.diagonal(dim1=1, dim2=2).reshape(-1) for _, b in elements])
-    mu = relative * float(diag.abs().max())
-    dofs = torch.arange(3 * vert_count, device=x.device)[:, None]
-    return dofs, x.new_full((dofs.shape[0], 1, 1), mu)
-
-
 def newton_polish(setup, rest, material, params, body_verts, contacts, x, opts, stats):
     """Projected Newton on U over the free dofs from ``x``; returns (x, iterations, force residual)."""
     model = setup.model
-    free_dof, free_index, nfree = _free(rest, model)
+    free_dof, _, nfree = _free(rest, model)
     weight = float((rest.vert_mass.detach() * x.new_tensor(params.gravity).norm()).max())
     tol = max(opts.newton_tol, 1e-4 if x.dtype == torch.float32 else 0.0) * weight
     energy = lambda y: drape_energy(  # noqa: E731
@@ -130,6 +125,10 @@ def newton_polish(setup, rest, material, params, body_verts, contacts, x, opts, 
         contacts=contacts,
     )
     it, gmax = 0, float("inf")
+    # exact Newton while H is positive definite, else projected; once the exact H has been indefinite
+    # the polish stays projected (far from the minimiser the exact attempt only costs a Hessian: on the
+    # 2k-vertex dress it failed in every iteration and doubled the polish time)
+    tries = (False, True)
     for it in range(opts.newton_iterations + 1):  # noqa: B007
         u0, g = _energy_grad(x, setup, rest, material, params, body_verts, contacts)
         gf = g.reshape(-1)[free_dof]
@@ -137,20 +136,22 @@ def newton_polish(setup, rest, material, params, body_verts, contacts, x, opts, 
         if gmax <= tol or it == opts.newton_iterations:
             break
         d = None
-        for project in (False, True):  # exact Newton while H is positive definite, else projected
-            elements = hessian_elements(
-                x, model, rest, material, params,
-                body_verts=body_verts, body_faces=setup.body_faces, contacts=contacts, project=project,
+        pattern = hessian_pattern(model, free_dof[0::3])
+        for project in tries:
+            blocks = hessian_blocks(
+                x, model, rest, material, params, body_verts=body_verts, body_faces=setup.body_faces,
+                contacts=contacts, project=project, use_extension=opts.use_extension,
             )  # fmt: skip
-            elements.append(_diagonal_shift(elements, x, model.vert_count, 1e-10))
-            crow, col, val = assemble_csr(elements, free_index, nfree)
+            val = pattern.assemble(blocks, 1e-10 * blocks.max_diagonal()).to(x.dtype)
             method = "cg" if not project else opts.newton_solve_method
             # the exact-H CG attempt is capped: when it stalls, the projected Newton step is cheaper
             d, info = solve_symmetric(
-                crow, col, val, -gf, method=method, tol=1e-10, max_iter=2000, use_extension=opts.use_extension
-            )
+                pattern.crow, pattern.col, val, -gf, method=method, tol=1e-10, max_iter=2000,
+                use_extension=opts.use_extension, cache=pattern.solver_cache,
+            )  # fmt: skip
             if not info.indefinite and info.residual < 1e-6:
                 break
+            tries = (True,)
         slope = float((gf * d).sum())
         if slope >= 0:  # not a descent direction (solve failed): steepest descent
             d, slope = -gf, -float((gf * gf).sum())
@@ -279,28 +280,22 @@ def equilibrium_backward(
     material = material_with(setup.material, setup.material_names, material_values)
     params = _params(setup, opts)
     rest = model.rest_data(rest_uv.detach(), material)
-    free_dof, free_index, nfree = _free(rest, model)
+    free_dof, _, nfree = _free(rest, model)
     project = opts.hessian == "projected"
-    elements = hessian_elements(
-        x,
-        model,
-        rest,
-        material,
-        params,
-        body_verts=body_verts,
-        body_faces=setup.body_faces,
-        contacts=contacts,
-        project=project,
-    )
-    if project and opts.regularization > 0:
-        elements.append(_diagonal_shift(elements, x, model.vert_count, opts.regularization))
-    crow, col, val = assemble_csr(elements, free_index, nfree)
+    # float64 element Hessians, assembled through the model's cached CSR pattern (exactly symmetric)
+    blocks = hessian_blocks(
+        x, model, rest, material, params, body_verts=body_verts, body_faces=setup.body_faces,
+        contacts=contacts, project=project, dtype=torch.float64, use_extension=opts.use_extension,
+    )  # fmt: skip
+    shift = opts.regularization * blocks.max_diagonal() if project and opts.regularization > 0 else 0.0
+    pattern = hessian_pattern(model, free_dof[0::3])
+    val = pattern.assemble(blocks, shift)
     # The solve runs in float64 whatever the model's dtype: the cloth's stiffness spread makes H too
     # ill-conditioned for a float32 factorisation (measured: relative residual ~5e-4 on the dress).
     b = grad_x.reshape(-1)[free_dof].to(torch.float64)
     lam_free, info = solve_symmetric(
-        crow, col, val.to(torch.float64), b, method=opts.solve_method, tol=opts.solve_tol,
-        use_extension=opts.use_extension,
+        pattern.crow, pattern.col, val, b, method=opts.solve_method, tol=opts.solve_tol,
+        use_extension=opts.use_extension, cache=pattern.solver_cache,
     )  # fmt: skip
     lam_free = lam_free.to(x.dtype)
     setup.record(

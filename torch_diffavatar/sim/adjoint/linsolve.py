@@ -5,7 +5,11 @@
 * ``"cg"`` / ``"minres"``: the C++ op ``torch.ops.diffavatar.sparse_sym_solve`` (csrc/adjoint_solve.cpp:
   Jacobi-preconditioned CG that stops on non-positive curvature, or |diag|-preconditioned MINRES for
   indefinite H, OpenMP mat-vecs), falling back to SciPy's ``cg``/``minres`` without the extension;
-* ``"direct"``: SciPy's sparse LU (SuperLU, ``scipy.sparse.linalg.splu``, symmetric mode);
+* ``"direct"``: given a ``cache`` (a matrix with 3×3 block structure, `energy.HessianPattern`) and the
+  extension, the C++ block sparse Cholesky (``torch.ops.diffavatar.block_cholesky_solve``; its symbolic
+  analysis and fill-reducing ordering are computed once and kept in the cache, the topology being fixed);
+  otherwise, or when H is not positive definite, SciPy's sparse LU (SuperLU, ``scipy.sparse.linalg.splu``,
+  symmetric mode);
 * ``"auto"``: CG; when it meets non-positive curvature (H indefinite: compressed cloth, a saddle) or does
   not reach the tolerance, MINRES; when that fails too, the sparse LU.
 
@@ -23,6 +27,7 @@ import torch
 
 from torch_diffavatar._ext import has_extension
 from torch_diffavatar.errors import SimulationError
+from torch_diffavatar.sim.ops import extension_op
 
 SOLVE_METHODS = ("auto", "cg", "minres", "direct")
 _FAKE: list[bool] = []
@@ -111,7 +116,45 @@ def solve_reference(crow, col, val, b, method: str, tol: float, max_iter: int):
     return torch.as_tensor(x, dtype=b.dtype, device=b.device), count[0], flag
 
 
-def _one(crow, col, val, b, method, tol, max_iter, use_extension):
+def vertex_ordering(crow: torch.Tensor, col: torch.Tensor) -> torch.Tensor:
+    """(n/3,) int64 fill-reducing vertex ordering (new → old) of a CSR pattern with 3×3 block structure.
+
+    Multiple minimum degree on the vertex graph (SuperLU's ``MMD_AT_PLUS_A``, read off a factorisation
+    of a diagonally dominant matrix with that graph): a ninth of the size of the dof graph. Measured on
+    the 8k-vertex dress: 0.06 s, 517k blocks in L.
+    """
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+
+    cr, cl = crow.cpu().numpy(), col.cpu().numpy()
+    nb = (cr.shape[0] - 1) // 3
+    start, stop = cr[0:-1:3], cr[1::3]  # the first dof row of each vertex
+    deg = (stop - start) // 3
+    rows = np.repeat(np.arange(nb), deg)
+    cols = np.concatenate([cl[a:b:3] for a, b in zip(start, stop)]) // 3 if nb else np.zeros(0, np.int64)
+    graph = sp.csc_matrix((np.full(rows.shape[0], -0.5), (rows, cols)), shape=(nb, nb))
+    graph = graph + sp.diags(deg + 1.0)
+    lu = spla.splu(graph, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    return torch.as_tensor(np.argsort(lu.perm_c).astype(np.int64))
+
+
+def _cholesky(crow, col, val, b, cache: dict):
+    """Block sparse Cholesky solve with the symbolic analysis kept in ``cache``; None without the ops."""
+    analyze, solve = extension_op("block_cholesky_analyze"), extension_op("block_cholesky_solve")
+    if analyze is None or solve is None or b.device.type != "cpu":
+        return None
+    if cache.get("col") is not col:  # a new pattern: order and analyse once
+        perm = vertex_ordering(crow, col)
+        parent, colptr = analyze(crow, col, perm)
+        cache.update(col=col, perm=perm, parent=parent, l_colptr=colptr)
+    x, info = solve(crow, col, val, b, cache["perm"], cache["parent"], cache["l_colptr"])
+    return x, int(info[2])
+
+
+def _one(crow, col, val, b, method, tol, max_iter, use_extension, cache=None):
+    if method == "cholesky":
+        x, flag = _cholesky(crow, col, val, b, cache)
+        return x, 0, flag
     op = solve_op() if (use_extension and b.device.type == "cpu") else None
     if method == "direct" or op is None:
         x, iters, flag = solve_reference(crow, col, val, b, method, tol, max_iter)
@@ -133,6 +176,7 @@ def solve_symmetric(
     tol: float = 1e-10,
     max_iter: int = 20000,
     use_extension: bool = True,
+    cache: dict | None = None,
 ) -> tuple[torch.Tensor, SolveInfo]:
     """Solve the symmetric sparse system ``H x = b``.
 
@@ -140,6 +184,8 @@ def solve_symmetric(
         crow: (n+1,) int64; col: (nnz,) int64; val: (nnz,) the CSR matrix H (both triangles).
         b: (n,) right-hand side. method: one of `SOLVE_METHODS`. tol: relative residual target of the
         iterative methods. max_iter: their iteration cap. use_extension: use the C++ op when built.
+        cache: for ``"direct"`` on a matrix with 3×3 block structure (`energy.HessianPattern`, whose
+        ``solver_cache`` it is): where the block Cholesky keeps its ordering and symbolic analysis.
 
     Returns:
         x (n,), `SolveInfo` (whose ``residual`` is recomputed explicitly).
@@ -147,11 +193,13 @@ def solve_symmetric(
     if method not in SOLVE_METHODS:
         raise ValueError(f"unknown solve method {method!r}; valid: {SOLVE_METHODS}")
     chain = {"auto": ("cg", "minres", "direct")}.get(method, (method,))
+    if method == "direct" and cache is not None and use_extension and _cholesky_available(b):
+        chain = ("cholesky", "direct")  # SuperLU only when H is not positive definite
     attempts, indefinite = [], False
     x, iters, res, used = b.new_zeros(b.shape), 0, float("inf"), chain[0]
     for m in chain:
         attempts.append(m)
-        xm, it, flag = _one(crow, col, val, b, m, tol, max_iter, use_extension)
+        xm, it, flag = _one(crow, col, val, b, m, tol, max_iter, use_extension, cache)
         indefinite |= flag == 2
         rm = residual(crow, col, val, xm, b)
         if np.isfinite(rm) and (rm < res or not np.isfinite(res)):
@@ -159,6 +207,10 @@ def solve_symmetric(
         if np.isfinite(rm) and rm <= max(10 * tol, 1e-12) and flag in (0, 1):
             break
     return x, SolveInfo(used, iters, res, indefinite, tuple(attempts))
+
+
+def _cholesky_available(b: torch.Tensor) -> bool:
+    return b.device.type == "cpu" and extension_op("block_cholesky_solve") is not None
 
 
 def check_solve(info: SolveInfo, tol: float, what: str) -> None:
