@@ -8,6 +8,7 @@ A third scan per seed (``--draped``) is a garment draped by our simulator (`synt
 "inside" is the fraction of the cloth outside the fitted body.
 
     PYTHONPATH=. python scripts/body_fit_seeds.py --seeds 0 1 2 3 4
+    PYTHONPATH=. python scripts/body_fit_seeds.py --bare-only --seeds 0 1 2 3 4 5 6 7 8 9
 """
 
 from __future__ import annotations
@@ -34,13 +35,18 @@ def main() -> None:
         default="dress",
         help="template draped by the simulator for the third scan of each seed ('' to skip)",
     )
+    parser.add_argument(
+        "--bare-only", action="store_true", help="fit only the bare scan of each seed (no garment scans)"
+    )
     args = parser.parse_args()
+    if args.bare_only:
+        args.garment, args.draped = None, ""
     torch.set_num_threads(1)
     anny_model = load_anny(dtype=torch.float64)
     faces = anny_model.faces
     rows = []
     for seed in args.seeds:
-        for garment in (None, args.garment):
+        for garment in (None, args.garment) if args.garment else (None,):
             scan = make_scan(anny_model, seed=seed, garment=garment)
             cpu = time.process_time()
             result = fit_body(scan.points, anny_model=anny_model)
@@ -69,7 +75,8 @@ def main() -> None:
         if args.draped:
             rows.append(_draped_row(anny_model, seed, args.draped, args.garment))
             _print_row(rows[-1])
-    kinds = ("bare", args.garment) + ((f"draped {args.draped}",) if args.draped else ())
+    kinds = ("bare",) + ((args.garment,) if args.garment else ())
+    kinds += (f"draped {args.draped}",) if args.draped else ()
     for kind in kinds:
         sel = [r for r in rows if r["scan"] == kind]
         worst_h = max(abs(r["height_err_cm"]) for r in sel)

@@ -4,8 +4,8 @@ The clothed scans use a stand-in garment layer: the body's covered parts offset 
 by a smooth 1–4 cm (plus a flare below the hips for a dress); the body fit and the segmentation never
 see which parts it covers. `test_body_under_a_simulated_dress` uses a real drape (our XPBD simulator) instead.
 
-One fixed seed per scan kind (bare 0, dressed 1: the seeds in use before the fit was reworked); for
-the spread over more seeds run ``scripts/body_fit_seeds.py`` (not every seed meets every target yet).
+Fixed seeds per scan kind (bare 0 and 4 — 4 came out 1.5 cm short before the extremities were held as
+skin —, dressed 1); for the spread over more seeds run ``scripts/body_fit_seeds.py``.
 """
 
 import numpy as np
@@ -27,10 +27,10 @@ def _fit(anny_model, scan):
     return result, verts
 
 
-@pytest.fixture(scope="module")
-def bare(anny_model):
+@pytest.fixture(scope="module", params=[0, 4], ids=["seed0", "seed4"])
+def bare(anny_model, request):
     """Random phenotypes and pose, 20k surface samples, 20 % cut away in holes, 1 cm Gaussian noise."""
-    scan = make_scan(anny_model, seed=0, point_count=20000, noise=0.01, hole_fraction=0.2)
+    scan = make_scan(anny_model, seed=request.param, point_count=20000, noise=0.01, hole_fraction=0.2)
     return scan, *_fit(anny_model, scan)
 
 
@@ -130,3 +130,16 @@ def test_body_under_a_simulated_dress(draped):
         torch.as_tensor(scan.cloth_x), torch.as_tensor(verts), torch.as_tensor(scan.body_faces)
     )
     assert np.mean(np.asarray(sd) >= -0.002) >= 0.95
+
+
+def test_segmentation_of_a_simulated_dress(draped):
+    """Colour-free segmentation of the simulated dress: the bodice lies on the shoulders within the
+    offset threshold, and only the growth over the support parts finds it (measured: recall 0.92
+    without it, 0.98 with it; precision 0.997 and 0.993)."""
+    scan, result, verts = draped
+    seg = segment_garment(scan.points, "dress", verts, scan.body_faces, result.body.vertex_parts.numpy())
+    truth = scan.labels == 1
+    recall = (seg.labels & truth).sum() / truth.sum()
+    precision = (seg.labels & truth).sum() / seg.labels.sum()
+    assert recall >= 0.95 and precision >= 0.98, (recall, precision)
+    assert {"neck", "hem", "armhole.L", "armhole.R"} <= {loop.name for loop in seg.loops}

@@ -4,9 +4,15 @@ Per scan point we use (1) the body part of its nearest body vertex (parts from s
 limits where a garment of the requested type may be; (2) its signed distance to the body surface (exact
 closest point, positive outside), averaged over its scan neighbours (cloth lies outside the skin);
 (3) its colour, when present, through a two-class colour model re-estimated from the current labels.
-The result is smoothed by a neighbour majority vote, and "skin" that no opening shows (patches enclosed by
-the garment on the body: cloth lying within the offset threshold, e.g. a fitted bodice) joins the garment
-(measured on three simulated dress scans: recall 0.82–0.89 → 0.85–0.92, precision unchanged).
+The result is smoothed by a neighbour majority vote. Where the garment hangs from the body (a bodice on
+the shoulders, a waistband on the hips: `GARMENT_SUPPORT`) the cloth lies within the offset threshold,
+often within a millimetre of a fitted body that swelled into it: there the labels grow over the scan's
+k-NN graph into the connected points whose offset is still positive (beyond ``grow_sigmas`` noise
+standard deviations, and 0.5 mm), which the skin beside them (neck, arms) is not. Last, "skin" that no
+opening shows (patches enclosed by the garment on the body) joins the garment. Measured without colour
+on simulated scans (`synthetic_scans.make_draped_scan`, 3 cm drape spacing; 2.5 cm for the T-shirt),
+recall without → with the growth, precision ≥ 0.99 both: dress seeds 0–4 0.91–0.94 → 0.97–0.99,
+T-shirt seeds 0–1 0.81 / 0.88 → 0.95 / 0.96, skirt 0.90 → 0.93, trousers 0.95 → 0.95.
 
 Boundaries (hem, cuffs, neck, waist) are found on the body, not in the noisy scan: every body vertex takes
 the label of its nearest scan point (so holes in the scan inherit their rim's label), the covered faces'
@@ -35,6 +41,17 @@ GARMENT_REGIONS: dict[str, tuple[str, ...]] = {
     "polo": ("torso", "hips", "upperarm.L", "upperarm.R", "forearm.L", "forearm.R", "thigh.L", "thigh.R"),
     "skirt": ("torso", "hips", "thigh.L", "thigh.R", "shin.L", "shin.R"),
     "pants": ("torso", "hips", "thigh.L", "thigh.R", "shin.L", "shin.R", "foot.L", "foot.R"),
+}
+# Body parts each garment type hangs from or grips (tops: the shoulders and upper arms; a dress also
+# its hips, never bare under it; skirts and trousers: the hips). There the cloth lies on the skin,
+# within the offset threshold, and the garment labels grow across them (see `_grow_on_support`).
+GARMENT_SUPPORT: dict[str, tuple[str, ...]] = {
+    "dress": ("torso", "hips"),
+    "shirt": ("torso", "upperarm.L", "upperarm.R"),
+    "tshirt": ("torso", "upperarm.L", "upperarm.R"),
+    "polo": ("torso", "upperarm.L", "upperarm.R"),
+    "skirt": ("hips",),
+    "pants": ("hips",),
 }
 GARMENT_ALIASES = {"t-shirt": "tshirt", "tee": "tshirt", "trousers": "pants", "shirt-long": "shirt"}
 GARMENT_TYPES = tuple(GARMENT_REGIONS)
@@ -134,6 +151,7 @@ def segment_garment(
     offset_threshold: float = 0.005,
     offset_scale: float = 0.003,
     neighbors: int = 16,
+    grow_sigmas: float = 0.67,
 ) -> Segmentation:
     """Label the scan points of one garment using a fitted body.
 
@@ -146,6 +164,8 @@ def segment_garment(
         offset_threshold: smoothed outward offset [m] above which a point is more likely cloth than skin.
         offset_scale: softness [m] of that threshold (offset evidence = (offset − threshold) / scale).
         neighbors: scan neighbours used for smoothing.
+        grow_sigmas: the garment grows over the support parts of its type (`GARMENT_SUPPORT`) into
+            points whose smoothed offset exceeds this many of its noise standard deviations (0: off).
 
     Returns:
         a `Segmentation`.
@@ -165,15 +185,30 @@ def segment_garment(
     offset_s = _smooth(offset, nbr)
     evidence = (offset_s - offset_threshold) / offset_scale
     labels = region & (evidence > 0)
+    colour_s = None  # smoothed colour evidence, when the colours tell garment from skin
     if colors is not None:
         for _ in range(2):  # re-estimate the colour model from the current labels
             colour = _colour_evidence(np.asarray(colors), labels, region)
             if colour is None:
                 break
-            total = np.clip(evidence, -6.0, 6.0) + 2.0 * _smooth(colour, nbr[:, : max(k // 2, 1)])
+            colour_s = _smooth(colour, nbr[:, : max(k // 2, 1)])
+            total = np.clip(evidence, -6.0, 6.0) + 2.0 * colour_s
             labels = region & (total > 0)
     for _ in range(2):  # neighbour majority vote
         labels = region & (_smooth(labels.astype(np.float64), nbr) > 0.5)
+    if labels.any() and grow_sigmas > 0:
+        support = np.isin(vertex_parts[near], [PART_NAMES.index(p) for p in GARMENT_SUPPORT[kind]])
+        # Noise of the smoothed offset: robust spread of the raw offsets about their local mean,
+        # over the skin, divided by sqrt(k).
+        skin = ~labels & (np.abs(offset) < 0.05)
+        resid = (offset - offset_s)[skin] if skin.sum() >= 20 else offset - offset_s
+        sigma = 1.4826 * float(np.median(np.abs(resid - np.median(resid)))) / np.sqrt(k)
+        # At least 0.5 mm: on a noise-free scan the fitted body's own error sets the floor.
+        threshold = max(grow_sigmas * sigma, 0.0005)
+        open_points = support & (offset_s > threshold)
+        if colour_s is not None:  # and never against the colour
+            open_points &= colour_s >= 0
+        labels = _grow_on_support(labels, open_points, nbr)
     if labels.any():
         # Skin seen through no opening is cloth lying close to the body (a fitted bodice within the
         # offset threshold): the patches of "skin" enclosed by the garment join it.
@@ -181,6 +216,33 @@ def segment_garment(
         labels = labels | (region & covered[near])
     loops = _boundary_loops(points, labels, near, body_vertices, body_faces, vertex_parts, kind)
     return Segmentation(labels=labels, garment_indices=np.flatnonzero(labels), loops=loops, offsets=offset_s)
+
+
+def _grow_on_support(labels: np.ndarray, open_points: np.ndarray, nbr: np.ndarray, k: int = 8) -> np.ndarray:
+    """Garment labels (N,) bool grown over the scan's ``k``-nearest-neighbour graph (``nbr`` (N, >k),
+    column 0 the point itself) into the connected ``open_points`` (N,) bool they touch.
+
+    Where a garment hangs from the body (a bodice on the shoulders) the cloth lies within the offset
+    threshold of the skin, so those points come out "skin"; yet they continue the confident garment
+    without a rim, still lying a little outside the body, while the skin beside them (the neck, the
+    arms) lies on it. The open points are that: a slightly positive offset on a support part.
+
+    Returns:
+        (N,) bool: ``labels`` plus the open points connected to them through open points.
+    """
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(labels)
+    cand = labels | open_points
+    i = np.repeat(np.arange(n), min(k, nbr.shape[1] - 1))
+    j = nbr[:, 1 : k + 1].reshape(-1)
+    keep = cand[i] & cand[j]
+    graph = sp.coo_matrix((np.ones(int(keep.sum())), (i[keep], j[keep])), shape=(n, n))
+    _, comp = connected_components(graph, directed=False)
+    seeded = np.zeros(comp.max() + 1, dtype=bool)
+    seeded[comp[labels]] = True
+    return cand & seeded[comp]
 
 
 def _edge_cycles(edges: np.ndarray) -> list[list[int]]:
