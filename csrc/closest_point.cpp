@@ -1,14 +1,19 @@
 // closest_point_on_mesh: for each query point the closest point on a triangle mesh within max_dist.
 //
-// Per call we bin the triangles' bounding boxes into a uniform grid (counting sort, two passes over
-// the faces) and search each point's cells in rings of growing Chebyshev radius around its own cell,
-// stopping once the best distance found is below the distance to any cell not yet visited (or once
-// max_dist is exceeded). Candidates get the exact point-triangle distance of Ericson, "Real-Time
-// Collision Detection", 5.1.5 (same region tests and order as sim/reference.py). Geometry is computed
-// in double whatever the input dtype. No autograd (the collision response differentiates through the
+// We bin the triangles' bounding boxes into a uniform grid (counting sort, two passes over the faces)
+// and search each point's cells in rings of growing Chebyshev radius around its own cell, stopping once
+// the best distance found is below the distance to any cell not yet visited (or once max_dist is
+// exceeded). `closest_point_on_mesh` builds the grid per call; `closest_point_index` builds it once as
+// tensors (for a body that does not move) and `closest_point_query` searches it. Exact ties go to the
+// lowest triangle id and every pruning test has a small slack, so the result does not depend on the
+// grid (cell size, visiting order): all three ops return bit-identical (tri, bary, dist). Candidates
+// get the exact point-triangle distance of Ericson, "Real-Time Collision Detection", 5.1.5 (same
+// region tests and order as sim/reference.py). Geometry is computed in double whatever the input
+// dtype. No autograd (the collision response differentiates through the
 // barycentric coordinates the caller evaluates itself).
 
 #include <algorithm>
+#include <cstring>
 #include <limits>
 #include <tuple>
 #include <vector>
@@ -32,14 +37,16 @@ struct Entry {
   float lo[3], hi[3];
 };
 
-struct Grid {
+static_assert(sizeof(Entry) == 7 * sizeof(int32_t), "Entry is stored as 7 int32 per item");
+
+// The grid as the queries see it (owned by `Grid` or by the tensors of `closest_point_index`).
+struct GridView {
   double lo[3] = {0, 0, 0};  // corner of cell (0, 0, 0) [m]
   double hi[3] = {0, 0, 0};  // upper corner of the union of the triangle boxes [m]
   double h = 1;              // cell edge [m]
   int64_t n[3] = {1, 1, 1};  // cells per axis
-  std::vector<int64_t> start;  // (n0 n1 n2 + 1,) CSR offsets into items
-  std::vector<Entry> items;    // triangles (id + bounding box), cell by cell
-  std::vector<double> box;     // (Fb, 6) triangle bounding boxes: lo xyz, hi xyz
+  const int64_t* start = nullptr;  // (n0 n1 n2 + 1,) CSR offsets into items
+  const Entry* items = nullptr;    // triangles (id + bounding box), cell by cell
 
   int64_t axis_cell(int a, double v) const {
     const double c = std::floor((v - lo[a]) / h);
@@ -50,9 +57,14 @@ struct Grid {
   int64_t cell(int64_t i, int64_t j, int64_t k) const { return (i * n[1] + j) * n[2] + k; }
 };
 
+struct Grid : GridView {
+  std::vector<int64_t> start_v;
+  std::vector<Entry> items_v;
+  std::vector<double> box;  // (Fb, 6) triangle bounding boxes: lo xyz, hi xyz
+};
+
 template <typename T>
-Grid build_grid(const T* verts, const int64_t* faces, int64_t nf) {
-  Grid g;
+void build_grid(const T* verts, const int64_t* faces, int64_t nf, double cell_size, Grid& g) {
   g.box.resize(static_cast<size_t>(nf) * 6);
   double glo[3] = {std::numeric_limits<double>::infinity(), std::numeric_limits<double>::infinity(),
                    std::numeric_limits<double>::infinity()};
@@ -78,10 +90,11 @@ Grid build_grid(const T* verts, const int64_t* faces, int64_t nf) {
     g.hi[a] = ghi[a];
     ext_max = std::max(ext_max, ghi[a] - glo[a]);
   }
-  // Cell edge: the mean triangle size, grown until the grid has at most ~8 cells per triangle.
-  double h = size_sum / static_cast<double>(nf);
+  // Cell edge: the mean triangle size, grown until the grid has at most ~8 cells per triangle; or
+  // cell_size if > 0 (a grid built once can afford finer cells), grown to at most ~64 cells per triangle.
+  double h = cell_size > 0 ? cell_size : size_sum / static_cast<double>(nf);
   if (!(h > 1e-9 * ext_max) || !std::isfinite(h)) h = ext_max > 0 ? ext_max / 64 : 1.0;
-  const double max_cells = 8.0 * static_cast<double>(nf) + 64.0;
+  const double max_cells = (cell_size > 0 ? 64.0 : 8.0) * static_cast<double>(nf) + 64.0;
   auto cells_for = [&](double hh) {
     double c = 1;
     for (int a = 0; a < 3; ++a) c *= std::floor((ghi[a] - glo[a]) / hh) + 1;
@@ -93,7 +106,8 @@ Grid build_grid(const T* verts, const int64_t* faces, int64_t nf) {
   const int64_t n_cells = g.n[0] * g.n[1] * g.n[2];
 
   // Counting sort of (cell, triangle) pairs: count, prefix sum, fill.
-  g.start.assign(static_cast<size_t>(n_cells) + 1, 0);
+  std::vector<int64_t>& start = g.start_v;
+  start.assign(static_cast<size_t>(n_cells) + 1, 0);
   auto for_cells = [&](int64_t f, auto&& fn) {
     const double* b = &g.box[static_cast<size_t>(f) * 6];
     const int64_t i0 = g.axis_cell(0, b[0]), i1 = g.axis_cell(0, b[3]);
@@ -103,10 +117,10 @@ Grid build_grid(const T* verts, const int64_t* faces, int64_t nf) {
       for (int64_t j = j0; j <= j1; ++j)
         for (int64_t k = k0; k <= k1; ++k) fn(g.cell(i, j, k));
   };
-  for (int64_t f = 0; f < nf; ++f) for_cells(f, [&](int64_t c) { ++g.start[c + 1]; });
-  for (int64_t c = 0; c < n_cells; ++c) g.start[c + 1] += g.start[c];
-  g.items.resize(static_cast<size_t>(g.start[n_cells]));
-  std::vector<int64_t> fill(g.start.begin(), g.start.end() - 1);
+  for (int64_t f = 0; f < nf; ++f) for_cells(f, [&](int64_t c) { ++start[c + 1]; });
+  for (int64_t c = 0; c < n_cells; ++c) start[c + 1] += start[c];
+  g.items_v.resize(static_cast<size_t>(start[n_cells]));
+  std::vector<int64_t> fill(start.begin(), start.end() - 1);
   for (int64_t f = 0; f < nf; ++f) {
     const double* b = &g.box[static_cast<size_t>(f) * 6];
     Entry e;
@@ -115,9 +129,10 @@ Grid build_grid(const T* verts, const int64_t* faces, int64_t nf) {
       e.lo[a] = std::nextafter(static_cast<float>(b[a]), -std::numeric_limits<float>::infinity());
       e.hi[a] = std::nextafter(static_cast<float>(b[3 + a]), std::numeric_limits<float>::infinity());
     }
-    for_cells(f, [&](int64_t c) { g.items[fill[c]++] = e; });
+    for_cells(f, [&](int64_t c) { g.items_v[fill[c]++] = e; });
   }
-  return g;
+  g.start = g.start_v.data();
+  g.items = g.items_v.data();
 }
 
 // Ericson 5.1.5: barycentric coordinates (u, v, w) of the point of triangle abc closest to p, with
@@ -166,7 +181,7 @@ inline void closest_on_triangle(V3 p, V3 a, V3 b, V3 c, double bary[3]) {
 }
 
 // Squared distance from p to the box [lo, hi].
-inline double box_dist2(const double p[3], const double* lo, const double* hi) {
+inline __attribute__((always_inline)) double box_dist2(const double p[3], const double* lo, const double* hi) {
   double s = 0;
   for (int a = 0; a < 3; ++a) {
     const double d = std::max(std::max(lo[a] - p[a], p[a] - hi[a]), 0.0);
@@ -182,7 +197,7 @@ struct Hit {
 };
 
 template <typename T>
-Hit query(const Grid& g, const T* verts, const int64_t* faces, const double p[3], double max_dist,
+Hit query(const GridView& g, const T* verts, const int64_t* faces, int64_t nf, const double p[3], double max_dist,
           std::vector<int64_t>& stamp, int64_t stamp_id) {
   Hit hit;
   for (int a = 0; a < 3; ++a) {
@@ -197,23 +212,27 @@ Hit query(const Grid& g, const T* verts, const int64_t* faces, const double p[3]
   // farther than the bound.
   const float pf[3] = {static_cast<float>(p[0]), static_cast<float>(p[1]), static_cast<float>(p[2])};
   const double slack = 1e-6 * (1.0 + std::max(std::fabs(p[0]), std::max(std::fabs(p[1]), std::fabs(p[2]))));
-  auto entry_bound = [&](double bound2) {
+  // The cell tests and the search limits get the same slack (in double), so that a triangle tied with
+  // the best one is never pruned by rounding: the lowest-id tie-break then sees every tied triangle.
+  auto slacked = [&](double bound2) {
     const double b = std::sqrt(bound2) * (1.0 + 1e-6) + slack;
-    return static_cast<float>(b * b);  // inf stays inf
+    return b * b;  // inf stays inf
   };
+  const double reach = std::sqrt(slacked(max2));  // >= max_dist
   int64_t c[3], lim_lo[3], lim_hi[3];
   for (int a = 0; a < 3; ++a) {
     c[a] = g.axis_cell(a, p[a]);
-    lim_lo[a] = g.axis_cell(a, p[a] - max_dist);
-    lim_hi[a] = g.axis_cell(a, p[a] + max_dist);
+    lim_lo[a] = g.axis_cell(a, p[a] - reach);
+    lim_hi[a] = g.axis_cell(a, p[a] + reach);
   }
+  // slacked bounds of the best distance so far (max_dist before the first hit), updated on each hit
+  double cell_bound2 = slacked(max2);
+  float bound_f = static_cast<float>(cell_bound2);
   auto visit_cell = [&](int64_t i, int64_t j, int64_t k) {
-    const double bound2 = std::min(hit.dist2, max2);
     const double clo[3] = {g.lo[0] + i * g.h, g.lo[1] + j * g.h, g.lo[2] + k * g.h};
     const double chi[3] = {clo[0] + g.h, clo[1] + g.h, clo[2] + g.h};
-    if (box_dist2(p, clo, chi) > bound2) return;
+    if (box_dist2(p, clo, chi) > cell_bound2) return;
     const int64_t cid = g.cell(i, j, k);
-    float bound_f = entry_bound(bound2);
     for (int64_t s = g.start[cid]; s < g.start[cid + 1]; ++s) {
       const Entry& e = g.items[s];
       float d2f = 0.0f;
@@ -223,6 +242,7 @@ Hit query(const Grid& g, const T* verts, const int64_t* faces, const double p[3]
       }
       if (d2f > bound_f) continue;
       const int32_t f = e.tri;
+      if (f < 0 || f >= nf) continue;  // cannot happen with an index built for these faces; keeps reads in range
       if (stamp[f] == stamp_id) continue;
       stamp[f] = stamp_id;
       const V3 va = load3d(verts, faces[3 * f]), vb = load3d(verts, faces[3 * f + 1]),
@@ -232,11 +252,13 @@ Hit query(const Grid& g, const T* verts, const int64_t* faces, const double p[3]
       const V3 q = bc[0] * va + bc[1] * vb + bc[2] * vc;
       const V3 d = pv - q;
       const double d2 = dot(d, d);
-      if (d2 < hit.dist2 && d2 <= max2) {
+      // ties (equal in double) go to the lowest triangle id, whatever the visiting order
+      if (d2 <= max2 && (d2 < hit.dist2 || (d2 == hit.dist2 && f < hit.tri))) {
         hit.tri = f;
         hit.dist2 = d2;
         hit.bary[0] = bc[0], hit.bary[1] = bc[1], hit.bary[2] = bc[2];
-        bound_f = entry_bound(d2);
+        cell_bound2 = slacked(d2);
+        bound_f = static_cast<float>(cell_bound2);
       }
     }
   };
@@ -264,16 +286,15 @@ Hit query(const Grid& g, const T* verts, const int64_t* faces, const double p[3]
     }
     if (!std::isfinite(lb)) break;  // every cell within the limits visited
     lb = std::max(lb, 0.0);
-    if (lb > max_dist || (hit.tri >= 0 && lb * lb >= hit.dist2)) break;
+    if (lb > reach || (hit.tri >= 0 && lb * lb > cell_bound2)) break;
   }
   return hit;
 }
 
-// Grid build, then OpenMP over the points (pragmas cannot sit inside AT_DISPATCH's lambda).
+// OpenMP over the points (pragmas cannot sit inside AT_DISPATCH's lambda).
 template <typename T>
-void query_all(const T* pp, int64_t n, const T* vp, const int64_t* fp, int64_t nf, double max_dist, int64_t* tp,
-               T* bp, T* dp) {
-  const Grid grid = build_grid(vp, fp, nf);
+void query_all(const GridView& grid, const T* pp, int64_t n, const T* vp, const int64_t* fp, int64_t nf,
+               double max_dist, int64_t* tp, T* bp, T* dp) {
   const int nt = num_threads();
 #pragma omp parallel if (n >= kParallelGrain / 8 && nt > 1) num_threads(nt)
   {
@@ -282,7 +303,7 @@ void query_all(const T* pp, int64_t n, const T* vp, const int64_t* fp, int64_t n
     for (int64_t i = 0; i < n; ++i) {
       const double p[3] = {static_cast<double>(pp[3 * i]), static_cast<double>(pp[3 * i + 1]),
                            static_cast<double>(pp[3 * i + 2])};
-      const Hit hit = query(grid, vp, fp, p, max_dist, stamp, i);
+      const Hit hit = query(grid, vp, fp, nf, p, max_dist, stamp, i);
       if (hit.tri < 0) continue;
       tp[i] = hit.tri;
       for (int k = 0; k < 3; ++k) bp[3 * i + k] = static_cast<T>(hit.bary[k]);
@@ -291,33 +312,132 @@ void query_all(const T* pp, int64_t n, const T* vp, const int64_t* fp, int64_t n
   }
 }
 
-std::tuple<at::Tensor, at::Tensor, at::Tensor> closest_point_on_mesh(const at::Tensor& points,
-                                                                      const at::Tensor& verts,
-                                                                      const at::Tensor& faces, double max_dist) {
-  check_cpu_contiguous(points, "points");
+void check_mesh(const at::Tensor& verts, const at::Tensor& faces) {
   check_cpu_contiguous(verts, "verts");
   check_cpu_contiguous(faces, "faces");
-  check_shape(points, "points", {-1, 3});
   check_shape(verts, "verts", {-1, 3});
   check_shape(faces, "faces", {-1, 3});
+  TORCH_CHECK(verts.scalar_type() == at::kFloat || verts.scalar_type() == at::kDouble,
+              "diffavatar: verts must be float32 or float64, got ", verts.scalar_type());
+  check_dtype(faces, "faces", at::kLong);
+  check_index_range(faces, verts.size(0), "faces");
+  TORCH_CHECK(faces.size(0) < std::numeric_limits<int32_t>::max(), "diffavatar: too many faces");
+}
+
+void check_points(const at::Tensor& points, const at::Tensor& verts, double max_dist) {
+  check_cpu_contiguous(points, "points");
+  check_shape(points, "points", {-1, 3});
   TORCH_CHECK(points.scalar_type() == at::kFloat || points.scalar_type() == at::kDouble,
               "diffavatar: points must be float32 or float64, got ", points.scalar_type());
   check_dtype(verts, "verts", points.scalar_type());
-  check_dtype(faces, "faces", at::kLong);
   TORCH_CHECK(max_dist >= 0, "diffavatar: max_dist must be >= 0 (inf allowed), got ", max_dist);
-  check_index_range(faces, verts.size(0), "faces");
-  TORCH_CHECK(faces.size(0) < std::numeric_limits<int32_t>::max(), "diffavatar: too many faces");
+}
 
+std::tuple<at::Tensor, at::Tensor, at::Tensor> empty_result(const at::Tensor& points) {
+  const int64_t n = points.size(0);
+  return {at::full({n}, -1, points.options().dtype(at::kLong)), at::zeros({n, 3}, points.options()),
+          at::full({n}, std::numeric_limits<double>::infinity(), points.options())};
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor> closest_point_on_mesh(const at::Tensor& points,
+                                                                      const at::Tensor& verts,
+                                                                      const at::Tensor& faces, double max_dist) {
+  check_mesh(verts, faces);
+  check_points(points, verts, max_dist);
+  auto [tri, bary, dist] = empty_result(points);
   const int64_t n = points.size(0), nf = faces.size(0);
-  at::Tensor tri = at::full({n}, -1, points.options().dtype(at::kLong));
-  at::Tensor bary = at::zeros({n, 3}, points.options());
-  at::Tensor dist = at::full({n}, std::numeric_limits<double>::infinity(), points.options());
   if (n == 0 || nf == 0) return {tri, bary, dist};
 
   const int64_t* fp = faces.data_ptr<int64_t>();
   AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "closest_point_on_mesh", [&] {
-    query_all(points.data_ptr<scalar_t>(), n, verts.data_ptr<scalar_t>(), fp, nf, max_dist, tri.data_ptr<int64_t>(),
-              bary.data_ptr<scalar_t>(), dist.data_ptr<scalar_t>());
+    Grid grid;
+    build_grid(verts.data_ptr<scalar_t>(), fp, nf, 0.0, grid);
+    query_all<scalar_t>(grid, points.data_ptr<scalar_t>(), n, verts.data_ptr<scalar_t>(), fp, nf, max_dist,
+                        tri.data_ptr<int64_t>(), bary.data_ptr<scalar_t>(), dist.data_ptr<scalar_t>());
+  });
+  return {tri, bary, dist};
+}
+
+// Grid header stored in a float64 tensor: lo xyz, hi xyz, h, n xyz, face count.
+constexpr int64_t kHeader = 11;
+
+// The grid of a mesh as tensors: header (11,) float64, cell_start (cells + 1,) int64 and cell_items
+// (M, 7) int32 (triangle id, then its float32 box bit-cast). cell_size <= 0 picks the mean triangle size.
+std::tuple<at::Tensor, at::Tensor, at::Tensor> closest_point_index(const at::Tensor& verts, const at::Tensor& faces,
+                                                                    double cell_size) {
+  check_mesh(verts, faces);
+  TORCH_CHECK(std::isfinite(cell_size), "diffavatar: cell_size must be finite, got ", cell_size);
+  const int64_t nf = faces.size(0);
+  at::Tensor header = at::zeros({kHeader}, verts.options().dtype(at::kDouble));
+  double* hd = header.data_ptr<double>();
+  if (nf == 0) {
+    for (int a = 0; a < 3; ++a) hd[7 + a] = 1;
+    hd[6] = 1;
+    return {header, at::zeros({2}, verts.options().dtype(at::kLong)),
+            at::zeros({0, 7}, verts.options().dtype(at::kInt))};
+  }
+  Grid grid;
+  AT_DISPATCH_FLOATING_TYPES(verts.scalar_type(), "closest_point_index", [&] {
+    build_grid(verts.data_ptr<scalar_t>(), faces.data_ptr<int64_t>(), nf, cell_size, grid);
+  });
+  for (int a = 0; a < 3; ++a) {
+    hd[a] = grid.lo[a];
+    hd[3 + a] = grid.hi[a];
+    hd[7 + a] = static_cast<double>(grid.n[a]);
+  }
+  hd[6] = grid.h;
+  hd[10] = static_cast<double>(nf);
+  const auto n_start = static_cast<int64_t>(grid.start_v.size());
+  const auto n_items = static_cast<int64_t>(grid.items_v.size());
+  at::Tensor start = at::empty({n_start}, verts.options().dtype(at::kLong));
+  at::Tensor items = at::empty({n_items, 7}, verts.options().dtype(at::kInt));
+  std::copy(grid.start_v.begin(), grid.start_v.end(), start.data_ptr<int64_t>());
+  if (n_items) std::memcpy(items.data_ptr<int32_t>(), grid.items_v.data(), sizeof(Entry) * n_items);
+  return {header, start, items};
+}
+
+// closest_point_on_mesh on a grid built by closest_point_index from the same (verts, faces).
+std::tuple<at::Tensor, at::Tensor, at::Tensor> closest_point_query(const at::Tensor& points, const at::Tensor& verts,
+                                                                    const at::Tensor& faces, const at::Tensor& header,
+                                                                    const at::Tensor& cell_start,
+                                                                    const at::Tensor& cell_items, double max_dist) {
+  check_mesh(verts, faces);
+  check_points(points, verts, max_dist);
+  check_cpu_contiguous(header, "header");
+  check_cpu_contiguous(cell_start, "cell_start");
+  check_cpu_contiguous(cell_items, "cell_items");
+  check_dtype(header, "header", at::kDouble);
+  check_dtype(cell_start, "cell_start", at::kLong);
+  check_dtype(cell_items, "cell_items", at::kInt);
+  check_shape(header, "header", {kHeader});
+  check_shape(cell_items, "cell_items", {-1, 7});
+  const double* hd = header.data_ptr<double>();
+  const int64_t nf = faces.size(0);
+  TORCH_CHECK(hd[10] == static_cast<double>(nf), "diffavatar: the index was built for ", hd[10],
+              " faces, got ", nf);
+  GridView g;
+  for (int a = 0; a < 3; ++a) {
+    g.lo[a] = hd[a];
+    g.hi[a] = hd[3 + a];
+    g.n[a] = static_cast<int64_t>(hd[7 + a]);
+    TORCH_CHECK(g.n[a] >= 1, "diffavatar: bad index header");
+  }
+  g.h = hd[6];
+  const int64_t n_cells = g.n[0] * g.n[1] * g.n[2];
+  TORCH_CHECK(cell_start.dim() == 1 && cell_start.size(0) == n_cells + 1, "diffavatar: cell_start must have ",
+              n_cells + 1, " entries, got ", cell_start.sizes());
+  const int64_t* sp = cell_start.data_ptr<int64_t>();
+  TORCH_CHECK(sp[0] == 0 && sp[n_cells] == cell_items.size(0), "diffavatar: cell_start does not match cell_items");
+  g.start = sp;
+  g.items = reinterpret_cast<const Entry*>(cell_items.data_ptr<int32_t>());
+
+  auto [tri, bary, dist] = empty_result(points);
+  const int64_t n = points.size(0);
+  if (n == 0 || nf == 0) return {tri, bary, dist};
+  const int64_t* fp = faces.data_ptr<int64_t>();
+  AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "closest_point_query", [&] {
+    query_all<scalar_t>(g, points.data_ptr<scalar_t>(), n, verts.data_ptr<scalar_t>(), fp, nf, max_dist,
+                        tri.data_ptr<int64_t>(), bary.data_ptr<scalar_t>(), dist.data_ptr<scalar_t>());
   });
   return {tri, bary, dist};
 }
@@ -325,4 +445,18 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> closest_point_on_mesh(const at::T
 }  // namespace
 }  // namespace diffavatar
 
-TORCH_LIBRARY_IMPL(diffavatar, CPU, m) { m.impl("closest_point_on_mesh", &diffavatar::closest_point_on_mesh); }
+// The index ops are declared here rather than in registration.cpp: they belong with their kernels.
+TORCH_LIBRARY_FRAGMENT(diffavatar, m) {
+  m.def(
+      "closest_point_index(Tensor verts, Tensor faces, float cell_size) "
+      "-> (Tensor header, Tensor cell_start, Tensor cell_items)");
+  m.def(
+      "closest_point_query(Tensor points, Tensor verts, Tensor faces, Tensor header, Tensor cell_start, "
+      "Tensor cell_items, float max_dist) -> (Tensor tri, Tensor bary, Tensor dist)");
+}
+
+TORCH_LIBRARY_IMPL(diffavatar, CPU, m) {
+  m.impl("closest_point_on_mesh", &diffavatar::closest_point_on_mesh);
+  m.impl("closest_point_index", &diffavatar::closest_point_index);
+  m.impl("closest_point_query", &diffavatar::closest_point_query);
+}

@@ -36,22 +36,86 @@ class Contacts:
         return int(self.vert.shape[0])
 
 
+class BodyIndex:
+    """The closest-point grid of a body mesh, built once for a body that does not move (no autograd).
+
+    `detect_contacts` (``index=``) then skips the per-call grid build; the contacts are bit-identical to
+    the ones without an index (`ops.closest_point_query`). Holds a copy of the mesh it was built from:
+    `matches` tells whether it applies to a given (verts, faces). Without the C++ extension (or with
+    ``use_extension=False``) it holds no grid and queries fall back to `ops.closest_point_on_mesh`.
+
+    Args:
+        body_verts: (Vb, 3) [m]; body_faces: (Fb, 3) int64.
+        cell_size: grid cell edge [m]; None picks the op's default (mean triangle size). Only the speed
+            depends on it.
+    """
+
+    def __init__(
+        self,
+        body_verts: torch.Tensor,
+        body_faces: torch.Tensor,
+        *,
+        cell_size: float | None = None,
+        use_extension=True,
+    ):
+        self.verts = body_verts.detach().clone().contiguous()
+        self.faces = body_faces.detach().clone().contiguous()
+        self.use_extension = use_extension
+        self.grid = None
+        if ops.closest_point_index_available(self.verts.device, use_extension):
+            self.grid = ops.closest_point_index(
+                self.verts, self.faces, 0.0 if cell_size is None else cell_size
+            )
+
+    def matches(self, body_verts: torch.Tensor, body_faces: torch.Tensor) -> bool:
+        """True when (body_verts, body_faces) equal the mesh this index was built from."""
+        return (
+            body_verts.shape == self.verts.shape
+            and body_faces.shape == self.faces.shape
+            and body_verts.dtype == self.verts.dtype
+            and body_verts.device == self.verts.device
+            and torch.equal(body_faces, self.faces)
+            and torch.equal(body_verts.detach(), self.verts)
+        )
+
+    def closest_point(self, points: torch.Tensor, max_dist: float):
+        """(tri, bary, dist) of `ops.closest_point_on_mesh` (points, verts, faces, max_dist)."""
+        points = points.detach().contiguous()
+        if self.grid is not None and points.device.type == "cpu":
+            return ops.closest_point_query(points, self.verts, self.faces, self.grid, max_dist)
+        return ops.closest_point_on_mesh(
+            points, self.verts, self.faces, max_dist, use_extension=self.use_extension
+        )
+
+
 def detect_contacts(
-    x: torch.Tensor, body_verts: torch.Tensor, body_faces: torch.Tensor, band: float, *, use_extension=True
+    x: torch.Tensor,
+    body_verts: torch.Tensor,
+    body_faces: torch.Tensor,
+    band: float,
+    *,
+    use_extension=True,
+    index: BodyIndex | None = None,
 ) -> Contacts:
     """Closest body triangle of every cloth vertex within ``band`` [m] (no autograd).
 
     Args:
         x: (Vs, 3) cloth positions [m]; body_verts: (Vb, 3) [m]; body_faces: (Fb, 3) int64.
+        index: a `BodyIndex` of exactly (body_verts, body_faces) to reuse (ValueError otherwise).
     """
     with torch.no_grad():
-        tri, bary, _ = ops.closest_point_on_mesh(
-            x.detach().contiguous(),
-            body_verts.detach().contiguous(),
-            body_faces.contiguous(),
-            band,
-            use_extension=use_extension,
-        )
+        if index is not None:
+            if not index.matches(body_verts, body_faces):
+                raise ValueError("index was built for another body mesh")
+            tri, bary, _ = index.closest_point(x, band)
+        else:
+            tri, bary, _ = ops.closest_point_on_mesh(
+                x.detach().contiguous(),
+                body_verts.detach().contiguous(),
+                body_faces.contiguous(),
+                band,
+                use_extension=use_extension,
+            )
         vert = torch.nonzero(tri >= 0).squeeze(1)
     return Contacts(vert, tri[vert], bary[vert])
 

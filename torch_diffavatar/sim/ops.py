@@ -19,7 +19,10 @@ __all__ = [
     "bend_project_jacobi_",
     "block_cholesky_analyze",
     "block_cholesky_solve",
+    "closest_point_index",
+    "closest_point_index_available",
     "closest_point_on_mesh",
+    "closest_point_query",
     "extension_op",
     "max_abs_green_strain",
     "stretch_hessians",
@@ -184,6 +187,77 @@ def closest_point_on_mesh(
         tri (N,) int64 (-1 when farther than ``max_dist``), bary (N, 3), dist (N,) [m] (inf when -1).
     """
     return _pick("closest_point_on_mesh", points, use_extension)(points, verts, faces, float(max_dist))
+
+
+def _index_op(name: str):
+    """``closest_point_index`` / ``closest_point_query`` with their fake kernels (None without the op)."""
+    if has_extension() and hasattr(torch.ops.diffavatar, name) and name not in _FAKES_REGISTERED:
+        _FAKES_REGISTERED.add(name)  # registered here, before `extension_op` would register a default
+
+        def fake_index(verts, faces, cell_size):
+            ctx = torch.library.get_ctx()
+            return (
+                verts.new_empty((11,), dtype=torch.float64),
+                verts.new_empty((ctx.new_dynamic_size(),), dtype=torch.int64),
+                verts.new_empty((ctx.new_dynamic_size(), 7), dtype=torch.int32),
+            )
+
+        def fake_query(points, verts, faces, header, cell_start, cell_items, max_dist):
+            n = points.shape[0]
+            return (
+                points.new_empty((n,), dtype=torch.int64),
+                points.new_empty((n, 3)),
+                points.new_empty((n,)),
+            )
+
+        fake = fake_index if name == "closest_point_index" else fake_query
+        try:
+            torch.library.register_fake(f"diffavatar::{name}")(fake)
+        except RuntimeError:
+            pass  # the extension already provides a fake/Meta kernel
+    return extension_op(name)
+
+
+def closest_point_index_available(device: torch.device, use_extension: bool = True) -> bool:
+    """Whether `closest_point_index` / `closest_point_query` can run (C++ only; CPU tensors)."""
+    return (
+        use_extension and torch.device(device).type == "cpu" and _index_op("closest_point_query") is not None
+    )
+
+
+def closest_point_index(
+    verts: torch.Tensor, faces: torch.Tensor, cell_size: float = 0.0
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The uniform grid `closest_point_on_mesh` builds per call, built once (C++ only, no autograd).
+
+    Args:
+        verts: (Vb, 3) float32/float64 [m]; faces: (Fb, 3) int64.
+        cell_size: grid cell edge [m]; <= 0 picks the mean triangle size (what `closest_point_on_mesh`
+            uses). The cell size changes the speed, never the result.
+
+    Returns:
+        header (11,) float64, cell_start (cells + 1,) int64, cell_items (M, 7) int32: pass them, with the
+        same ``verts`` and ``faces``, to `closest_point_query`.
+    """
+    op = _index_op("closest_point_index")
+    if op is None:
+        raise RuntimeError("closest_point_index needs the C++ extension")
+    return op(verts, faces, float(cell_size))
+
+
+def closest_point_query(
+    points: torch.Tensor,
+    verts: torch.Tensor,
+    faces: torch.Tensor,
+    grid: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+    max_dist: float,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """`closest_point_on_mesh` on a prebuilt ``grid`` = `closest_point_index` (verts, faces): the same
+    (tri, bary, dist), bit for bit (C++ only)."""
+    op = _index_op("closest_point_query")
+    if op is None:
+        raise RuntimeError("closest_point_query needs the C++ extension")
+    return op(points, verts, faces, *grid, float(max_dist))
 
 
 def xpbd_substeps_(

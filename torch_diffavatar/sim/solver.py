@@ -29,6 +29,11 @@ from torch_diffavatar.sim.state import ClothState
 SCHEMES = ("gauss_seidel", "jacobi")
 
 
+# Grid cell of the body index [m]: cells about twice the contact band visit fewer cells per query;
+# measured fastest (4 and 5 cm alike) on the Anny body with 2.3–5 cm bands; never changes the contacts.
+_CONTACT_CELL = 0.04
+
+
 @dataclass(frozen=True)
 class XPBDConfig:
     """Stepping options.
@@ -104,6 +109,8 @@ class XPBDSolver:
     def __init__(self, model: ClothModel, config: XPBDConfig | None = None):
         self.model = model
         self.config = XPBDConfig() if config is None else config
+        # closest-point grid of the last static body seen by `step` (rebuilt when the body changes)
+        self._body_index: collision.BodyIndex | None = None
 
     def step(
         self,
@@ -165,8 +172,16 @@ class XPBDSolver:
                 band = float(mat.thickness) + max(cfg.collision_band, reach)
                 if body_verts_end is not None:
                     band += float((body_verts_end - body_verts).norm(dim=-1).max())
+                index = None
+                if body_verts_end is None:  # a static body: reuse its grid from frame to frame
+                    index = self._body_index
+                    if index is None or not index.matches(body_verts, body_faces):
+                        index = collision.BodyIndex(
+                            body_verts, body_faces, cell_size=_CONTACT_CELL, use_extension=cfg.use_extension
+                        )
+                        self._body_index = index
                 contacts = collision.detect_contacts(
-                    x, body_verts, body_faces, band, use_extension=cfg.use_extension
+                    x, body_verts, body_faces, band, use_extension=cfg.use_extension, index=index
                 )
             moving = contacts is not None and contacts.count and body_verts_end is not None
             if contacts is not None and contacts.count:
