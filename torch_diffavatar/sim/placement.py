@@ -260,9 +260,16 @@ def _landmarks_from_sections(sec: _Sections, verts: np.ndarray) -> BodyLandmarks
             crotch_i = i + 1
             break
     crotch_y = float(hs[min(crotch_i, len(hs) - 1)])
-    # armpit: highest height (below 90 %) where both arms are separate loops
+    # armpit: top of the longest band of heights (below 90 %) where both arms are separate loops. Not
+    # simply the highest such height: on some bodies the ear lobes hang below 90 % of the height and
+    # are separate loops either side of the head, which put the "armpit" above the shoulders.
     both = np.array([bool(l) and bool(r) for l, r in sec.arms]) & (hs > crotch_y) & (rel < 0.9)
-    armpit_y = float(hs[np.nonzero(both)[0].max()]) if both.any() else floor + 0.75 * height
+    if both.any():
+        idx = np.nonzero(both)[0]
+        runs = np.split(idx, np.nonzero(np.diff(idx) > 1)[0] + 1)
+        armpit_y = float(hs[max(runs, key=len)[-1]])
+    else:
+        armpit_y = floor + 0.75 * height
     # shoulder / neck: central width collapses above the armpit
     width = np.array([np.ptp(c[:, 0]) if c is not None else 0.0 for c in sec.central])
     above = np.nonzero((hs > armpit_y) & (rel < 0.95))[0]
