@@ -30,6 +30,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import re
 import sys
 import time
 from dataclasses import dataclass, field, replace
@@ -602,7 +603,9 @@ class Fitter:
         try:
             ev = self.evaluate(start)
         except SimulationError as exc:
-            return self._reject(f"drape failed: {str(exc).split(' (')[0]}")  # without the advice
+            # the message without its advice and numbers, so that reasons of one kind count together
+            reason = re.sub(r" [-+0-9.e]+(?= |$)", "", str(exc).split(" (")[0])
+            return self._reject(f"drape failed: {reason}")
         if not (torch.isfinite(ev.x).all() and torch.isfinite(ev.loss)):
             return self._reject("non-finite drape or loss")
         if float((ev.x.detach() - start.x).norm(dim=1).max()) > self.config.max_drape_jump:
@@ -691,9 +694,14 @@ class Fitter:
                 p.copy_(b)
         self.lr_scale *= 0.5
         new = self._checked_evaluate(next_start)
+        if new is not None:
+            return new, next_start, rejected
+        # continuing the drape from its last state can itself fail (it had not settled); the last
+        # accepted drape's own start gives that drape again
+        new = self._checked_evaluate(start)
         if new is None:
             raise SimulationError("the drape fails even at the last accepted parameters")
-        return new, next_start, rejected
+        return new, start, rejected
 
     # -- logging -------------------------------------------------------------------------------------------
 
