@@ -177,9 +177,10 @@ def _write_results(path: Path, rows: list, ablations: list, args, started: str) 
             lines.append(f"| {r['garment']} | failed: {r['error'][:160]} | | | | | | | |")
             continue
         i, f = r["initial"], r["final"]
+        drop = 100 * (1 - f["chamfer_scan_m"] / i["chamfer_scan_m"])
+        change = f"{drop:.0f} % lower" if drop >= 0 else f"{-drop:.0f} % higher"
         lines.append(
-            f"| {r['garment']} | {_mm(i['chamfer_scan_m'])} → {_mm(f['chamfer_scan_m'])} "
-            f"({100 * (1 - f['chamfer_scan_m'] / i['chamfer_scan_m']):.0f} % lower) | "
+            f"| {r['garment']} | {_mm(i['chamfer_scan_m'])} → {_mm(f['chamfer_scan_m'])} ({change}) | "
             f"{_cm(i['pattern_outline_error_m'])} → {_cm(f['pattern_outline_error_m'])} | "
             f"{_cm(i['pattern_outline_hausdorff_m'])} → {_cm(f['pattern_outline_hausdorff_m'])} | "
             f"{i['bending_stiffness_ratio']:.2f} → {f['bending_stiffness_ratio']:.2f} | "
