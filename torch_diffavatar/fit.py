@@ -62,6 +62,8 @@ from torch_diffavatar.sim.state import ClothState
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
 CHECKPOINT = "checkpoint.pt"
 SETUP = "setup.pt"
+# strain limit of every drape of a fit (see `Fitter.drape_config` for why it is above the solver's 3)
+FIT_MAX_STRAIN = 10.0
 
 # ---------------------------------------------------------------------------------------------------------
 # Configuration
@@ -517,7 +519,7 @@ class Fitter:
         # A single triangle pinched at a seam corner can sit near the solver's default strain limit (3)
         # in a sane drape (measured: E = 3.0 on the 2 cm dress) and would then reject every step; the
         # fit catches real blow-ups by the speed limit and the `max_drape_jump` guard instead.
-        xpbd = XPBDConfig(substeps=self.config.drape_substeps, iterations=1, max_strain=10.0)
+        xpbd = XPBDConfig(substeps=self.config.drape_substeps, iterations=1, max_strain=FIT_MAX_STRAIN)
         if self.config.adjoint == "equilibrium":
             return DrapeConfig(xpbd=xpbd, min_steps=min(5, n), max_steps=n)
         return DrapeConfig(xpbd=xpbd, min_steps=n, max_steps=n)
@@ -528,7 +530,9 @@ class Fitter:
         default limit for a few frames (measured: E = 3.7 on a long-sleeve shirt) without a blow-up."""
         base = DrapeConfig(max_steps=self.config.first_max_steps)
         return replace(
-            base, xpbd=replace(base.xpbd, max_strain=10.0), sew_xpbd=replace(base.sew_xpbd, max_strain=10.0)
+            base,
+            xpbd=replace(base.xpbd, max_strain=FIT_MAX_STRAIN),
+            sew_xpbd=replace(base.sew_xpbd, max_strain=FIT_MAX_STRAIN),
         )
 
     def adjoint_options(self):
