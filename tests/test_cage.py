@@ -318,3 +318,25 @@ def test_seam_tying_keeps_stitched_edge_chords_changing_together(mirrored):
     cage.handles.data.copy_(raw)
     cage.project_()
     torch.testing.assert_close(cage.handles.detach(), cage.tied_handles(raw), rtol=0, atol=1e-12)
+
+
+def test_close_handles_move_together_and_keep_their_short_edge():
+    """GarmentCode's tops have ~6 mm pattern edges at the shoulder tips; with ``tie_close`` the handles at
+    their two ends share one displacement, so the edge moves rigidly instead of being crushed."""
+    _, garment = template_mesh("tshirt")
+    cage = ControlCage(garment, tie_close=0.01)
+    rest = cage.handle_rest
+    pairs = cage.close_handle_pairs(rest, 0.01)
+    assert pairs  # the sleeves' short shoulder-tip edges
+    assert all(float((rest[a] - rest[b]).norm()) < 0.01 for a, b in pairs)
+    assert all(int(cage.handle_panel[a]) == int(cage.handle_panel[b]) for a, b in pairs)
+    g = torch.Generator().manual_seed(3)
+    raw = rest + 0.01 * torch.randn(cage.handle_count, 2, generator=g, dtype=rest.dtype)
+    tied, free = cage.tied_handles(raw), ControlCage(garment).tied_handles(raw)
+    for a, b in pairs:
+        torch.testing.assert_close(tied[a] - rest[a], tied[b] - rest[b], rtol=0, atol=1e-12)
+        assert float(((free[a] - rest[a]) - (free[b] - rest[b])).norm()) > 1e-4
+    torch.testing.assert_close(cage(), garment.vert_uv, rtol=0, atol=1e-9)  # the template is still reproduced
+    assert ControlCage(garment, tie_close=0.0).tie_projector is None
+    with pytest.raises(ValueError, match="tie_close"):
+        ControlCage(garment, tie_close=-0.01)

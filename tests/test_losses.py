@@ -18,6 +18,7 @@ from torch_diffavatar.losses import (
     rest_area_ratio,
     seam_length_loss,
     signed_rest_areas,
+    skin_loss,
 )
 from torch_diffavatar.pattern import BoundaryLoop
 from torch_diffavatar.pattern.mesher import mesh_pattern
@@ -449,3 +450,24 @@ def test_boundary_loss_trim_drops_the_worst_points_only(sewn_tube):
     torch.testing.assert_close(trimmed, base, rtol=0.05, atol=0.0)
     with pytest.raises(ValueError, match="trim"):
         boundary_loss(x, loops, shifted, trim=1.0)
+
+
+def test_skin_loss_is_the_mean_squared_distance_to_the_body_surface():
+    import trimesh
+
+    ico = trimesh.creation.icosphere(subdivisions=2, radius=0.3)
+    verts = torch.as_tensor(ico.vertices, dtype=F64)
+    faces = torch.as_tensor(ico.faces, dtype=torch.int64)
+    # points 1 cm out along the vertex directions of a convex mesh: their closest surface point is the vertex
+    pts = verts[::3] * (1.0 + 0.01 / 0.3)
+    torch.testing.assert_close(skin_loss(verts, faces, pts), torch.tensor(1e-4, dtype=F64), rtol=1e-9, atol=0)
+    # the body moved 2 cm sideways is farther from its skin points, and the gradient says which way back
+    shift = torch.tensor([0.02, 0.0, 0.0], dtype=F64, requires_grad=True)
+    loss = skin_loss(verts + shift, faces, pts)
+    loss.backward()
+    assert float(loss) > 2e-4 and float(shift.grad[0]) > 0
+    x = verts + 0.005 * torch.randn(verts.shape, generator=torch.Generator().manual_seed(2), dtype=F64)
+    x.requires_grad_()
+    assert torch.autograd.gradcheck(lambda v: skin_loss(v, faces, pts[:20], robust="huber", scale=0.02), (x,))
+    with pytest.raises(ValueError, match="skin_points"):
+        skin_loss(verts, faces, pts[:, :2])

@@ -143,3 +143,22 @@ def test_segmentation_of_a_simulated_dress(draped):
     precision = (seg.labels & truth).sum() / seg.labels.sum()
     assert recall >= 0.95 and precision >= 0.98, (recall, precision)
     assert {"neck", "hem", "armhole.L", "armhole.R"} <= {loop.name for loop in seg.loops}
+
+
+def test_objective_takes_a_scan_in_the_other_precision(anny_model):
+    """A float32 scan file with a float64 body (e.g. `fit_scan(anny_model=load_anny())`) crashed the final
+    stage's closest-point query ("verts must be Float, got Double")."""
+    from torch_diffavatar.body.fit import BodyFitConfig, _Objective
+    from torch_diffavatar.body.model import BodyModel
+
+    body = BodyModel(anny_model=anny_model)
+    with torch.no_grad():
+        out = body()
+    verts = out.vertices[0]
+    assert verts.dtype == torch.float64
+    scan = (verts[::7] + 0.004).to(torch.float32)
+    objective = _Objective(body, scan, BodyFitConfig())
+    objective.final = True
+    matches = objective.match(verts, out.faces)
+    assert bool(matches.scan_found.all())
+    assert torch.isfinite(objective.data_terms(verts, matches)).all()

@@ -180,11 +180,13 @@ class _Objective:
     """
 
     def __init__(self, body: BodyModel, scan: torch.Tensor, cfg: BodyFitConfig):
-        self.body, self.scan, self.cfg = body, scan, cfg
+        self.body, self.cfg = body, cfg
         self.final = False
         with torch.no_grad():
             rest = body()
             self.vert_area = vertex_areas(rest.vertices[0], rest.faces)  # (V,) [m²]
+        # the scan in the body's precision (a float32 scan file with a float64 body model, or vice versa)
+        self.scan = scan = scan.to(rest.vertices.dtype)
         self.pairs = self._penetration_pairs()
         unknown = [n for n in cfg.skin_parts if n not in PART_NAMES]
         if unknown:
