@@ -69,7 +69,7 @@ def test_write_assets_and_read_back(dress, tmp_path):
         png_size=64,
     )
     for key in ("pattern_json", "pattern_svg", "rest_obj", "draped_obj", "body_obj", "body_json",
-                "material_json", "report_json", "before_after_png"):  # fmt: skip
+                "material_json", "report_json", "before_after_png", "draped_initial_obj"):  # fmt: skip
         assert key in files
     # pattern JSON loads with our loader and meshes
     loaded = load_pattern(files["pattern_json"])
@@ -87,6 +87,9 @@ def test_write_assets_and_read_back(dress, tmp_path):
     torch.testing.assert_close(
         draped.uv[draped.uv_faces], uv.double()[garment.tri_vertices], rtol=0, atol=1e-8
     )
+    # the first drape, as draped.obj
+    first = read_obj(files["draped_initial_obj"])
+    torch.testing.assert_close(first.verts, garment.sim_positions().double(), rtol=0, atol=1e-8)
     # material and report
     data = json.loads(open(files["material_json"]).read())
     assert data["bend_stiffness"] == {"value": pytest.approx(1.5e-5), "unit": "N*m"}

@@ -94,8 +94,18 @@ def test_eval_of_the_truth_itself_is_exact(skirt_scan, tmp_path):
         body_params=scan.body_params,
         material=ClothMaterial(bend_stiffness=scan.bend_stiffness),
         report={"inverted_rest_triangles": 0},
+        # the "first drape": the garment as placed, before any simulation
+        before=(
+            scan.garment.sim_positions(),
+            scan.garment.sim_faces,
+            torch.as_tensor(scan.body_vertices),
+            torch.as_tensor(scan.body_faces),
+        ),
+        png_size=64,
     )
     out = evaluate_assets(tmp_path / "fit", tmp_path / "gt")
+    assert out["chamfer_truth_drape_initial_m"] > 0.01 > 1e-4 > out["chamfer_truth_drape_m"]
+    assert out["chamfer_scan_initial_m"] > out["chamfer_scan_m"] + 0.005
     assert out["pattern_outline_error_m"] < 1e-4 and out["pattern_outline_hausdorff_m"] < 1e-3
     assert out["chamfer_truth_drape_m"] < 1e-4
     assert out["bending_stiffness_ratio"] == pytest.approx(1.0)

@@ -16,6 +16,7 @@ Files written by `write_assets` (names in `ASSET_FILES`):
 * ``material.json`` (every `ClothMaterial` field with its unit);
 * ``report.json`` (final metrics, see `torch_diffavatar.fit`);
 * ``before_after.png``: front and back views of the first and the last drape on their bodies;
+* ``draped_initial.obj``: the first drape (the template on the initial body), to measure what the fit gained;
 * ``seams.json``: the garment topology beside the OBJs (panel of each rest vertex, seam vertex pairs,
   stitched edge pairs, rest-vertex -> draped-vertex map, labels, openings);
 * ``asset.json``: the manifest (format version, frame, units, files, material with meanings, counts).
@@ -58,6 +59,7 @@ ASSET_FILES = {
     "material_json": "material.json",
     "report_json": "report.json",
     "before_after_png": "before_after.png",
+    "draped_initial_obj": "draped_initial.obj",
     "seams_json": "seams.json",
     "manifest_json": "asset.json",
 }
@@ -295,7 +297,8 @@ def write_assets(
         body_params: `BodyModel.parameters_dict()` (plus anything to keep beside it).
         material: the fitted material.
         report: the metrics; ``pattern_export_max_deviation_m`` and ``files`` are added.
-        before: optional (cloth_x, faces, body_verts, body_faces) of the first drape for the PNG.
+        before: optional (cloth_x, faces, body_verts, body_faces) of the first drape, for the PNG and
+            ``draped_initial.obj``.
         png_size: width of one view in the PNG [px].
 
     Returns:
@@ -318,13 +321,17 @@ def write_assets(
     _write_json(paths["body_json"], body_params)
     _write_json(paths["material_json"], material_dict(material))
     _write_json(paths["seams_json"], seams_dict(garment))
-    written = [k for k in ASSET_FILES if k not in ("report_json", "before_after_png", "manifest_json")]
+    optional = ("report_json", "before_after_png", "draped_initial_obj", "manifest_json")
+    written = [k for k in ASSET_FILES if k not in optional]
     if before is not None:
         from torch_diffavatar.render import save_png
 
         after = (draped_x, garment.sim_faces, body_verts, body_faces)
         save_png(render_before_after(before, after, size=png_size), paths["before_after_png"])
-        written.append("before_after_png")
+        write_garment_obj(
+            paths["draped_initial_obj"], garment, sim_positions=before[0].detach().cpu().double()
+        )
+        written += ["before_after_png", "draped_initial_obj"]
     written += ["report_json", "manifest_json"]
     report = dict(report)
     report["pattern_export_max_deviation_m"] = pattern_deviation(fitted, garment, uv)
@@ -355,6 +362,7 @@ FILE_CONTENTS = {
     "material_json": "cloth material, every field with its SI unit",
     "report_json": "metrics of the fit",
     "before_after_png": "first and final drape of the fit",
+    "draped_initial_obj": "the fit's first drape (template pattern on the initial body), as draped.obj",
     "seams_json": "garment topology: panel of each rest vertex, seam vertex pairs, stitched edge pairs, "
     "rest vertex -> draped vertex map, edge labels, openings",
     "manifest_json": "this manifest",

@@ -108,7 +108,9 @@ def evaluate_assets(assets_dir, gt_dir) -> dict:
         symmetric mean surface-to-surface distance), the pattern errors of `compare_with_truth`,
         ``seam_length_mismatch`` (fitted pattern, `seam_length_mismatch`), ``body_height_error_m``
         (fitted − true), ``body_mean_vertex_error_m``, ``bending_stiffness_ratio``, ``rest_quality`` and
-        ``draped_quality`` (min, mean), ``inverted_rest_triangles`` (from the fit's report).
+        ``draped_quality`` (min, mean), ``inverted_rest_triangles`` (from the fit's report); when the
+        folder holds the fit's first drape (``draped_initial.obj``), also ``chamfer_scan_initial_m`` and
+        ``chamfer_truth_drape_initial_m``, the same two distances before the fit.
     """
     from torch_diffavatar.assets import material_from_dict
     from torch_diffavatar.chamfer import surface_chamfer_m
@@ -135,6 +137,14 @@ def evaluate_assets(assets_dir, gt_dir) -> dict:
     out["chamfer_truth_drape_m"] = _mesh_distance(
         draped.verts, draped.faces, true_drape.verts, true_drape.faces
     )
+    if (folder / "draped_initial.obj").is_file():
+        first = read_obj(folder / "draped_initial.obj")
+        out["chamfer_scan_initial_m"] = surface_chamfer_m(first.verts, first.faces, garment_points)[
+            "symmetric"
+        ]
+        out["chamfer_truth_drape_initial_m"] = _mesh_distance(
+            first.verts, first.faces, true_drape.verts, true_drape.faces
+        )
     out.update(compare_with_truth(folder, truth / "pattern.json", float(true_material.bend_stiffness)))
     out["seam_length_mismatch"] = seam_length_mismatch(load_pattern(folder / "pattern.json"))
     body, true_body = read_obj(folder / "body.obj"), read_obj(truth / "body.obj")
