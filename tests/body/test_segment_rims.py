@@ -124,3 +124,46 @@ def test_edge_points_of_a_randomly_sampled_disc_are_its_rim():
     edge = _edge_points(g, np.arange(count))
     assert len(edge) < count  # not the fallback
     assert np.mean(r[edge] >= R - 0.015) >= 0.9
+
+
+def test_lower_rim_leaves_out_a_sleeve_hanging_beside_the_hem():
+    # A long sleeve hangs beside the shirt and ends below its hem (issue #7: the hem took the cuffs).
+    rng = np.random.default_rng(4)
+    shirt = _skirt(seed=4)
+    theta = rng.uniform(-np.pi, np.pi, 3000)
+    y = rng.uniform(0.3, 0.8, 3000)  # the cuff at y = 0.3, 20 cm below the hem
+    sleeve = np.stack([0.45 + 0.06 * np.cos(theta), y, 0.06 * np.sin(theta)], axis=1)
+    g = np.concatenate([shirt, sleeve + rng.normal(0.0, NOISE, sleeve.shape)])
+    on_sleeve = np.arange(len(g)) >= len(shirt)
+    sel = np.flatnonzero(~on_sleeve & (g[:, 1] < 0.7))
+    assert on_sleeve[_lower_rim(g, sel)].any()  # the envelope alone dips to the cuff
+    rim = _lower_rim(g, sel, link=0.03)
+    assert not on_sleeve[rim].any()
+    assert float(g[rim, 1].max()) <= TOP and _sectors_hit(_angle(g[rim])).all()
+
+
+def test_opening_rim_tells_a_hole_from_an_opening():
+    """A flat garment (40 cm square, 1 cm jittered grid) with a 6 cm hole in it, and skin beyond its
+    right edge: the hole's rim is no opening; the right edge is (with skin right ahead); the other
+    edges, with nothing ahead, are weak openings."""
+    from torch_diffavatar.body.segment import _opening_rim
+
+    rng = np.random.default_rng(5)
+    ticks = np.arange(-0.2, 0.2 + 1e-9, 0.01)
+    xy = np.stack(np.meshgrid(ticks, ticks), axis=-1).reshape(-1, 2)
+    xy = xy + rng.uniform(-0.3, 0.3, xy.shape) * 0.01
+    r = np.linalg.norm(xy, axis=1)
+    xy = xy[r > 0.06]
+    r = r[r > 0.06]
+    g = np.concatenate([xy, rng.normal(0.0, NOISE, (len(xy), 1))], axis=1)
+    sx, sy = np.meshgrid(np.arange(0.215, 0.3, 0.01), ticks)
+    skin = np.stack([sx.ravel(), sy.ravel(), np.zeros(sx.size)], axis=1)
+    kind = _opening_rim(g, skin, np.arange(len(g)))
+    hole_rim = r < 0.075
+    side = np.abs(xy[:, 1]) < 0.15  # the outermost column of the grid on each side, corners left out
+    right, left = side & (xy[:, 0] > 0.197), side & (xy[:, 0] < -0.197)
+    assert hole_rim.sum() > 20 and not (kind[hole_rim] > 0).any()
+    assert np.mean(kind[right] == 2) > 0.8
+    assert np.mean(kind[left] == 1) > 0.8
+    interior = (np.abs(xy) < 0.17).all(1) & (r > 0.09)
+    assert not (kind[interior] > 0).any()

@@ -56,6 +56,7 @@ GARMENT_SUPPORT: dict[str, tuple[str, ...]] = {
 GARMENT_ALIASES = {"t-shirt": "tshirt", "tee": "tshirt", "trousers": "pants", "shirt-long": "shirt"}
 GARMENT_TYPES = tuple(GARMENT_REGIONS)
 _SLEEVED = ("shirt", "tshirt", "polo")
+_ARM_PARTS = ("upperarm", "forearm", "hand")
 
 
 def garment_type(name: str) -> str:
@@ -245,6 +246,20 @@ def _grow_on_support(labels: np.ndarray, open_points: np.ndarray, nbr: np.ndarra
     return cand & seeded[comp]
 
 
+def _main_piece(points: np.ndarray, link: float, share: float = 0.1) -> np.ndarray:
+    """(N,) bool: the points (N, 3) of the pieces, joined by steps shorter than ``link`` [m], that hold
+    at least ``share`` of the largest piece's points."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(points)
+    pairs = cKDTree(points).query_pairs(link, output_type="ndarray")
+    graph = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, comp = connected_components(graph, directed=False)
+    size = np.bincount(comp)
+    return size[comp] >= share * size.max()
+
+
 def _edge_cycles(edges: np.ndarray) -> list[list[int]]:
     """Chain undirected boundary edges (E, 2) into vertex cycles (open chains are returned as well)."""
     adj = defaultdict(list)
@@ -355,6 +370,7 @@ def _lower_rim(
     sectors: int = 36,
     band: float = 0.015,
     max_rise: float = 0.05,
+    link: float | None = None,
 ) -> np.ndarray:
     """The garment points (indices into ``garment_points`` (G, 3)) on the lower rim of a bottom opening.
 
@@ -364,12 +380,27 @@ def _lower_rim(
     ".R" (−x) of the garment's centre for a trouser leg), in each of ``sectors`` angular sectors, the
     points within ``band`` [m] of the sector's lowest point. A sector whose lowest point lies more than
     ``max_rise`` [m] above the median sector's is a hole in the scan, not the rim, and is skipped.
+    With ``link`` [m], only the candidates joined to ``sel`` by steps shorter than that through other
+    candidates count: a long sleeve hanging beside the hips reaches below the hem, apart from it.
     """
     g = garment_points
     cand = g[:, 1] <= g[sel, 1].max()
     if side:
         centre_x = np.median(g[:, 0])
         cand &= (g[:, 0] > centre_x) if side == ".L" else (g[:, 0] < centre_x)
+    if link is not None and cand.any():
+        import scipy.sparse as sp
+        from scipy.sparse.csgraph import connected_components
+
+        idx = np.flatnonzero(cand)
+        pairs = cKDTree(g[idx]).query_pairs(link, output_type="ndarray")
+        graph = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(idx),) * 2)
+        _, comp = connected_components(graph, directed=False)
+        at = np.full(len(g), -1)
+        at[idx] = comp
+        joined = np.zeros(comp.max() + 1, dtype=bool)
+        joined[at[sel][at[sel] >= 0]] = True
+        cand[idx] = joined[comp]
     idx = np.flatnonzero(cand)
     if len(idx) < sectors:
         return sel
@@ -385,6 +416,25 @@ def _lower_rim(
     return idx[keep] if keep.any() else sel
 
 
+def _edge_gaps(garment_points: np.ndarray, sel: np.ndarray, k: int = 32) -> tuple[np.ndarray, np.ndarray]:
+    """Widest angular gap [rad] (S,) among the ``k`` nearest garment points of each of the points ``sel``
+    (indices into ``garment_points`` (G, 3)), seen in its local tangent plane (PCA of those neighbours),
+    and (S, 3) the unit direction of the gap's middle: at the garment's edge, out of the garment."""
+    g = garment_points
+    _, nbr = cKDTree(g).query(g[sel], k=k)
+    d = g[nbr] - g[sel][:, None, :]  # (S, k, 3)
+    centred = d - d.mean(1, keepdims=True)
+    _, vec = np.linalg.eigh(np.einsum("ski,skj->sij", centred, centred))
+    u, v = vec[:, :, 2], vec[:, :, 1]  # the two largest directions span the tangent plane
+    angle = np.sort(np.arctan2(np.einsum("ski,si->sk", d, v), np.einsum("ski,si->sk", d, u))[:, 1:], axis=1)
+    gaps = np.diff(np.concatenate([angle, angle[:, :1] + 2 * np.pi], axis=1), axis=1)
+    widest = gaps.argmax(1)
+    rows = np.arange(len(sel))
+    middle = angle[rows, widest] + 0.5 * gaps[rows, widest]
+    direction = np.cos(middle)[:, None] * u + np.sin(middle)[:, None] * v
+    return gaps[rows, widest], direction
+
+
 def _edge_points(
     garment_points: np.ndarray, sel: np.ndarray, k: int = 32, min_gap_deg: float = 120.0, min_count: int = 24
 ) -> np.ndarray:
@@ -397,19 +447,78 @@ def _edge_points(
     gap wider than θ with probability ≈ n (1 − θ/2π)^(n−1) — 16 % for 15 neighbours and 100° (interior
     points of an area-sampled scan got flagged), 0.02 % for 31 and 120°; an edge point's gap is ~180°.
     """
-    g = garment_points
-    k = min(k, len(g))
-    if k < 4:
+    k = min(k, len(garment_points))
+    if k < 4 or len(sel) == 0:
         return sel
-    _, nbr = cKDTree(g).query(g[sel], k=k)
-    d = g[nbr] - g[sel][:, None, :]  # (S, k, 3)
-    centred = d - d.mean(1, keepdims=True)
-    _, vec = np.linalg.eigh(np.einsum("ski,skj->sij", centred, centred))
-    u, v = vec[:, :, 2], vec[:, :, 1]  # the two largest directions span the tangent plane
-    angle = np.sort(np.arctan2(np.einsum("ski,si->sk", d, v), np.einsum("ski,si->sk", d, u))[:, 1:], axis=1)
-    gaps = np.diff(np.concatenate([angle, angle[:, :1] + 2 * np.pi], axis=1), axis=1)
-    edge = gaps.max(1) > np.deg2rad(min_gap_deg)
+    gap, _ = _edge_gaps(garment_points, sel, k)
+    edge = gap > np.deg2rad(min_gap_deg)
     return sel[edge] if edge.sum() >= min_count else sel
+
+
+def _opening_rim(
+    garment_points: np.ndarray,
+    other_points: np.ndarray,
+    sel: np.ndarray,
+    k: int = 32,
+    min_gap_deg: float = 120.0,
+    near: float = 0.025,
+    far: float = 0.15,
+    cone_deg: float = 20.0,
+    adjacent: float = 0.05,
+    adjacent_cone_deg: float = 60.0,
+) -> np.ndarray:
+    """Of the garment points ``sel`` (indices into ``garment_points`` (G, 3)), those on the rim of an
+    opening rather than of a hole in the scan.
+
+    A rim point is on the garment's edge (`_edge_gaps`, as `_edge_points`). Looking out of the garment
+    from it (along the gap's middle, within a cone of ``cone_deg`` from ``near`` to ``far`` [m]), a
+    hole's rim sees the garment again across the hole before any skin (``other_points`` (N', 3), the
+    scan points that are not garment): holes are cut through garment and skin alike, and the skin under
+    the cloth is not seen. Out of an opening the limb (skin) comes first, or nothing (the air below a
+    hem, a hand hidden by its cuff). Why 15 cm: the scan's holes are up to 16 cm across (8 cm balls);
+    why 20°: the garment across a hole curves away from the ray with the body (a 16 cm chord of a 15 cm
+    torso sags 2.3 cm; the cone is 5 cm wide there).
+
+    Returns:
+        (R,) int64, the rim points among ``sel``.
+    """
+    k = min(k, len(garment_points))
+    if k < 4 or len(sel) == 0:
+        return np.zeros(len(garment_points), dtype=np.int64)
+    gap, direction = _edge_gaps(garment_points, sel, k)
+    edge = np.flatnonzero(gap > np.deg2rad(min_gap_deg))
+    p, d = garment_points[sel[edge]], direction[edge]
+    tan_cone = np.tan(np.deg2rad(cone_deg))
+
+    def first_ahead(cloud: np.ndarray) -> np.ndarray:
+        """(R,) distance along the ray to the nearest point of ``cloud`` in each rim point's cone (inf)."""
+        out = np.full(len(p), np.inf)
+        if len(cloud) == 0:
+            return out
+        for i, nbrs in enumerate(cKDTree(cloud).query_ball_point(p, far)):
+            if nbrs:
+                q = cloud[nbrs] - p[i]
+                t = q @ d[i]
+                lateral = np.linalg.norm(q - t[:, None] * d[i], axis=1)
+                inside = (t > near) & (lateral < tan_cone * t)
+                if inside.any():
+                    out[i] = t[inside].min()
+        return out
+
+    garment_at = first_ahead(garment_points)
+    skin_at = first_ahead(np.asarray(other_points))
+    # skin right ahead, in a wider cone
+    strong = np.zeros(len(p), dtype=bool)
+    if len(other_points):
+        cos_adj = np.cos(np.deg2rad(adjacent_cone_deg))
+        for i, nbrs in enumerate(cKDTree(other_points).query_ball_point(p, adjacent)):
+            if nbrs:
+                q = other_points[nbrs] - p[i]
+                strong[i] = bool((q @ d[i] >= cos_adj * np.linalg.norm(q, axis=1)).any())
+    kind = np.zeros(len(garment_points), dtype=np.int64)
+    kind[sel[edge[skin_at <= garment_at]]] = 1
+    kind[sel[edge[strong]]] = 2
+    return kind
 
 
 def _boundary_loops(
@@ -421,6 +530,11 @@ def _boundary_loops(
     vertex_parts: np.ndarray,
     kind: str,
     min_edges: int = 12,
+    reach: float = 0.1,
+    weak_reach: float = 0.05,
+    limb_reach: float = 0.06,
+    link: float = 0.03,
+    min_rim: int = 24,
 ) -> list[BoundaryLoop]:
     """The garment's openings, found on the body (see the module docstring).
 
@@ -428,6 +542,13 @@ def _boundary_loops(
     nearest to it along the uncovered skin (a multi-source Dijkstra over the body's edges): so a
     neckline and an armhole that meet at a bare shoulder still come out as two openings, and a low
     neckline, with only chest outside it, is still a neck.
+
+    The points of an opening are garment rim points (`_opening_rim`: on the garment's edge, not a
+    hole's), of the garment's main piece (`_main_piece`, steps < ``link`` [m]), nearest to this
+    opening's body loop (within ``reach`` [m]; within ``weak_reach`` when no skin lies right ahead);
+    a cuff's or an armhole's also within ``limb_reach`` [m] of its arm. Fewer than ``min_rim``: the
+    edge of the band near the loop, as before (`_edge_points`). Hems and trouser legs: `_lower_rim`
+    over the main piece, joined to the loop's band by steps < ``link`` (a hanging sleeve is not hem).
     """
     import scipy.sparse as sp
     from scipy.sparse.csgraph import dijkstra
@@ -471,21 +592,52 @@ def _boundary_loops(
             if np.isfinite(dist[v]):
                 grouped.setdefault(_opening_name(origin_name[int(origin[v])], kind), []).append(v)
     grouped = {name: verts for name, verts in grouped.items() if len(verts) >= min_edges}
+    if not grouped:
+        return []
+    garment_points = points[garment_idx]
+    other_points = points[~labels]
+    # Only the garment itself: its points joined by steps shorter than ``link`` to its largest piece
+    # (stray garment labels on a hand or a leg have rims too, beside the openings).
+    main = _main_piece(garment_points, link)
+    # Each garment point's nearest opening, by its distance to the openings' body loops: a point of a
+    # sleeve hanging by the hips has its nearest body vertex on the hips, yet lies by its cuff's loop.
+    names = list(grouped)
+    loop_vertices = np.concatenate([np.asarray(grouped[nm]) for nm in names])
+    owner = np.repeat(np.arange(len(names)), [len(grouped[nm]) for nm in names])
+    loop_dist, j = cKDTree(body_vertices[loop_vertices]).query(garment_points)
+    nearest_loop = np.where(main, owner[j], -1)
+    rim_kind = _opening_rim(garment_points, other_points, np.flatnonzero(main & (loop_dist < reach)))
     loops = []
-    for name, verts in grouped.items():
+    for i, (name, verts) in enumerate(grouped.items()):
         ring = set(verts)
         # grow the loop by two rings on the covered side so that points near the edge are caught
         for _ in range(2):
             grow = body_faces[np.isin(body_faces, list(ring)).any(1) & face_in]
             ring |= set(grow.reshape(-1).tolist())
-        sel = np.flatnonzero(np.isin(g_near, list(ring)))
-        if len(sel) == 0:
-            continue
+        sel = np.flatnonzero(np.isin(g_near, list(ring)) & main)
         if name == "hem" or name.startswith("leg"):
-            sel = _lower_rim(points[garment_idx], sel, side=name[-2:] if name.startswith("leg") else "")
+            if len(sel) == 0:
+                continue
+            side = name[-2:] if name.startswith("leg") else ""
+            in_main = np.flatnonzero(main)  # sel is within main
+            rim_main = _lower_rim(garment_points[main], np.searchsorted(in_main, sel), side=side, link=link)
+            sel = in_main[rim_main]
         else:
-            sel = _edge_points(points[garment_idx], sel)
-        p = points[garment_idx[sel]]
+            mine = np.flatnonzero((nearest_loop == i) & (rim_kind > 0))
+            mine = mine[(rim_kind[mine] == 2) | (loop_dist[mine] < weak_reach)]
+            if name.startswith(("cuff", "armhole")):
+                # a sleeve's or an armhole's rim lies by its arm (a garment labelled short of a
+                # shoulder leaves a bare "arm" patch there that the body names after the arm)
+                arm = np.isin(vertex_parts, [PART_NAMES.index(p + name[-2:]) for p in _ARM_PARTS])
+                limb_dist, _ = cKDTree(body_vertices[arm]).query(garment_points[mine])
+                mine = mine[limb_dist < limb_reach]
+            if len(mine) >= min_rim:
+                sel = mine
+            elif len(sel) == 0:
+                continue
+            else:  # too few rim points (a very noisy or sparse scan): the edge of the band near the loop
+                sel = _edge_points(garment_points, sel)
+        p = garment_points[sel]
         centre = p.mean(0)
         _, _, vt = np.linalg.svd(p - centre, full_matrices=False)
         uv = (p - centre) @ vt[:2].T
