@@ -103,6 +103,8 @@ def main() -> int:
     p.add_argument("--hem-up", type=float, default=0.05)
     p.add_argument("--hem-widen", type=float, default=0.1)
     p.add_argument("--scan-spacing", type=float, default=0.02, help="drape spacing of the scans [m]")
+    p.add_argument("--garment-points", type=int, default=40000, help="cloth samples of each scan")
+    p.add_argument("--body-points", type=int, default=30000, help="skin samples of each scan")
     p.add_argument("--results", default="docs/RESULTS.md")
     args = p.parse_args()
     torch.set_num_threads(1)
@@ -129,6 +131,8 @@ def main() -> int:
                 hem_up=args.hem_up,
                 hem_widen=args.hem_widen,
                 spacing=args.scan_spacing,
+                garment_points=args.garment_points,
+                body_points=args.body_points,
             )
             write_scan(scan, scan_dir)
             row["scan_seconds"] = time.perf_counter() - t0
@@ -166,7 +170,8 @@ def _write_results(path: Path, rows: list, ablations: list, args, started: str) 
         f"Each scan: the garment's template with its hem raised {args.hem_up * 100:.0f} cm and widened "
         f"{args.hem_widen * 100:.0f} %, bending stiffness 2e-5 N·m (4× the fit's start), draped by our "
         f"simulator at {args.scan_spacing * 100:.0f} cm on a random Anny body (seed {args.seed}, phenotypes "
-        "uniform in [0.35, 0.65]), sampled as 14k cloth + 12k skin points, 3 mm noise, 10 % of the points "
+        f"uniform in [0.35, 0.65]), sampled as {args.garment_points // 1000}k cloth + "
+        f"{args.body_points // 1000}k skin points, 3 mm noise, 10 % of the points "
         "cut away in holes plus a hole under each arm (`diffavatar make-scan`). The fit starts from the "
         "plain "
         "template with `configs/<garment>.yaml`; `diffavatar eval` measures it.",

@@ -16,6 +16,7 @@ from torch_diffavatar.losses import (
     interior_loss,
     rest_area_loss,
     rest_area_ratio,
+    rest_distortion_loss,
     seam_length_loss,
     signed_rest_areas,
     skin_loss,
@@ -471,3 +472,22 @@ def test_skin_loss_is_the_mean_squared_distance_to_the_body_surface():
     assert torch.autograd.gradcheck(lambda v: skin_loss(v, faces, pts[:20], robust="huber", scale=0.02), (x,))
     with pytest.raises(ValueError, match="skin_points"):
         skin_loss(verts, faces, pts[:, :2])
+
+
+def test_rest_distortion_loss_sees_shape_not_size_or_rotation():
+    tri = torch.tensor([[0, 1, 2], [0, 2, 3]])
+    uv0 = torch.tensor([[0.0, 0.0], [0.1, 0.0], [0.1, 0.1], [0.0, 0.1]], dtype=F64)
+    c, s = math.cos(0.7), math.sin(0.7)
+    similar = 1.7 * uv0 @ torch.tensor([[c, s], [-s, c]], dtype=F64) + 0.3
+    assert float(rest_distortion_loss(similar, uv0, tri, threshold=0.0)) < 1e-20
+    # stretched ×2 along u: singular values 2 and 1, distortion (2 + 1/2)/2 − 1 = 0.25 in each triangle
+    stretched = uv0 * torch.tensor([2.0, 1.0], dtype=F64)
+    per_tri = rest_distortion_loss(stretched, uv0, tri, threshold=0.0, reduction="none")
+    torch.testing.assert_close(per_tri, torch.full((2,), 0.25**2, dtype=F64))
+    assert float(rest_distortion_loss(stretched, uv0, tri)) == 0.0  # the default threshold is r = 2
+    sheared = uv0 + uv0[:, 1:] * torch.tensor([[1.5, 0.0]], dtype=F64)
+    assert float(rest_distortion_loss(sheared, uv0, tri)) > 0.0
+    x = sheared.clone().requires_grad_()
+    assert torch.autograd.gradcheck(lambda u: rest_distortion_loss(u, uv0, tri, threshold=0.1), (x,))
+    with pytest.raises(ValueError, match="threshold"):
+        rest_distortion_loss(sheared, uv0, tri, threshold=-1.0)

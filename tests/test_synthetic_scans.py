@@ -123,3 +123,11 @@ def test_make_scan_rejects_bad_phenotypes(capsys):
     assert main(["make-scan", "skirt", "--out", "/tmp/unused", "--phenotypes", "wieght=0.3"]) == 2
     assert "unknown phenotype 'wieght'" in capsys.readouterr().err
     assert main(["make-scan", "skirt", "--out", "/tmp/unused", "--phenotypes", "weight=1.5"]) == 2
+
+
+@pytest.mark.parametrize("kw", [{"garment_points": 10}, {"body_points": 2.5}, {"spacing": 0.0}])
+def test_make_scan_rejects_bad_settings_before_any_work(kw):
+    from torch_diffavatar.errors import InputError
+
+    with pytest.raises(InputError, match=next(iter(kw))):
+        make_draped_scan("skirt", **kw)

@@ -49,6 +49,7 @@ from torch_diffavatar.losses import (
     interior_loss,
     rest_area_loss,
     rest_area_ratio,
+    rest_distortion_loss,
     seam_length_loss,
     skin_loss,
 )
@@ -80,6 +81,8 @@ class LossWeights:
         seam_length: α [1/m⁴], times `seam_length_loss` (squared differences of squared lengths) [m⁴].
         curvature: β [1/m²], times `curvature_loss` (boundary Laplacian residual) [m²].
         phenotype_prior: [-], times the squared distance of the phenotypes from the initial body fit's.
+        rest_shape: [-], times `rest_distortion_loss` (rest triangles sheared beyond a conformal
+            distortion of 0.25 against the template).
         skin: [1/m²], times `skin_loss` (mean squared distance of the scan's skin points to the body),
             when the body is optimized and the target has skin points.
         rest_area: [-], times `rest_area_loss` (rest triangles shrinking below half their template
@@ -92,7 +95,8 @@ class LossWeights:
     curvature: float = 1.0e5
     phenotype_prior: float = 1.0
     rest_area: float = 1.0e3
-    skin: float = 1.0e5
+    rest_shape: float = 100.0
+    skin: float = 3.0e5
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
@@ -621,6 +625,8 @@ class Fitter:
         terms["curvature"] = curvature_loss(rest_uv, self.template_uv, self.garment)
         if w.rest_area > 0:
             terms["rest_area"] = rest_area_loss(rest_uv, self.template_uv, self.garment.tri_vertices)
+        if w.rest_shape > 0:
+            terms["rest_shape"] = rest_distortion_loss(rest_uv, self.template_uv, self.garment.tri_vertices)
         if self.phenotypes0 is not None and self.params.body.phenotype_logits.requires_grad:
             terms["phenotype_prior"] = ((self.params.body.phenotypes - self.phenotypes0) ** 2).sum()
         if self.skin_points is not None and w.skin > 0:

@@ -414,6 +414,45 @@ def rest_area_loss(
     return _reduce(torch.relu(threshold - ratio) ** 2, None, reduction)
 
 
+def rest_distortion_loss(
+    rest_uv: torch.Tensor,
+    template_uv: torch.Tensor,
+    tri_vertices: torch.Tensor,
+    *,
+    threshold: float = 0.25,
+    reduction: str = "sum",
+) -> torch.Tensor:
+    """Keeps rest triangles from turning into slivers: ``Σ_f relu(c_f − threshold)²``.
+
+    ``c_f = ‖J_f‖²_F / (2 |det J_f|) − 1`` is the conformal distortion of the 2D map ``J_f`` from the
+    template triangle to the rest triangle: 0 for a similarity (any scale and rotation), ``(r + 1/r)/2 − 1``
+    for singular values in ratio ``r`` (0.25 at r = 2). `rest_area_loss` keeps areas; this keeps shapes:
+    cage handles a few cm apart on a curved neckline, moved by a few mm each step, sheared the dress's
+    rest triangles beside it to quality 0.23 (from 0.63) with every area intact.
+
+    Args:
+        rest_uv: (V, 2) or (B, V, 2) rest coordinates [m]; template_uv: (V, 2) [m];
+        tri_vertices: (F, 3) int64 panel-vertex triangles.
+        threshold: distortion below which the penalty is 0 [-].
+        reduction: ``"sum"`` / ``"mean"`` over triangles, or ``"none"`` → (…, F).
+
+    Returns:
+        () or (B,) dimensionless (or (…, F) for ``"none"``).
+    """
+    _check_reduction(reduction)
+    if not threshold >= 0.0:
+        raise ValueError(f"threshold must be >= 0, got {threshold}")
+    p = rest_uv[..., tri_vertices, :]  # (…, F, 3, 2)
+    q = template_uv.to(rest_uv)[tri_vertices]  # (F, 3, 2)
+    e = torch.stack([p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :]], dim=-1)  # columns
+    t = torch.stack([q[..., 1, :] - q[..., 0, :], q[..., 2, :] - q[..., 0, :]], dim=-1)
+    jac = e @ torch.linalg.inv(t)  # (…, F, 2, 2)
+    det = jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]
+    # a collapsing triangle is `rest_area_loss`'s (and the step guard's); keep this one finite there
+    distortion = (jac**2).sum((-2, -1)) / (2.0 * det.abs().clamp_min(1e-3)) - 1.0
+    return _reduce(torch.relu(distortion - threshold) ** 2, None, reduction)
+
+
 def signed_rest_areas(rest_uv: torch.Tensor, tri_vertices: torch.Tensor) -> torch.Tensor:
     """(…, F) signed areas [m²] of the rest triangles in their panel frames ((…, V, 2) coords, (F, 3) ids)."""
     p = rest_uv[..., tri_vertices, :]  # (…, F, 3, 2)
