@@ -246,16 +246,21 @@ def _grow_on_support(labels: np.ndarray, open_points: np.ndarray, nbr: np.ndarra
     return cand & seeded[comp]
 
 
-def _main_piece(points: np.ndarray, link: float, share: float = 0.1) -> np.ndarray:
-    """(N,) bool: the points (N, 3) of the pieces, joined by steps shorter than ``link`` [m], that hold
-    at least ``share`` of the largest piece's points."""
+def _linked_pieces(points: np.ndarray, link: float) -> np.ndarray:
+    """(N,) piece id of each point (N, 3): pieces are joined by steps shorter than ``link`` [m]."""
     import scipy.sparse as sp
     from scipy.sparse.csgraph import connected_components
 
     n = len(points)
     pairs = cKDTree(points).query_pairs(link, output_type="ndarray")
     graph = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-    _, comp = connected_components(graph, directed=False)
+    return connected_components(graph, directed=False)[1]
+
+
+def _main_piece(points: np.ndarray, link: float, share: float = 0.1) -> np.ndarray:
+    """(N,) bool: the points (N, 3) of the pieces, joined by steps shorter than ``link`` [m], that hold
+    at least ``share`` of the largest piece's points."""
+    comp = _linked_pieces(points, link)
     size = np.bincount(comp)
     return size[comp] >= share * size.max()
 
@@ -389,13 +394,8 @@ def _lower_rim(
         centre_x = np.median(g[:, 0])
         cand &= (g[:, 0] > centre_x) if side == ".L" else (g[:, 0] < centre_x)
     if link is not None and cand.any():
-        import scipy.sparse as sp
-        from scipy.sparse.csgraph import connected_components
-
         idx = np.flatnonzero(cand)
-        pairs = cKDTree(g[idx]).query_pairs(link, output_type="ndarray")
-        graph = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(idx),) * 2)
-        _, comp = connected_components(graph, directed=False)
+        comp = _linked_pieces(g[idx], link)
         at = np.full(len(g), -1)
         at[idx] = comp
         joined = np.zeros(comp.max() + 1, dtype=bool)
