@@ -132,18 +132,15 @@ def evaluate_assets(assets_dir, gt_dir) -> dict:
     if scan.labels is None:
         raise InputError(f"{gt / 'scan.ply'} has no 'label' property: is --gt a make-scan output?")
     garment_points = torch.as_tensor(scan.points[scan.labels == 1])
-    out["chamfer_scan_m"] = surface_chamfer_m(draped.verts, draped.faces, garment_points)["symmetric"]
     true_drape = read_obj(truth / "draped.obj")
-    out["chamfer_truth_drape_m"] = _mesh_distance(
-        draped.verts, draped.faces, true_drape.verts, true_drape.faces
-    )
+    drapes = {"": draped}
     if (folder / "draped_initial.obj").is_file():
-        first = read_obj(folder / "draped_initial.obj")
-        out["chamfer_scan_initial_m"] = surface_chamfer_m(first.verts, first.faces, garment_points)[
-            "symmetric"
-        ]
-        out["chamfer_truth_drape_initial_m"] = _mesh_distance(
-            first.verts, first.faces, true_drape.verts, true_drape.faces
+        drapes["_initial"] = read_obj(folder / "draped_initial.obj")
+    for suffix, mesh in drapes.items():
+        scan_distance = surface_chamfer_m(mesh.verts, mesh.faces, garment_points)
+        out[f"chamfer_scan{suffix}_m"] = scan_distance["symmetric"]
+        out[f"chamfer_truth_drape{suffix}_m"] = _mesh_distance(
+            mesh.verts, mesh.faces, true_drape.verts, true_drape.faces
         )
     out.update(compare_with_truth(folder, truth / "pattern.json", float(true_material.bend_stiffness)))
     out["seam_length_mismatch"] = seam_length_mismatch(load_pattern(folder / "pattern.json"))

@@ -499,18 +499,16 @@ class Fitter:
         self.seam_segments = seam_segments(garment)
         self.target = target
         gen = torch.Generator().manual_seed(config.seed)
-        pts = target.garment_points.to(dtype)
-        if pts.shape[0] > config.max_scan_points:
-            pts = pts[torch.randperm(pts.shape[0], generator=gen)[: config.max_scan_points]]
-        self.scan_points = pts
+
+        def subset(points: torch.Tensor) -> torch.Tensor:  # a fixed random subset of max_scan_points
+            points = points.to(dtype)
+            if points.shape[0] > config.max_scan_points:
+                points = points[torch.randperm(points.shape[0], generator=gen)[: config.max_scan_points]]
+            return points
+
+        self.scan_points = subset(target.garment_points)
         skin = target.body_points
-        if body is None or skin is None or skin.shape[0] == 0:
-            self.skin_points = None
-        else:
-            skin = skin.to(dtype)
-            if skin.shape[0] > config.max_scan_points:
-                skin = skin[torch.randperm(skin.shape[0], generator=gen)[: config.max_scan_points]]
-            self.skin_points = skin
+        self.skin_points = None if body is None or skin is None or skin.shape[0] == 0 else subset(skin)
         self.scan_boundaries = {k: v.to(dtype) for k, v in target.boundaries.items()}
         self.loops = [lp for lp in garment.boundary_loops if lp.name in self.scan_boundaries]
         self.out_dir = None if out_dir is None else Path(out_dir)
