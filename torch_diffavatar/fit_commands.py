@@ -161,8 +161,12 @@ def match_boundaries(garment, scan_loops: dict[str, np.ndarray], max_distance: f
     return out
 
 
-def prepare(scan_path, config, *, units="m", up="y", anny_model=None) -> dict:
+def prepare(scan_path, config, *, units="m", up="y", anny_model=None, pattern=None) -> dict:
     """The slow set-up of a fit: scan, body fit, segmentation, openings, meshed and placed template.
+
+    ``pattern`` (a `Pattern`) starts the fit from it instead of ``config.template``: an earlier fit's
+    result, or a ground truth (`scripts/fit_checks.py` ``oracle``). It must have the template's panels
+    and named boundary loops, which the scan's openings are matched to.
 
     Returns:
         a dict with ``garment`` (placed `GarmentMesh`), ``pattern``, ``target`` (`ScanTarget`),
@@ -206,7 +210,7 @@ def prepare(scan_path, config, *, units="m", up="y", anny_model=None) -> dict:
     if mask.sum() < 50:
         raise InputError(f"{scan_path}: only {int(mask.sum())} garment points; cannot fit a garment")
     loops = scan_boundaries(scan.points, mask, body_verts.numpy(), faces, parts, seg_type)
-    pattern = load_template(config.template)
+    pattern = load_template(config.template) if pattern is None else pattern
     garment = mesh_pattern(pattern, spacing=config.spacing)
     garment = place_garment(garment, body_verts, body.faces)
     boundaries = match_boundaries(garment, loops)
@@ -229,9 +233,20 @@ def prepare(scan_path, config, *, units="m", up="y", anny_model=None) -> dict:
 
 
 def fit_scan(
-    scan_path, config, out_dir, *, resume=False, units="m", up="y", progress=True, anny_model=None
+    scan_path,
+    config,
+    out_dir,
+    *,
+    resume=False,
+    units="m",
+    up="y",
+    progress=True,
+    anny_model=None,
+    pattern=None,
 ) -> dict:
-    """Run the whole job (see the module docstring); returns the report (also ``out_dir/report.json``)."""
+    """Run the whole job (see the module docstring); returns the report (also ``out_dir/report.json``).
+
+    ``pattern``: start from this `Pattern` instead of ``config.template`` (see `prepare`)."""
     from torch_diffavatar.assets import write_assets
     from torch_diffavatar.body.anny_model import load_anny
     from torch_diffavatar.body.model import BodyModel
@@ -248,7 +263,7 @@ def fit_scan(
     if resume and setup_path.is_file():
         setup = torch.load(setup_path, weights_only=False)
     else:
-        setup = prepare(scan_path, config, units=units, up=up, anny_model=anny_model)
+        setup = prepare(scan_path, config, units=units, up=up, anny_model=anny_model, pattern=pattern)
         _atomic_save(setup, setup_path)
     body = BodyModel(anny_model=anny_model)
     body.load_parameters_dict(setup["body_params"])
