@@ -55,9 +55,10 @@ is both XPBD's fixed point and the minimiser of U, and XPBD's frame map contract
   at 0.03 m ~55 contacts switched plane every frame (98 % between the two faces of an edge), and with the
   contact set frozen the same drape comes to rest (2·10⁻⁴ m/s after 180 frames at 0.97). The fix (faces
   sharing the closest edge/vertex: take the farthest plane, so the plane distance is continuous) is a
-  change of `collision.detect_contacts` (session 13), kept on the git branch ``contact-tie-fix`` and not yet
-  on main: it changes every drape, so the documented figures must be re-measured when it lands. The 0.03 m
-  figures below were measured with it, and main does not reproduce them. With it the 0.97
+  change of `collision.detect_contacts` (session 13), kept on the git branch ``contact-tie-fix`` and not on
+  main: with it the default-body T-shirt and long-sleeve drapes at 1.5 cm end with one inverted triangle
+  each (0 on main). The 0.03 m figures below were measured with it, and main does not reproduce them. With
+  it the 0.97
   drape decays (1.2 mm/s after 180 frames) and at 0.7 the presettle ends at 0.7 mm/s (without it 1.8 cm/s).
   A residual 2-cycle (two vertices in a concave crease of the shoulder alternating between two face planes,
   0.05 mm) remains, a limit of one contact per vertex;
