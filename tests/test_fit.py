@@ -130,6 +130,14 @@ def test_step_that_raises_the_loss_is_halved_and_shrinks_later_steps(skirt_probl
     assert result.report["loss_final"] == result.report["loss_initial"]
 
 
+def test_a_whole_step_regrows_the_step_size(skirt_problem):
+    fitter = _fitter(skirt_problem, _config(iterations=1), tensorboard=False)
+    fitter.lr_scale = 0.5  # as after an earlier halving
+    result = fitter.run()
+    assert result.report["rejection_reasons"] == {}
+    assert fitter.lr_scale == pytest.approx(0.625)
+
+
 def test_nan_gradients_never_reach_the_parameters(skirt_problem):
     fitter = _fitter(skirt_problem, _config(iterations=1), tensorboard=False)
     # poison the loss with a NaN that only reaches the gradient of the bending stiffness
