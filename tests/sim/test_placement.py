@@ -13,7 +13,7 @@ from torch_diffavatar.pattern.mesher import mesh_pattern
 from torch_diffavatar.sim.placement import body_landmarks, body_signed_distance, place_garment
 
 TEMPLATES = ("dress", "dress_pencil", "tshirt", "longsleeve", "polo", "skirt", "pants", "shorts")
-SPACING = 0.02  # coarser than the default to keep the test fast; placement does not depend on it
+SPACING = 0.02  # coarser than the default to keep the test fast
 
 
 def _green_strain_max(garment, pos: np.ndarray) -> np.ndarray:
@@ -81,6 +81,7 @@ def test_every_template_starts_outside_the_default_body(name, body, meshes):
     garment = meshes[name]
     placed = place_garment(garment, verts, faces, body_landmarks=lm)
     pos = _check_clear(garment, placed, verts, faces)
+    assert body_signed_distance(pos, verts, faces).max() < 0.2  # wrapped close, not flung out
     # only the 3D placement changed
     assert placed.vert_uv is garment.vert_uv and placed.tri_vertices is garment.tri_vertices
     assert placed.vert_pos.shape == garment.vert_pos.shape and placed.vert_pos.dtype == garment.vert_pos.dtype
@@ -94,6 +95,18 @@ def test_every_template_starts_outside_the_default_body(name, body, meshes):
         assert y.max() < lm.armpit_y and y.max() > lm.waist_y - 0.05
     else:
         assert y.max() > lm.shoulder_y
+
+
+@pytest.mark.anny
+@pytest.mark.parametrize("spacing", [0.014, 0.0145])
+def test_torso_wrap_between_the_arms_stays_shallow(spacing, body):
+    # at these spacings the T-shirt's widest lateral outline under the armpits came within 0.1 mm of the
+    # room between the arms, and the ellipse narrowed to that room had to be 2.3 m deep to enclose the
+    # body: panel vertices started 2.3 m (0.014: 0.45 m) from it and the sewing phase exploded
+    verts, faces, lm = body
+    placed = place_garment(mesh_pattern(load_template("tshirt"), spacing=spacing), verts, faces, body_landmarks=lm)
+    sd = body_signed_distance(placed.vert_pos.numpy(), verts, faces)
+    assert sd.min() >= 0.01 - 1e-6 and sd.max() < 0.2
 
 
 @pytest.mark.anny

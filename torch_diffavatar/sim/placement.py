@@ -73,6 +73,9 @@ _ARM_GAP = 0.015  # [m] free space kept between the torso wrap and the arms
 _SLEEVE_SEAM_MARGIN = 0.01  # [m] sleeve panels start at least this far from the top / bottom of the arm
 _CUFF_MARGIN = 0.01  # [m] a sleeve longer than the arm starts with its cuff this far before the axis end
 _MAX_SLOPE = 0.3  # largest change of a wrap radius per metre along the body / arm (near-isometric)
+# a torso wrap narrowed to pass between the arms may get at most this factor deeper than the body's enclosing
+# ellipse: an ellipse barely wider than the body must be arbitrarily deep to enclose it (2.3 m was seen)
+_MAX_NARROW_DEPTH = 1.5
 
 
 @dataclass
@@ -533,6 +536,14 @@ class _RegionSections:
             return np.inf
         return float((np.abs(dz) / np.sqrt(1.0 - (dx / ax) ** 2)).max())
 
+    def width_for_depth(self, i: int, az: float) -> float:
+        """Smallest semi-axis ax of an ellipse with semi-axis ``az`` around height i's centre enclosing its
+        window (the inverse of `depth_for_width`, which falls as the width grows)."""
+        dx, dz = self.window[i]
+        if np.abs(dz).max() >= az:
+            return np.inf
+        return float((np.abs(dx) / np.sqrt(1.0 - (dz / az) ** 2)).max())
+
     def at(self, y: np.ndarray) -> np.ndarray:
         """(N,) heights -> (N, 4) (cx, cz, ax, az), clamped to the region's height range."""
         return np.stack([np.interp(y, self.heights, self.rows[:, k]) for k in range(4)], axis=1)
@@ -728,11 +739,15 @@ def _wrap_torso_like(ctx: _Context, kind: str, lift: float, out: np.ndarray) -> 
             depth = az.copy()
             for i in capped:
                 inner = max(limit[i] - c, 0.0)
+                deepest = _MAX_NARROW_DEPTH * az0[i] - c
                 need_az = region.depth_for_width(i, inner)
-                if np.isfinite(need_az):
-                    ax[i], depth[i] = limit[i], max(az[i], need_az + c)
-                else:  # no room: as wide as the body needs
+                if not np.isfinite(need_az):  # no room: as wide as the body needs
                     ax[i] = min(ax[i], ax0[i])
+                    continue
+                if need_az > deepest:  # too deep that narrow: the narrowest width whose depth is bounded
+                    inner = region.width_for_depth(i, deepest)
+                    need_az = region.depth_for_width(i, inner)
+                ax[i], depth[i] = min(ax[i], inner + c), max(az[i], need_az + c)
             target = np.maximum(need, _perimeter(ax0, az0))
             az = _slope_envelope(grid, np.maximum(depth, _depth_for_perimeter(ax, target)), _MAX_SLOPE)
     for g, verts in enumerate(sets):
