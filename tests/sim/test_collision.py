@@ -89,3 +89,24 @@ def test_cloth_on_tilted_box_sticks_with_friction_and_slides_without():
     # g sin(angle) ~ 2.4 m/s²: frictionless it slides ~ 0.5 * 2.4 * (1/3)^2 = 0.13 m in 1/3 s
     assert drift[0.0] > 0.08
     assert drift[0.6] < 0.01
+
+
+def test_edge_ties_pick_the_farthest_plane():
+    # a roof: two faces meeting at the ridge x = 0 (y = 0.1), sloping down at ±45°. Points above the ridge
+    # are equally close to both faces (closest point on the ridge edge); the contact must use the face whose
+    # plane is farther from the point (the left face for a point left of the ridge), whichever face the query
+    # returned, and keep the same closest point
+    corners = [[-1.0, -0.9, -1], [0, 0.1, -1], [0, 0.1, 1], [-1, -0.9, 1], [1, -0.9, -1], [1, -0.9, 1]]
+    verts = torch.tensor(corners, dtype=F64)
+    faces = torch.tensor([[0, 2, 1], [0, 3, 2], [1, 2, 5], [1, 5, 4]], dtype=torch.int64)  # outward = +y side
+    x = torch.tensor([[-0.002, 0.11, 0.3], [0.003, 0.11, -0.2], [0.5, -0.2, 0.0]], dtype=F64)
+    c = collision.detect_contacts(x, verts, faces, 0.05)
+    assert c.vert.tolist() == [0, 1]  # the third point is 0.2 m above the right face
+    left = (c.tri <= 1).tolist()
+    assert left == [True, False]
+    point, normal = collision.contact_frames(verts, faces, c)
+    torch.testing.assert_close(point[:, [0, 1]], torch.tensor([[0.0, 0.1], [0.0, 0.1]], dtype=F64))
+    s = ((x[c.vert] - point) * normal).sum(-1)
+    other = torch.tensor([[1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]], dtype=F64) / 2**0.5  # the other faces' normals
+    assert bool((s > ((x[c.vert] - point) * other).sum(-1)).all())
+    torch.testing.assert_close(c.bary.sum(-1), torch.ones(2, dtype=F64))

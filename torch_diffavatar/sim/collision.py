@@ -6,6 +6,14 @@ out-of-place torch and recomputes the contact point (barycentric point on the st
 face normal from the CURRENT ``body_verts`` each time, so the projected positions are a differentiable
 function of the body vertices (paper eq. 6). Limitations: no self-collision, no edge–edge contacts, one
 contact per cloth vertex, the body is static within a step.
+
+Ties: a vertex whose closest body point lies on a body edge (or vertex) is equally close to every face
+sharing that feature, and the query picks one of them by rounding. The response uses the picked face's
+plane, and those planes differ there (by up to ~3 mm on the Anny body at 3 mm thickness), so a frictionless
+vertex sliding over the edge switched planes from frame to frame and the drape never came to rest.
+`detect_contacts` therefore picks, among the faces sharing the closest feature, the one whose plane is
+farthest from the vertex (the normal closest to the direction from the closest point): the plane distance
+is then continuous as the vertex crosses the edge's region.
 """
 
 from __future__ import annotations
@@ -62,6 +70,7 @@ class BodyIndex:
         self.faces = body_faces.detach().clone().contiguous()
         self.use_extension = use_extension
         self.grid = None
+        self.features = _FeatureFaces(self.faces, self.verts.shape[0])
         if ops.closest_point_index_available(self.verts.device, use_extension):
             self.grid = ops.closest_point_index(
                 self.verts, self.faces, 0.0 if cell_size is None else cell_size
@@ -117,7 +126,84 @@ def detect_contacts(
                 use_extension=use_extension,
             )
         vert = torch.nonzero(tri >= 0).squeeze(1)
-    return Contacts(vert, tri[vert], bary[vert])
+        features = index.features if index is not None else _FeatureFaces(body_faces, body_verts.shape[0])
+        tri, bary = features.outermost(x.detach()[vert], body_verts.detach(), tri[vert], bary[vert])
+    return Contacts(vert, tri, bary)
+
+
+class _FeatureFaces:
+    """Faces sharing a body edge or vertex, to break closest-face ties (see the module docstring).
+
+    Args:
+        faces: (Fb, 3) int64; vert_count: Vb.
+    """
+
+    def __init__(self, faces: torch.Tensor, vert_count: int):
+        f = faces.detach().to(torch.int64)
+        nf = f.shape[0]
+        # across[f, i]: the face across the edge opposite corner i (f itself on a boundary edge)
+        a, b = f[:, [1, 2, 0]], f[:, [2, 0, 1]]
+        key = (torch.minimum(a, b) * vert_count + torch.maximum(a, b)).reshape(-1)
+        order = torch.argsort(key)
+        ks = key[order]
+        owner = order // 3
+        nxt = torch.cat((ks[1:] == ks[:-1], ks.new_zeros(1, dtype=torch.bool)))
+        prv = torch.cat((ks.new_zeros(1, dtype=torch.bool), ks[1:] == ks[:-1]))
+        mate = torch.where(nxt, torch.roll(owner, -1), torch.where(prv, torch.roll(owner, 1), owner))
+        across = torch.empty_like(key)
+        across[order] = mate
+        self.across = across.reshape(nf, 3)
+        # ring[u]: the faces around body vertex u, padded with -1
+        corner_vert = f.reshape(-1)
+        order = torch.argsort(corner_vert, stable=True)
+        counts = torch.bincount(corner_vert, minlength=vert_count)
+        start = torch.cumsum(counts, 0) - counts
+        slot = torch.arange(corner_vert.numel(), device=f.device) - start[corner_vert[order]]
+        ring = torch.full((vert_count, max(int(counts.max()), 1) if nf else 1), -1, dtype=torch.int64)
+        ring = ring.to(f.device)
+        ring[corner_vert[order], slot] = order // 3
+        self.ring = ring
+        self.faces = f
+
+    def outermost(self, x, body_verts, tri, bary):
+        """For contacts whose closest point is on an edge or vertex of face ``tri``: the face sharing that
+        feature whose plane is farthest from x, and the point's barycentrics on it. (C, 3), (C,), (C, 3)."""
+        if tri.numel() == 0:
+            return tri, bary
+        zero = bary <= 0
+        nz = zero.sum(-1)
+        cand = tri[:, None].expand(-1, self.ring.shape[1] + 1).clone()
+        cand[:, 1:] = -1
+        edge = nz == 1
+        if bool(edge.any()):
+            k = torch.argmax(zero[edge].to(torch.int8), dim=-1)
+            cand[edge, 1] = self.across[tri[edge], k]
+        corner = nz == 2
+        if bool(corner.any()):
+            k = torch.argmax((~zero[corner]).to(torch.int8), dim=-1)
+            cand[corner, 1:] = self.ring[self.faces[tri[corner], k]]
+        valid = cand >= 0
+        c = self.faces[cand.clamp_min(0)]  # (C, K, 3)
+        p0 = body_verts[c[..., 0]].to(x.dtype)
+        n = torch.linalg.cross(body_verts[c[..., 1]].to(x.dtype) - p0, body_verts[c[..., 2]].to(x.dtype) - p0)
+        n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-20)
+        s = ((x[:, None, :] - p0) * n).sum(-1)
+        s = torch.where(valid, s, torch.full_like(s, -torch.inf))
+        best = torch.argmax(s, dim=-1)
+        # keep the query's face unless another one's plane is strictly farther
+        best = torch.where(s.gather(1, best[:, None])[:, 0] > s[:, 0], best, torch.zeros_like(best))
+        new = cand.gather(1, best[:, None])[:, 0]
+        moved = new != tri
+        if not bool(moved.any()):
+            return tri, bary
+        # the closest point is a shared edge / vertex point: move its weights to the new face's corners
+        old_c, new_c = self.faces[tri[moved]], self.faces[new[moved]]
+        same = (old_c[:, :, None] == new_c[:, None, :]).to(bary.dtype)  # (M, 3 old, 3 new)
+        bary = bary.clone()
+        bary[moved] = (bary[moved][:, :, None] * same).sum(1)
+        tri = tri.clone()
+        tri[moved] = new[moved]
+        return tri, bary
 
 
 def contact_frames(body_verts: torch.Tensor, body_faces: torch.Tensor, contacts: Contacts):
