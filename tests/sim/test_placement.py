@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 import trimesh
+from helpers_placement import green_strain_max
 
 from torch_diffavatar.body.frames import anny_to_world
 from torch_diffavatar.pattern.library import load_template
@@ -14,17 +15,6 @@ from torch_diffavatar.sim.placement import body_landmarks, body_signed_distance,
 
 TEMPLATES = ("dress", "dress_pencil", "tshirt", "longsleeve", "polo", "skirt", "pants", "shorts")
 SPACING = 0.02  # coarser than the default to keep the test fast
-
-
-def _green_strain_max(garment, pos: np.ndarray) -> np.ndarray:
-    """(F,) largest |Green strain| component of each placed triangle against its 2D rest shape."""
-    t = garment.tri_vertices.numpy()
-    uv = garment.vert_uv.numpy()
-    rest = np.stack([uv[t[:, 0]] - uv[t[:, 2]], uv[t[:, 1]] - uv[t[:, 2]]], -1)
-    cur = np.stack([pos[t[:, 0]] - pos[t[:, 2]], pos[t[:, 1]] - pos[t[:, 2]]], -1)
-    f = cur @ np.linalg.inv(rest)
-    e = 0.5 * (np.swapaxes(f, 1, 2) @ f - np.eye(2))
-    return np.abs(e).reshape(len(t), -1).max(1)
 
 
 def _check_clear(garment, placed, verts, faces):
@@ -86,7 +76,7 @@ def test_every_template_starts_outside_the_default_body(name, body, meshes):
     assert placed.vert_uv is garment.vert_uv and placed.tri_vertices is garment.tri_vertices
     assert placed.vert_pos.shape == garment.vert_pos.shape and placed.vert_pos.dtype == garment.vert_pos.dtype
     # wrapped, not crumpled: nearly all triangles keep their rest shape within a moderate strain
-    strain = _green_strain_max(garment, pos)
+    strain = green_strain_max(garment, pos)
     assert np.percentile(strain, 95) < 0.35
     assert (strain > 1.0).mean() < 0.005
     # panels sit where the garment belongs on this body
@@ -104,7 +94,8 @@ def test_torso_wrap_between_the_arms_stays_shallow(spacing, body):
     # room between the arms, and the ellipse narrowed to that room had to be 2.3 m deep to enclose the
     # body: panel vertices started 2.3 m (0.014: 0.45 m) from it and the sewing phase exploded
     verts, faces, lm = body
-    placed = place_garment(mesh_pattern(load_template("tshirt"), spacing=spacing), verts, faces, body_landmarks=lm)
+    garment = mesh_pattern(load_template("tshirt"), spacing=spacing)
+    placed = place_garment(garment, verts, faces, body_landmarks=lm)
     sd = body_signed_distance(placed.vert_pos.numpy(), verts, faces)
     assert sd.min() >= 0.01 - 1e-6 and sd.max() < 0.2
 

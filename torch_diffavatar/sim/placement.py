@@ -1085,10 +1085,23 @@ def _place_attached(ctx: _Context, out: np.ndarray, placed: np.ndarray, dist, of
 
 
 def _place_rigid(ctx: _Context, out: np.ndarray, placed: np.ndarray, panels: list[int]) -> None:
-    """Move each of ``panels`` so its stitched vertices' centroid meets their placed partners'."""
+    """Move ``panels`` rigidly so their stitched vertices' centroid meets their placed partners'.
+
+    Panels of ``panels`` stitched to one another move together, by one shift: GarmentCode already lays
+    them out around the body relative to each other (the two halves of a hood either side of the head).
+    Moving them one by one pulled the second half halfway onto the first, through the head (their shared
+    seam spans the head: its pairs lie ~0.2 m apart).
+    """
     pairs = ctx.garment.stitch_pairs.cpu().numpy()
-    for p in panels:
-        verts = np.nonzero(ctx.vert_panel == p)[0]
+    panels = list(panels)
+    group = np.arange(len(panels))  # group label per panel: stitched panels share one
+    pp = ctx.vert_panel[pairs]
+    for i, p in enumerate(panels):
+        for j, q in enumerate(panels[:i]):
+            if (((pp[:, 0] == p) & (pp[:, 1] == q)) | ((pp[:, 0] == q) & (pp[:, 1] == p))).any():
+                group[group == group[i]] = group[j]
+    for g in np.unique(group):
+        verts = np.nonzero(np.isin(ctx.vert_panel, [panels[i] for i in np.nonzero(group == g)[0]]))[0]
         mine = np.isin(pairs, verts)
         rows = np.nonzero(mine.any(1) & ~mine.all(1))[0]
         own = np.where(mine[rows, 0], pairs[rows, 0], pairs[rows, 1])
