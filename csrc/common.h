@@ -5,8 +5,10 @@
 #include <ATen/Parallel.h>
 #include <torch/library.h>
 
+#include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <limits>
 #include <string>
 
 namespace diffavatar {
@@ -17,6 +19,15 @@ constexpr int64_t kParallelGrain = 512;
 
 // Threads for an OpenMP region: PyTorch's intra-op setting (torch.set_num_threads), so one knob
 // controls both.
+// Largest entry of a 3x3 SPD system solved by the adjugate before it is scaled down: its determinant
+// (~ entry^3) must stay finite. Sub-millimetre triangles (inverse masses ~1e7) give stretch systems with
+// entries ~1e13, whose determinant overflows float; systems below this are solved unscaled (bit-identical).
+template <typename T>
+inline T sym3_scale_limit() {
+  static const T limit = std::cbrt(std::numeric_limits<T>::max()) / T(8);
+  return limit;
+}
+
 inline int num_threads() { return std::max(1, at::get_num_threads()); }
 
 inline void check_cpu_contiguous(const at::Tensor& t, const char* name) {

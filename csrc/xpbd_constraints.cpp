@@ -52,7 +52,14 @@ inline bool stretch_delta(const T* x, const T* w, const int64_t* tv, const T* r,
       rhs[k] -= at * lam[l];
     }
   }
-  // Solve A dlam = rhs by the adjugate (A is 3x3 and symmetric positive definite when active).
+  // Solve A dlam = rhs by the adjugate (A is 3x3 and symmetric positive definite when active), scaled
+  // down when its determinant would overflow (sym3_scale_limit; m = 1 is exact).
+  const T amax = std::max(a[0][0], std::max(a[1][1], a[2][2]));
+  const T m = amax > sym3_scale_limit<T>() ? T(1) / amax : T(1);
+  for (int k = 0; k < 3; ++k) {
+    rhs[k] *= m;
+    for (int l = 0; l < 3; ++l) a[k][l] *= m;
+  }
   const T c00 = a[1][1] * a[2][2] - a[1][2] * a[2][1];
   const T c01 = a[1][2] * a[2][0] - a[1][0] * a[2][2];
   const T c02 = a[1][0] * a[2][1] - a[1][1] * a[2][0];

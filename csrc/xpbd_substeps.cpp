@@ -289,6 +289,7 @@ DIFFAVATAR_INLINE void stretch_block(StretchPack<T>& p, int64_t s, int n, const 
   T* __restrict l1 = p.l1.data() + s;
   T* __restrict l2 = p.l2.data() + s;
   constexpr T kMax = std::numeric_limits<T>::max();
+  const T kScale = sym3_scale_limit<T>();
 #pragma omp simd
   for (int l = 0; l < n; ++l) {
     const T d0x = X[0][l] - X[6][l], d0y = X[1][l] - X[7][l], d0z = X[2][l] - X[8][l];
@@ -298,15 +299,19 @@ DIFFAVATAR_INLINE void stretch_block(StretchPack<T>& p, int64_t s, int n, const 
     const T s00 = f0x * f0x + f0y * f0y + f0z * f0z;
     const T s11 = f1x * f1x + f1y * f1y + f1z * f1z;
     const T s01 = f0x * f1x + f0y * f1y + f0z * f1z;
-    const T A00 = wpp[l] * s00 + a00[l];
-    const T A11 = wqq[l] * s11 + a11[l];
-    const T A22 = T(0.25) * (wqq[l] * s00 + T(2) * wpq[l] * s01 + wpp[l] * s11) + a22[l];
-    const T A01 = wpq[l] * s01 + a01[l];
-    const T A02 = T(0.5) * (wpq[l] * s00 + wpp[l] * s01) + a02[l];
-    const T A12 = T(0.5) * (wqq[l] * s01 + wpq[l] * s11) + a12[l];
-    const T r0 = -T(0.5) * (s00 - T(1)) - (a00[l] * l0[l] + a01[l] * l1[l] + a02[l] * l2[l]);
-    const T r1 = -T(0.5) * (s11 - T(1)) - (a01[l] * l0[l] + a11[l] * l1[l] + a12[l] * l2[l]);
-    const T r2 = -T(0.5) * s01 - (a02[l] * l0[l] + a12[l] * l1[l] + a22[l] * l2[l]);
+    T A00 = wpp[l] * s00 + a00[l];
+    T A11 = wqq[l] * s11 + a11[l];
+    T A22 = T(0.25) * (wqq[l] * s00 + T(2) * wpq[l] * s01 + wpp[l] * s11) + a22[l];
+    T A01 = wpq[l] * s01 + a01[l];
+    T A02 = T(0.5) * (wpq[l] * s00 + wpp[l] * s01) + a02[l];
+    T A12 = T(0.5) * (wqq[l] * s01 + wpq[l] * s11) + a12[l];
+    T r0 = -T(0.5) * (s00 - T(1)) - (a00[l] * l0[l] + a01[l] * l1[l] + a02[l] * l2[l]);
+    T r1 = -T(0.5) * (s11 - T(1)) - (a01[l] * l0[l] + a11[l] * l1[l] + a12[l] * l2[l]);
+    T r2 = -T(0.5) * s01 - (a02[l] * l0[l] + a12[l] * l1[l] + a22[l] * l2[l]);
+    // (A / m) dl = r / m when A is too large for the adjugate (sym3_scale_limit); m = 1 is exact
+    const T amax = std::max(A00, std::max(A11, A22));
+    const T m = amax > kScale ? T(1) / amax : T(1);
+    A00 *= m, A11 *= m, A22 *= m, A01 *= m, A02 *= m, A12 *= m, r0 *= m, r1 *= m, r2 *= m;
     const T c00 = A11 * A22 - A12 * A12;
     const T c01 = A02 * A12 - A01 * A22;
     const T c02 = A01 * A12 - A02 * A11;

@@ -486,3 +486,29 @@ def test_max_abs_green_strain_matches_reference(dtype):
     x_nan[faces[3, 0], 1] = float("nan")
     assert torch.isnan(_op("max_abs_green_strain")(x_nan, faces, rest_inv))
     torch.library.opcheck(_op("max_abs_green_strain").default, (x, faces, rest_inv))
+
+
+@pytest.mark.parametrize("use_extension", [True, False])
+def test_sub_millimetre_triangles_in_float32(use_extension):
+    # GarmentCode outlines can have sub-mm edges (0.9 mm at a jumpsuit's waist): inverse masses ~1e7 make
+    # the stretch systems' entries ~1e14, and the adjugate's determinant (~ entry^3) overflowed float32 —
+    # the step returned NaN (C++) or skipped the constraint. The solve is scaled there: float32 now follows
+    # float64 (and every larger triangle is solved exactly as before).
+    from torch_diffavatar.sim.model import ClothModelBuilder
+    from torch_diffavatar.sim.solver import XPBDConfig, XPBDSolver
+    from torch_diffavatar.sim.state import ClothState
+    from torch_diffavatar.sim.testing import rectangle_garment
+
+    g = rectangle_garment(5, 5, 0.002, 0.002)
+    out = {}
+    for dtype in (F64, torch.float32):
+        model = ClothModelBuilder().add_garment(g).finalize(dtype=dtype)
+        rest = model.rest_data(g.vert_uv.to(dtype))
+        assert float(rest.vert_inv_mass.max()) > 1e7
+        x0 = model.vert_init_pos * torch.tensor([1.3, 1.0, 0.8], dtype=dtype)  # stretched and squashed
+        solver = XPBDSolver(model, XPBDConfig(substeps=4, iterations=2, use_extension=use_extension))
+        s = solver.step(ClothState(x0, torch.zeros_like(x0)), rest, 1 / 60, gravity_scale=0.0)
+        out[dtype] = (x0, s.x.to(F64))
+    x0, x64 = out[F64]
+    assert (x64 - x0).abs().max() > 1e-4  # the constraints act (the sheet is 2 mm wide)
+    torch.testing.assert_close(out[torch.float32][1], x64, rtol=0.0, atol=2e-6)

@@ -62,7 +62,17 @@ _BEND_EPS_N2 = 1e-24
 
 
 def _sym3_solve(a00, a01, a02, a11, a12, a22, r0, r1, r2):
-    """Solve symmetric 3x3 systems by the adjugate (batched over the leading shape)."""
+    """Solve symmetric positive definite 3x3 systems by the adjugate (batched over the leading shape).
+
+    A system whose largest diagonal entry exceeds cbrt(dtype max) / 8 is scaled down by that entry first:
+    the determinant (~ entry³) overflowed float32 at sub-millimetre triangles (entries ~1e13) and the
+    solve returned NaN. Other systems are solved unscaled (scale 1, bit-identical to before); the C++
+    kernels do the same (`sym3_scale_limit`).
+    """
+    limit = torch.finfo(a00.dtype).max ** (1.0 / 3.0) / 8.0
+    amax = torch.maximum(a00, torch.maximum(a11, a22))
+    m = torch.where(amax > limit, 1.0 / amax, torch.ones_like(amax))
+    a00, a01, a02, a11, a12, a22, r0, r1, r2 = (t * m for t in (a00, a01, a02, a11, a12, a22, r0, r1, r2))
     c00 = a11 * a22 - a12 * a12
     c01 = a02 * a12 - a01 * a22
     c02 = a01 * a12 - a02 * a11
