@@ -1,4 +1,4 @@
-"""`diffavatar fit SCAN --garment TYPE [--config C] --out DIR [--iters N] [--resume] [--json]`.
+"""`diffavatar fit SCAN --garment TEMPLATE|PATTERN.json [--config C] --out DIR [--iters N] [--resume]`.
 
 The main job: scan in, simulation-ready assets out. Steps: load the scan (per-point garment labels used
 when present), fit the Anny body to it (`body.fit.fit_body`), segment the garment when the scan is not
@@ -6,6 +6,9 @@ labelled (`body.segment.segment_garment`), find the garment's openings on the bo
 boundary loops: neck, hem, cuffs, waist …) and match them to the template's named loops, mesh and place
 the template (`sim.placement.place_garment`), then run the fit loop (`torch_diffavatar.fit.Fitter`) and
 write the assets (`torch_diffavatar.assets.write_assets`). ``--json`` prints ``report.json`` as one line.
+
+``--garment`` is a bundled template or any GarmentCode pattern file: the fit starts from that pattern with
+the bundled config of its garment type (`infer_garment_type`, or ``--garment-type``).
 
 Everything the loop needs after the (slow) set-up is saved in ``DIR/setup.pt``; with ``--resume`` a
 second run reuses it and continues from ``DIR/checkpoint.pt``.
@@ -47,6 +50,16 @@ LOOP_NAMES = {
     "leg.L": "hem_left",
     "leg.R": "hem_right",
 }
+# Garment (segmentation) type -> the bundled config a GarmentCode file of that type is fitted with.
+TYPE_CONFIGS = {
+    "dress": "dress",
+    "shirt": "longsleeve",
+    "tshirt": "tshirt",
+    "polo": "polo",
+    "skirt": "skirt",
+    "pants": "pants",
+}
+LONG_SLEEVE = 0.45  # [m] a sleeve reaching farther than this from the shoulder point is a long one
 GARMENT_LABEL = 1  # label of the garment's points in a labelled scan (0 = body / not garment)
 
 
@@ -60,9 +73,19 @@ def register(subparsers) -> None:
     )
     p.add_argument("scan", help="scan mesh or point cloud (PLY with an optional per-vertex 'label' property)")
     p.add_argument(
-        "--garment", required=True, help="garment template: dress, longsleeve, polo, tshirt, skirt, pants"
+        "--garment",
+        required=True,
+        help=f"garment template ({', '.join(SEGMENT_TYPES)}) or a GarmentCode pattern JSON to start from",
     )
-    p.add_argument("--config", help="YAML fit config (default: configs/<garment>.yaml)")
+    p.add_argument(
+        "--garment-type",
+        choices=tuple(TYPE_CONFIGS),
+        help="what the garment is, for the scan's segmentation and openings (default: the template's, or "
+        "inferred from where a pattern file's panels go on the body)",
+    )
+    p.add_argument(
+        "--config", help="YAML fit config (default: configs/<garment>.yaml; for a pattern file, its type's)"
+    )
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--iters", type=int, default=None, help="iterations (overrides the config)")
     p.add_argument("--spacing", type=float, default=None, help="mesh spacing [m] (overrides the config)")
@@ -81,9 +104,19 @@ def fit_command(args) -> dict:
         raise InputError(f"--iters must be >= 0, got {args.iters}")
     if args.spacing is not None and not args.spacing > 0:
         raise InputError(f"--spacing must be a positive length in metres, got {args.spacing}")
+    template, garment_type, overrides = args.garment, args.garment_type, {}
     if args.garment not in SEGMENT_TYPES:
-        raise InputError(f"unknown --garment {args.garment!r}; use one of {', '.join(SEGMENT_TYPES)}")
-    config = load_config(args.config, garment=args.garment, iterations=args.iters, spacing=args.spacing)
+        from torch_diffavatar.pattern.library import resolve_pattern
+
+        if not Path(args.garment).is_file():
+            raise InputError(
+                f"--garment {args.garment!r}: not a template ({', '.join(SEGMENT_TYPES)}) nor a pattern file"
+            )
+        garment_type = garment_type or infer_garment_type(resolve_pattern(args.garment))
+        template, overrides = TYPE_CONFIGS[garment_type], {"template": str(Path(args.garment).resolve())}
+    config = load_config(
+        args.config, garment=template, iterations=args.iters, spacing=args.spacing, **overrides
+    )
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out} exists and is not a directory")
@@ -96,12 +129,47 @@ def fit_command(args) -> dict:
             units=args.units,
             up=args.up,
             progress=not args.no_progress,
+            garment_type=garment_type,
         )
     if not args.json:
         for key in ("chamfer_initial", "chamfer_final", "iterations", "seconds", "rejected_steps"):
             print(f"{key}: {report[key]}")
         print(f"assets: {out}")
     return report
+
+
+def infer_garment_type(pattern) -> str:
+    """The garment type (a key of `TYPE_CONFIGS`) of a pattern, from where its panels go on the body.
+
+    GarmentCode lays panels out around its mean body; `sim.placement` reads that layout into panel kinds
+    (torso, arm, leg, collar-like panels attached to a partner). Legs: ``pants``; nothing above the waist:
+    ``skirt``; panels reaching below the crotch: ``dress`` (with or without sleeves); sleeves: ``polo``
+    with an attached collar, else ``shirt`` when a sleeve reaches farther than `LONG_SLEEVE` from the
+    shoulder point, else ``tshirt``; otherwise ``dress`` (a sleeveless top: the dress's body regions and
+    armholes fit it). On the bundled templates it gives `SEGMENT_TYPES`.
+    """
+    from torch_diffavatar.pattern.mesher import mesh_pattern
+    from torch_diffavatar.sim.placement import GC_BODY, _attachments, _panel_kinds
+
+    garment = mesh_pattern(pattern, spacing=0.05)  # coarse: only the layout matters
+    pos = garment.vert_pos.detach().cpu().numpy().astype(np.float64)
+    kinds = _panel_kinds(garment, pos)
+    panel_kind = np.array(kinds)[garment.vert_panel.cpu().numpy()]
+    if any(k.startswith("leg") for k in kinds):
+        return "pants"
+    if pos[:, 1].max() < GC_BODY["waist"] + 0.05:
+        return "skirt"
+    if pos[:, 1].min() < GC_BODY["crotch"]:
+        return "dress"
+    arm = np.char.startswith(panel_kind.astype(str), "arm")
+    if arm.any():
+        if _attachments(garment, kinds):
+            return "polo"
+        reach = np.hypot(
+            np.abs(pos[arm, 0]) - GC_BODY["shoulder_half_width"], pos[arm, 1] - GC_BODY["shoulder"]
+        )
+        return "shirt" if reach.max() > LONG_SLEEVE else "tshirt"
+    return "dress"
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -161,12 +229,15 @@ def match_boundaries(garment, scan_loops: dict[str, np.ndarray], max_distance: f
     return out
 
 
-def prepare(scan_path, config, *, units="m", up="y", anny_model=None, pattern=None) -> dict:
+def prepare(
+    scan_path, config, *, units="m", up="y", anny_model=None, pattern=None, garment_type=None
+) -> dict:
     """The slow set-up of a fit: scan, body fit, segmentation, openings, meshed and placed template.
 
-    ``pattern`` (a `Pattern`) starts the fit from it instead of ``config.template``: an earlier fit's
-    result, or a ground truth (`scripts/fit_checks.py` ``oracle``). It must have the template's panels
-    and named boundary loops, which the scan's openings are matched to.
+    ``config.template`` is a template name or a GarmentCode file. ``pattern`` (a `Pattern`) starts the fit
+    from it instead: an earlier fit's result, or a ground truth (`scripts/fit_checks.py` ``oracle``).
+    ``garment_type`` (a key of `TYPE_CONFIGS`) drives the scan's segmentation and openings; default: the
+    template's (`SEGMENT_TYPES`), else `infer_garment_type` of the pattern.
 
     Returns:
         a dict with ``garment`` (placed `GarmentMesh`), ``pattern``, ``target`` (`ScanTarget`),
@@ -180,7 +251,7 @@ def prepare(scan_path, config, *, units="m", up="y", anny_model=None, pattern=No
     from torch_diffavatar.body.model import BodyModel
     from torch_diffavatar.body.parts import vertex_parts
     from torch_diffavatar.fit import ScanTarget
-    from torch_diffavatar.pattern import load_template, mesh_pattern
+    from torch_diffavatar.pattern import mesh_pattern
     from torch_diffavatar.scan import ScanWarning, load_scan, remove_outliers
     from torch_diffavatar.sim.placement import place_garment
 
@@ -198,7 +269,11 @@ def prepare(scan_path, config, *, units="m", up="y", anny_model=None, pattern=No
         body_verts = body().vertices[0].double()
     faces = body.faces.cpu().numpy()
     parts = vertex_parts(anny_model).cpu().numpy()
-    seg_type = SEGMENT_TYPES.get(config.template, config.template)
+    if pattern is None:
+        from torch_diffavatar.pattern.library import resolve_pattern
+
+        pattern = resolve_pattern(config.template)
+    seg_type = garment_type or SEGMENT_TYPES.get(config.template) or infer_garment_type(pattern)
     if scan.labels is not None:
         mask = scan.labels == GARMENT_LABEL
         labelled = True
@@ -210,7 +285,6 @@ def prepare(scan_path, config, *, units="m", up="y", anny_model=None, pattern=No
     if mask.sum() < 50:
         raise InputError(f"{scan_path}: only {int(mask.sum())} garment points; cannot fit a garment")
     loops = scan_boundaries(scan.points, mask, body_verts.numpy(), faces, parts, seg_type)
-    pattern = load_template(config.template) if pattern is None else pattern
     garment = mesh_pattern(pattern, spacing=config.spacing)
     garment = place_garment(garment, body_verts, body.faces)
     boundaries = match_boundaries(garment, loops)
@@ -243,10 +317,11 @@ def fit_scan(
     progress=True,
     anny_model=None,
     pattern=None,
+    garment_type=None,
 ) -> dict:
     """Run the whole job (see the module docstring); returns the report (also ``out_dir/report.json``).
 
-    ``pattern``: start from this `Pattern` instead of ``config.template`` (see `prepare`)."""
+    ``pattern``: start from this `Pattern` instead of ``config.template``; ``garment_type``: see `prepare`."""
     from torch_diffavatar.assets import write_assets
     from torch_diffavatar.body.anny_model import load_anny
     from torch_diffavatar.body.model import BodyModel
@@ -263,7 +338,15 @@ def fit_scan(
     if resume and setup_path.is_file():
         setup = torch.load(setup_path, weights_only=False)
     else:
-        setup = prepare(scan_path, config, units=units, up=up, anny_model=anny_model, pattern=pattern)
+        setup = prepare(
+            scan_path,
+            config,
+            units=units,
+            up=up,
+            anny_model=anny_model,
+            pattern=pattern,
+            garment_type=garment_type,
+        )
         _atomic_save(setup, setup_path)
     body = BodyModel(anny_model=anny_model)
     body.load_parameters_dict(setup["body_params"])
