@@ -130,6 +130,31 @@ def test_step_that_raises_the_loss_is_halved_and_shrinks_later_steps(skirt_probl
     assert result.report["loss_final"] == result.report["loss_initial"]
 
 
+def test_after_a_dropped_step_the_trials_drape_from_the_accepted_start(skirt_problem):
+    """A dropped step re-drapes the accepted parameters from that drape's start; the next step's trials
+    start there too, not from the (unsettled) end state, from which every step size could rise."""
+    config = _config(iterations=2, max_loss_rise=0.3, max_retries=1)
+    fitter = _fitter(skirt_problem, config, tensorboard=False)
+    original = fitter.evaluate
+    starts = []
+
+    def first_step_rises(state):
+        ev = original(state)
+        starts.append(state.x.detach().clone())
+        if len(starts) in (2, 3):  # both trials of the first step (after the first drape)
+            ev.loss = ev.loss * 10.0
+        return ev
+
+    fitter.evaluate = first_step_rises
+    result = fitter.run()
+    assert result.report["rejection_reasons"] == {"loss rose more than max_loss_rise": 2}
+    # drapes: first, 2 trials from its end, the reproduction from its start, then the second step's trial
+    assert len(starts) == 5
+    assert not torch.equal(starts[1], starts[0])  # a trial continues from the accepted drape's end ...
+    assert torch.equal(starts[3], starts[0]) and torch.equal(starts[4], starts[0])  # ... except after a drop
+    assert fitter.trial_from_start is False  # the accepted step restores the warm start
+
+
 def test_a_whole_step_regrows_the_step_size(skirt_problem):
     fitter = _fitter(skirt_problem, _config(iterations=1), tensorboard=False)
     fitter.lr_scale = 0.5  # as after an earlier halving
