@@ -20,11 +20,12 @@ constexpr int64_t kParallelGrain = 512;
 // Threads for an OpenMP region: PyTorch's intra-op setting (torch.set_num_threads), so one knob
 // controls both.
 // Largest entry of a 3x3 SPD system solved by the adjugate before it is scaled down: its determinant
-// (~ entry^3) must stay finite. Sub-millimetre triangles (inverse masses ~1e7) give stretch systems with
-// entries ~1e13, whose determinant overflows float; systems below this are solved unscaled (bit-identical).
+// (a sum of three products ~ entry^3) must stay finite. Sub-millimetre triangles (inverse masses ~1e7)
+// give stretch systems with entries ~1e13-1e14, whose determinant overflows float; systems below this
+// (float: 4.4e12) are solved unscaled, as before.
 template <typename T>
 inline T sym3_scale_limit() {
-  static const T limit = std::cbrt(std::numeric_limits<T>::max()) / T(8);
+  static const T limit = std::cbrt(std::numeric_limits<T>::max() / T(4));
   return limit;
 }
 

@@ -64,12 +64,12 @@ _BEND_EPS_N2 = 1e-24
 def _sym3_solve(a00, a01, a02, a11, a12, a22, r0, r1, r2):
     """Solve symmetric positive definite 3x3 systems by the adjugate (batched over the leading shape).
 
-    A system whose largest diagonal entry exceeds cbrt(dtype max) / 8 is scaled down by that entry first:
-    the determinant (~ entry³) overflowed float32 at sub-millimetre triangles (entries ~1e13) and the
-    solve returned NaN. Other systems are solved unscaled (scale 1, bit-identical to before); the C++
-    kernels do the same (`sym3_scale_limit`).
+    A system whose largest diagonal entry exceeds cbrt(dtype max / 4) (float32: 4.4e12) is scaled down by
+    that entry first: the determinant (three products ~ entry³) overflowed float32 at sub-millimetre
+    triangles (entries ~1e13-1e14) and the solve returned NaN. Other systems are solved unscaled (scale
+    1, as before); the C++ kernels do the same (`sym3_scale_limit`).
     """
-    limit = torch.finfo(a00.dtype).max ** (1.0 / 3.0) / 8.0
+    limit = (torch.finfo(a00.dtype).max / 4.0) ** (1.0 / 3.0)
     amax = torch.maximum(a00, torch.maximum(a11, a22))
     m = torch.where(amax > limit, 1.0 / amax, torch.ones_like(amax))
     a00, a01, a02, a11, a12, a22, r0, r1, r2 = (t * m for t in (a00, a01, a02, a11, a12, a22, r0, r1, r2))
