@@ -730,10 +730,10 @@ class Fitter:
         before = [p.detach().clone() for p in params]
         self.optimizer.step()
         delta = [p.detach() - b for p, b in zip(params, before)]
-        # trials continue from the accepted drape's end state, except after a dropped step: draping on
-        # from that end state (not settled) moved the loss by more than max_loss_rise at every step size,
-        # so every later step was dropped too (measured: a T-shirt fit stuck for 95 of its 100 trials).
-        # From the accepted drape's own start, a small step changes the drape a little.
+        # trials continue from the accepted drape's end state, except after a dropped step: then they start
+        # where the reproduced drape started, so the halvings probe the very map (start -> drape) whose
+        # gradient was taken (on a T-shirt fit that stalls, rejected trials 95 -> 61 in 30 iterations; it
+        # still stalls: docs/RESULTS.md)
         if self.trial_from_start:
             next_start = start
         else:
