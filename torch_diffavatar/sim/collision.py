@@ -126,9 +126,26 @@ def detect_contacts(
                 use_extension=use_extension,
             )
         vert = torch.nonzero(tri >= 0).squeeze(1)
-        features = index.features if index is not None else _FeatureFaces(body_faces, body_verts.shape[0])
+        features = index.features if index is not None else _feature_faces(body_faces, body_verts.shape[0])
         tri, bary = features.outermost(x.detach()[vert], body_verts.detach(), tri[vert], bary[vert])
     return Contacts(vert, tri, bary)
+
+
+_LAST_FEATURES: list = []  # [(faces, vert_count, _FeatureFaces)] of the last body without a BodyIndex
+
+
+def _feature_faces(faces: torch.Tensor, vert_count: int) -> _FeatureFaces:
+    """`_FeatureFaces` of ``faces``, reused while the same topology comes back: a moving body (animation,
+    the trajectory adjoint's forward) has no `BodyIndex`, and the build costs ~7 ms on the Anny body,
+    every frame otherwise."""
+    if _LAST_FEATURES:
+        cached, count, features = _LAST_FEATURES[0]
+        same = cached.shape == faces.shape and cached.device == faces.device and torch.equal(cached, faces)
+        if count == vert_count and same:  # a copy is compared: faces edited in place are seen
+            return features
+    features = _FeatureFaces(faces, vert_count)
+    _LAST_FEATURES[:] = [(faces.detach().clone(), vert_count, features)]
+    return features
 
 
 class _FeatureFaces:
