@@ -104,7 +104,7 @@ def fit_command(args) -> dict:
         raise InputError(f"--iters must be >= 0, got {args.iters}")
     if args.spacing is not None and not args.spacing > 0:
         raise InputError(f"--spacing must be a positive length in metres, got {args.spacing}")
-    template, garment_type, overrides = args.garment, args.garment_type, {}
+    template, garment_type, overrides, pattern = args.garment, args.garment_type, {}, None
     if args.garment not in SEGMENT_TYPES:
         from torch_diffavatar.pattern.library import resolve_pattern
 
@@ -112,7 +112,8 @@ def fit_command(args) -> dict:
             raise InputError(
                 f"--garment {args.garment!r}: not a template ({', '.join(SEGMENT_TYPES)}) nor a pattern file"
             )
-        garment_type = garment_type or infer_garment_type(resolve_pattern(args.garment))
+        pattern = resolve_pattern(args.garment)
+        garment_type = garment_type or infer_garment_type(pattern)
         template, overrides = TYPE_CONFIGS[garment_type], {"template": str(Path(args.garment).resolve())}
     config = load_config(
         args.config, garment=template, iterations=args.iters, spacing=args.spacing, **overrides
@@ -129,6 +130,7 @@ def fit_command(args) -> dict:
             units=args.units,
             up=args.up,
             progress=not args.no_progress,
+            pattern=pattern,
             garment_type=garment_type,
         )
     if not args.json:
