@@ -89,9 +89,17 @@ def test_step_that_inverts_a_rest_triangle_is_rejected(skirt_problem):
 def test_step_that_raises_the_loss_is_halved_and_shrinks_later_steps(skirt_problem):
     """A step whose loss rises more than ``max_loss_rise`` is retried at half size; the accepted size
     then scales the later steps. The rise is injected as a value-only loss term growing with the largest
-    handle move (Adam's first step moves every handle coordinate by exactly ``lr_cage``)."""
+    handle move (without the proximal rest step, Adam's first step moves every handle coordinate by exactly
+    ``lr_cage``)."""
     lr = 0.002
-    config = _config(iterations=1, lr_cage=lr, lr_log_bend_stiffness=0.0, max_loss_rise=0.3, max_retries=3)
+    config = _config(
+        iterations=1,
+        lr_cage=lr,
+        lr_log_bend_stiffness=0.0,
+        max_loss_rise=0.3,
+        max_retries=3,
+        rest_prox_iterations=0,
+    )
     fitter = _fitter(skirt_problem, config, tensorboard=False)
     start = fitter.params.cage.handles.detach().clone()
     original = fitter.evaluate
@@ -232,8 +240,9 @@ def test_bundled_configs_load(garment):
 def test_without_the_cage_the_rest_mesh_degrades(skirt_problem):
     """The paper's "w/o cage" ablation: free per-vertex rest coordinates follow the noisy per-vertex
     gradients and distort the panels; the cage's mean value coordinates keep them smooth (measured:
-    rest quality min 0.56 with the cage, 0.39 without, template 0.67). Both take every Adam step whole
-    (no loss-rise check): the check rejects some of the free vertices' worst steps (0.45 with it)."""
+    rest quality min 0.56 with the cage, 0.42 without, template 0.67; 0.39 without the proximal rest step,
+    whose rest-shape term straightens some free vertices). Both take every Adam step whole (no loss-rise
+    check): the check rejects some of the free vertices' worst steps (0.45 with it)."""
     from torch_diffavatar.metrics import triangle_quality
 
     garment = skirt_problem[0]
@@ -246,7 +255,7 @@ def test_without_the_cage_the_rest_mesh_degrades(skirt_problem):
         quality[cage] = float(triangle_quality(result.rest_uv, garment.tri_vertices).min())
     assert quality[True] > 0.75 * q_template
     assert quality[False] < 0.65 * q_template
-    assert quality[False] < quality[True] - 0.15
+    assert quality[False] < quality[True] - 0.12
 
 
 def test_ablation_switches_in_the_config():
@@ -254,3 +263,38 @@ def test_ablation_switches_in_the_config():
     assert config.cage is False and config.weights.seam_length == 0 and config.weights.curvature == 0
     with pytest.raises(InputError, match="lr_final"):
         config_from_dict({"lr_final": 0.0})
+
+
+def test_rest_prox_solves_its_proximal_problem(skirt_problem):
+    """The cage's Adam step sees the drape's terms only; `Fitter.rest_prox` then moves the handles from
+    Adam's result ĉ to the minimiser of R(c) + ½ Σ m (c − ĉ)², m Adam's metric (√v̂ + ε) / lr."""
+    garment, state, _ = skirt_problem
+    fitter = _fitter(skirt_problem, _config(iterations=1, lr_cage=0.02), tensorboard=False)
+    handles = fitter.params.cage.handles
+    ev = fitter._backward(fitter.evaluate(state), state)
+    rest_names = fitter.rest_terms(ev.rest_uv)
+    # the evaluation's graph is gone after backward: the drape terms' gradient from a fresh one
+    fresh = fitter.evaluate(state)
+    drape_loss = sum(
+        getattr(fitter.config.weights, k) * v for k, v in fresh.terms.items() if k not in rest_names
+    )
+    (expected,) = torch.autograd.grad(drape_loss, handles)
+    fitter._drop_rest_gradient(handles)
+    torch.testing.assert_close(handles.grad, expected, rtol=1e-9, atol=1e-12)
+
+    group = fitter._cage_group()
+    fitter.optimizer.step()
+    target = handles.detach().clone()
+    fitter.rest_prox(group)
+    c = handles.detach().clone().requires_grad_(True)
+    st = fitter.optimizer.state[handles]
+    vhat = st["exp_avg_sq"] / (1.0 - group["betas"][1] ** float(st["step"]))
+    metric = (vhat.sqrt() + group["eps"]) / group["lr"]
+    (grad_r,) = torch.autograd.grad(fitter.rest_loss(c), c)
+    stationarity = grad_r + metric * (c.detach() - target)
+    with torch.no_grad():
+        r_adam, r_prox = float(fitter.rest_loss(target)), float(fitter.rest_loss(c))
+    assert r_adam > 0.0  # Adam's sign-like first step bends the outline ...
+    assert r_prox < 0.7 * r_adam  # ... the proximal step takes part of it back (measured 1.42 -> 0.86)
+    assert float(stationarity.abs().max()) < 1e-6 * float(metric.max() * group["lr"])
+    assert not torch.equal(c.detach(), target)

@@ -7,7 +7,10 @@ equilibrium (the very first start state is a full `sew_and_drape` of the placed 
 
     loss = ρ·boundary + σ·interior + α·seam_length + β·curvature  (+ a weak phenotype prior)
 
-(`LossWeights`, terms of `torch_diffavatar.losses`), backpropagates through the drape and steps.
+(`LossWeights`, terms of `torch_diffavatar.losses`), backpropagates through the drape and steps. The
+terms of the rest pattern alone (seam length, curvature, rest area and shape) are cheap and known in closed
+form, so the cage's step is proximal for them: Adam steps on the rest, and they are minimised exactly
+around its result (`Fitter.rest_prox`, ``FitConfig.rest_prox_iterations``).
 
 Guards: non-finite gradient entries are zeroed (counted, never reach the parameters); a step that would
 shrink a rest triangle below ``min_rest_area_ratio`` of its template area (inverting it), make a
@@ -155,6 +158,12 @@ class FitConfig:
             trials drape from the accepted drape's start instead of its end state (``trial_from_start``).
         lr_final: every learning rate decays along a cosine from its value at the first iteration to
             ``lr_final`` times that value at the last one [-] (1: constant).
+        rest_prox_iterations: L-BFGS iterations of the proximal step of the cage handles (`Fitter.step`):
+            Adam steps on the drape's terms only, and the terms of the rest pattern alone (seam length,
+            curvature, rest area and shape) are then minimised exactly around Adam's result, in Adam's own
+            metric [-]. 0: one Adam step on the whole loss. Adam's first step moves every handle by its
+            learning rate, whatever its gradient; the curvature term, which has no gradient at the
+            template, then rose 17× the whole loss on a T-shirt fit and stalled it (docs/RESULTS.md).
         cage: parameterise the pattern by a `ControlCage` (the method); False optimises every panel
             vertex's rest coordinate directly (`cage.FreeVertices`, the paper's "w/o cage" ablation).
         tie_mirrored, tie_seams: `ControlCage` tying options (ignored without the cage).
@@ -192,6 +201,7 @@ class FitConfig:
     max_retries: int = 3
     max_loss_rise: float = 0.1
     lr_final: float = 1.0
+    rest_prox_iterations: int = 50
     cage: bool = True
     tie_mirrored: bool = True
     tie_seams: bool = True
@@ -223,9 +233,10 @@ class FitConfig:
             "max_scan_points",
             "polish_iterations",
             "boundary_samples",
+            "rest_prox_iterations",
         ):
             value = getattr(self, name)
-            low = 0 if name in ("iterations", "polish_iterations") else 1
+            low = 0 if name in ("iterations", "polish_iterations", "rest_prox_iterations") else 1
             if not isinstance(value, int) or value < low:
                 raise ValueError(f"FitConfig.{name} must be an integer >= {low}")
         for name in ("boundary_robust", "interior_robust"):
@@ -630,12 +641,7 @@ class Fitter:
                 scale=cfg.robust_scale,
                 trim=cfg.boundary_trim,
             )
-        terms["seam_length"] = seam_length_loss(rest_uv, self.garment, segments=self.seam_segments)
-        terms["curvature"] = curvature_loss(rest_uv, self.template_uv, self.garment)
-        if w.rest_area > 0:
-            terms["rest_area"] = rest_area_loss(rest_uv, self.template_uv, self.garment.tri_vertices)
-        if w.rest_shape > 0:
-            terms["rest_shape"] = rest_distortion_loss(rest_uv, self.template_uv, self.garment.tri_vertices)
+        terms.update(self.rest_terms(rest_uv))
         if self.phenotypes0 is not None and self.params.body.phenotype_logits.requires_grad:
             terms["phenotype_prior"] = ((self.params.body.phenotypes - self.phenotypes0) ** 2).sum()
         if self.skin_points is not None and w.skin > 0:
@@ -648,6 +654,72 @@ class Fitter:
             )
         loss = sum(getattr(w, k) * v for k, v in terms.items())
         return Evaluation(loss, terms, x, rest_uv, body_verts, kb, stats)
+
+    def rest_terms(self, rest_uv: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The loss terms of the rest pattern alone, unweighted: seam length, curvature, and rest area and
+        rest shape when their weights are positive. ``rest_uv``: (V, 2) [m]."""
+        w = self.config.weights
+        terms = {
+            "seam_length": seam_length_loss(rest_uv, self.garment, segments=self.seam_segments),
+            "curvature": curvature_loss(rest_uv, self.template_uv, self.garment),
+        }
+        if w.rest_area > 0:
+            terms["rest_area"] = rest_area_loss(rest_uv, self.template_uv, self.garment.tri_vertices)
+        if w.rest_shape > 0:
+            terms["rest_shape"] = rest_distortion_loss(rest_uv, self.template_uv, self.garment.tri_vertices)
+        return terms
+
+    def rest_loss(self, handles: torch.Tensor | None = None) -> torch.Tensor:
+        """The weighted sum of `rest_terms` at the cage ``handles`` (default: the parameter)."""
+        w = self.config.weights
+        return sum(getattr(w, k) * v for k, v in self.rest_terms(self.params.cage(handles)).items())
+
+    def _cage_group(self) -> dict | None:
+        """The cage's Adam group when the proximal rest step is on, else None."""
+        if self.config.rest_prox_iterations == 0:
+            return None
+        return next((g for g in self.optimizer.param_groups if g["name"] == "cage"), None)
+
+    def _drop_rest_gradient(self, handles: torch.Tensor) -> None:
+        """Take the rest terms' gradient out of the handles' gradient: the proximal step handles them."""
+        with torch.enable_grad():
+            (grad,) = torch.autograd.grad(self.rest_loss(), handles)
+        handles.grad = handles.grad - grad
+
+    def rest_prox(self, group: dict) -> None:
+        """Move the cage handles from Adam's result ĉ to argmin_c R(c) + ½ Σ m (c − ĉ)², R = `rest_loss`.
+
+        m = (√v̂ + ε) / lr is the metric in which Adam's step is a gradient step (v̂ its bias-corrected second
+        moment), so coordinates with a steady drape gradient keep Adam's move, and those Adam moved by
+        its learning rate on a negligible gradient go where the rest terms want them. Solved by L-BFGS
+        (``rest_prox_iterations``); a non-finite solution leaves Adam's result.
+        """
+        handles = group["params"][0]
+        state = self.optimizer.state[handles]
+        beta2 = group["betas"][1]
+        vhat = state["exp_avg_sq"] / (1.0 - beta2 ** float(state["step"]))
+        metric = (vhat.sqrt() + group["eps"]) / group["lr"]
+        target = handles.detach().clone()
+        c = target.clone().requires_grad_(True)
+        lbfgs = torch.optim.LBFGS(
+            [c],
+            max_iter=self.config.rest_prox_iterations,
+            line_search_fn="strong_wolfe",
+            tolerance_grad=1e-9,
+            tolerance_change=1e-12,
+        )
+
+        def closure():
+            lbfgs.zero_grad()
+            with torch.enable_grad():
+                value = self.rest_loss(c) + 0.5 * (metric * (c - target) ** 2).sum()
+                value.backward()
+            return value
+
+        lbfgs.step(closure)
+        if torch.isfinite(c).all():
+            with torch.no_grad():
+                handles.copy_(c.detach())
 
     def _checked_evaluate(self, start: ClothState) -> Evaluation | None:
         """`evaluate`, or None when the drape blew up, jumped too far or gave non-finite values (the
@@ -721,14 +793,22 @@ class Fitter:
         return self.config.lr_final + (1.0 - self.config.lr_final) * 0.5 * (1.0 + math.cos(math.pi * t))
 
     def step(self, ev: Evaluation, start: ClothState) -> tuple[Evaluation, ClothState, int]:
-        """Backward, Adam step with the guards; returns (next evaluation, its start state, rejections)."""
+        """Backward, Adam step (the cage's with its `rest_prox`) and the guards; returns (next evaluation,
+        its start state, rejections)."""
         ev = self._backward(ev, start)
+        cage_group = self._cage_group()
+        if cage_group is not None and cage_group["params"][0].grad is not None:
+            self._drop_rest_gradient(cage_group["params"][0])
+        else:
+            cage_group = None
         self._sanitize_grads()
         for g in self.optimizer.param_groups:
             g["lr"] = g["base_lr"] * self.lr_scale * self.lr_schedule(self.iteration)
         params = [p for g in self.groups for p in g["params"]]
         before = [p.detach().clone() for p in params]
         self.optimizer.step()
+        if cage_group is not None:
+            self.rest_prox(cage_group)
         delta = [p.detach() - b for p, b in zip(params, before)]
         # trials continue from the accepted drape's end state, except after a dropped step: then they start
         # where the reproduced drape started, so the halvings probe the very map (start -> drape) whose
