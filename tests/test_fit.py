@@ -99,6 +99,7 @@ def test_step_that_raises_the_loss_is_halved_and_shrinks_later_steps(skirt_probl
         max_loss_rise=0.3,
         max_retries=3,
         rest_prox_iterations=0,
+        keep_best=False,  # the result is the step under test, not the lowest loss
     )
     fitter = _fitter(skirt_problem, config, tensorboard=False)
     start = fitter.params.cage.handles.detach().clone()
@@ -298,3 +299,34 @@ def test_rest_prox_solves_its_proximal_problem(skirt_problem):
     assert r_prox < 0.7 * r_adam  # ... the proximal step takes part of it back (measured 1.42 -> 0.86)
     assert float(stationarity.abs().max()) < 1e-6 * float(metric.max() * group["lr"])
     assert not torch.equal(c.detach(), target)
+
+
+@pytest.mark.parametrize("keep_best", [True, False])
+def test_the_result_is_the_iteration_with_the_lowest_loss(skirt_problem, keep_best):
+    """A last step that raises the loss (allowed here: no loss-rise check) is not the result with
+    ``keep_best``: the second iteration is, its drape reproduced from its own start to the same loss."""
+    config = _config(iterations=3, max_loss_rise=float("inf"), keep_best=keep_best)
+    fitter = _fitter(skirt_problem, config, tensorboard=False)
+    original = fitter.evaluate
+    calls = []
+
+    def last_step_rises(state):
+        ev = original(state)
+        calls.append(1)
+        if len(calls) == 4:  # first drape, then one trial per iteration: the third iteration's
+            ev.loss = ev.loss * 2.0
+        return ev
+
+    fitter.evaluate = last_step_rises
+    result = fitter.run()
+    report = result.report
+    second = result.history[1]["loss/total"]
+    assert result.history[2]["loss/total"] > 1.5 * second
+    if keep_best:
+        assert report["result_iteration"] == 2
+        assert report["loss_final"] == pytest.approx(second, rel=1e-12)
+        assert torch.equal(fitter.params.cage.handles.detach(), fitter.best["params"]["cage.handles"])
+    else:
+        assert report["result_iteration"] == 3
+        assert report["loss_final"] == result.history[2]["loss/total"]
+    assert len(calls) == (5 if keep_best else 4)
