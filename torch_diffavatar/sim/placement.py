@@ -31,6 +31,8 @@ body at hand (only the initial 3D positions ``vert_pos`` change; the 2D rest sha
    widened until no vertex is too close, and what remains is pushed out along the body normal with
    smooth bumps, until every panel vertex is ``vertex_clearance`` and the midpoint of every stitched
    pair ``stitch_clearance`` outside the body (signed distance to the closest point of the body mesh).
+   A push that would tear triangles (`_untear`: GarmentCode's jumpsuit's sleeve-cap corners) is spread
+   over the push radius instead.
 
 Limitations: assumes our world frame (Y up, metres, facing +Z), a roughly symmetric GarmentCode-style
 layout (front panels at +Z, back panels at −Z, centred on x = 0) and a standing body with arms away from
@@ -1116,6 +1118,76 @@ def _place_rigid(ctx: _Context, out: np.ndarray, placed: np.ndarray, panels: lis
         placed[verts] = True
 
 
+# A push that stretches a triangle past this Green strain [-] tears it. The bundled templates' pushes reach
+# 5.4 at most (near the armpits: sewing relaxes those, and they are left as they are); GarmentCode's
+# jumpsuit reached 12.9 (tiny triangles at its sleeve caps' corners), beyond what the solver takes (3).
+_TEAR_STRAIN = 8.0
+# once a push tears, it is spread until it strains no triangle past this [-] (or past its strain before)
+_RELAX_STRAIN = 1.0
+
+
+def _rest_inverse(garment: GarmentMesh) -> np.ndarray:
+    """(F, 2, 2) inverse of each triangle's 2D rest edge matrix [1/m] (columns: edges to corner 2)."""
+    t = garment.tri_vertices.cpu().numpy()
+    uv = garment.vert_uv.detach().cpu().numpy().astype(np.float64)
+    rest = np.stack([uv[t[:, 0]] - uv[t[:, 2]], uv[t[:, 1]] - uv[t[:, 2]]], -1)
+    return np.linalg.inv(rest)
+
+
+def _green_strain(pos: np.ndarray, tris: np.ndarray, rest_inv: np.ndarray) -> np.ndarray:
+    """(F,) largest |Green strain| component of each triangle at ``pos`` (V, 3) against its rest shape."""
+    cur = np.stack([pos[tris[:, 0]] - pos[tris[:, 2]], pos[tris[:, 1]] - pos[tris[:, 2]]], -1)
+    f = cur @ rest_inv
+    e = 0.5 * (np.swapaxes(f, 1, 2) @ f - np.eye(2))
+    return np.abs(e).reshape(len(tris), -1).max(1)
+
+
+def _untear(
+    pos: np.ndarray, disp: np.ndarray, tris: np.ndarray, rest_inv: np.ndarray, radius: float, rounds: int = 8
+) -> np.ndarray:
+    """``pos + disp`` with pushes that tear triangles (past `_TEAR_STRAIN`) spread over a ball.
+
+    A vertex too close takes its full push while the field around it may be diluted; at the sleeve-cap
+    corners of GarmentCode's jumpsuit, stitched vertices 6-9 mm apart took pushes of 28 and 7 mm (the
+    midpoints of their pairs lie at different depths in the shoulder). Where that tears, each vertex within
+    ``radius`` of a strained triangle's vertex is pushed at least that vertex's push faded by the field's
+    bump, (1 - (d / radius)^2)^2 of it (never less far: the clearance holds), until no triangle is
+    strained past `_RELAX_STRAIN` (or past its strain before the push). A push that tears nothing is
+    applied unchanged: the bundled templates' placements do not depend on this.
+
+    Args:
+        pos, disp: (V, 3) positions and displacements [m]; tris: (F, 3); rest_inv: (F, 2, 2) from
+            `_rest_inverse`; radius: [m] the push field's radius.
+    """
+    from scipy.spatial import cKDTree
+
+    s0 = _green_strain(pos, tris, rest_inv)
+    if not (_green_strain(pos + disp, tris, rest_inv) > np.maximum(_TEAR_STRAIN, s0)).any():
+        return pos + disp
+    disp = disp.copy()
+    tree = cKDTree(pos)
+    for _ in range(rounds):
+        strained = _green_strain(pos + disp, tris, rest_inv) > np.maximum(_RELAX_STRAIN, s0)
+        if not strained.any():
+            break
+        src = np.unique(tris[strained])
+        mag = np.linalg.norm(disp, axis=1)
+        near = cKDTree(pos[src]).sparse_distance_matrix(tree, radius, output_type="ndarray")
+        si, vj, d = src[near["i"]], near["j"], near["v"]
+        lack = (1.0 - (d / radius) ** 2) ** 2 * mag[si] - mag[vj]
+        ok = lack > 0
+        si, vj, lack = si[ok], vj[ok], lack[ok]
+        # each vertex makes up its largest shortfall, along the shortfall-weighted mean direction of the
+        # pushes it falls short of (continuous where two sources' bumps meet)
+        need = np.zeros(len(pos))
+        np.maximum.at(need, vj, lack)
+        direction = np.zeros_like(disp)
+        np.add.at(direction, vj, lack[:, None] * disp[si] / np.maximum(mag[si], 1e-20)[:, None])
+        direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-20)
+        disp += need[:, None] * direction
+    return pos + disp
+
+
 def _vertex_neighbours(garment: GarmentMesh) -> tuple[np.ndarray, np.ndarray]:
     tris = garment.tri_vertices.cpu().numpy()
     e = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
@@ -1253,6 +1325,8 @@ def place_garment(
     # 2. local push along the body normal, spread smoothly over a ball (no spikes), until all clear
     from scipy.spatial import cKDTree
 
+    tris = garment.tri_vertices.cpu().numpy()
+    rest_inv = _rest_inverse(garment)
     for attempt in range(41):
         dv, nv, dm, nm, _ = deficits(pos)
         if dv.max(initial=0) <= 0 and dm.max(initial=0) <= 0:
@@ -1282,6 +1356,6 @@ def place_garment(
         # a vertex that is itself too close takes its own full push (the mean could dilute it)
         own = np.concatenate([bad_v, pairs[bad_m, 0], pairs[bad_m, 1]])
         disp[own] = push
-        pos = pos + disp
+        pos = _untear(pos, disp, tris, rest_inv, push_radius)
     new_pos = torch.as_tensor(pos, dtype=garment.vert_pos.dtype, device=garment.vert_pos.device)
     return replace(garment, vert_pos=new_pos)
