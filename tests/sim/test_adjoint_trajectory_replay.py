@@ -36,6 +36,12 @@ def _frames(model, rest, body, faces, cfg, state, count):
             c = collision.detect_contacts(state.x, body, faces, step_band(state.v, rest, cfg, DT_FRAME))
             c = c if c.count else None
         new = solver.step(state, rest, DT_FRAME, body_verts=body, body_faces=faces, velocity_scale=0.97)
+        # the contacts the step used, which the trajectory adjoint's rollout records, are this very set
+        last = solver.last_contacts
+        assert (last is None) == (c is None)
+        if c is not None:
+            assert torch.equal(last.vert, c.vert) and torch.equal(last.tri, c.tri)
+            assert torch.equal(last.bary, c.bary)
         yield state, c, new
         state = new
 

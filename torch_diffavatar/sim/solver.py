@@ -111,6 +111,9 @@ class XPBDSolver:
         self.config = XPBDConfig() if config is None else config
         # closest-point grid of the last static body seen by `step` (rebuilt when the body changes)
         self._body_index: collision.BodyIndex | None = None
+        # the body contacts the last `step` projected against (None: no body, or none in its band); the
+        # trajectory adjoint records them for its replay instead of detecting them a second time
+        self.last_contacts: collision.Contacts | None = None
 
     def step(
         self,
@@ -183,6 +186,7 @@ class XPBDSolver:
                 contacts = collision.detect_contacts(
                     x, body_verts, body_faces, band, use_extension=cfg.use_extension, index=index
                 )
+            self.last_contacts = contacts if contacts is not None and contacts.count else None
             moving = contacts is not None and contacts.count and body_verts_end is not None
             if contacts is not None and contacts.count:
                 bv = body_verts.detach().to(x.dtype).contiguous()

@@ -178,8 +178,8 @@ class Rollout:
 def step_band(v: torch.Tensor, rest: RestData, xpbd: XPBDConfig, dt: float) -> float:
     """The contact-detection band [m] of `XPBDSolver.step` for a frame starting with velocities ``v``.
 
-    The step detects its own contacts; the rollout records the same set (same positions, same band), so
-    the replay projects against exactly the contacts the forward used.
+    The step detects its own contacts, and the rollout records them (`XPBDSolver.last_contacts`); this
+    reproduces them outside the solver (same positions, same band), for checks and tools.
     """
     reach = 1.5 * float(v.norm(dim=-1).max()) * dt if v.numel() else 0.0
     return float(rest.material.thickness) + max(xpbd.collision_band, reach)
@@ -198,17 +198,6 @@ def rollout(
     settled, steps, speed = 0, 0, math.inf
     with torch.no_grad():
         while steps < cfg.max_steps:
-            contacts = None
-            if body_verts is not None:
-                contacts = collision.detect_contacts(
-                    state.x,
-                    body_verts,
-                    setup.body_faces,
-                    step_band(state.v, rest, cfg.xpbd, cfg.dt),
-                    use_extension=cfg.xpbd.use_extension,
-                )
-                contacts = contacts if contacts.count else None
-            contacts_per_frame.append(contacts)
             state = solver.step(
                 state,
                 rest,
@@ -217,6 +206,8 @@ def rollout(
                 body_faces=setup.body_faces,
                 velocity_scale=cfg.drape_velocity_scale,
             )
+            # the replay projects against exactly the contacts this step detected and used
+            contacts_per_frame.append(solver.last_contacts)
             steps += 1
             if steps % options.checkpoint_every == 0:
                 checkpoints[steps] = (state.x, state.v)
