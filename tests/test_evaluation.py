@@ -91,3 +91,26 @@ def test_missing_material_raises_input_error(tmp_path):
     folder = _write_assets(tmp_path / "fit", _pattern(a=SQUARE))  # pattern.json only
     with pytest.raises(InputError, match="material.json"):
         compare_with_truth(folder, _pattern(a=SQUARE), truth_bend_stiffness=1e-5)
+
+
+def test_pattern_overlay_gives_narrow_panels_room_for_their_names(tmp_path):
+    """Each panel's column is as wide as its name when the panel is narrower (collars ran into the next
+    panel's name); the template, truth and result outlines are drawn in their colours."""
+    from PIL import Image, ImageDraw
+
+    from torch_diffavatar.evaluation import OVERLAY_COLOURS, save_pattern_overlay
+
+    narrow = np.array([[0.0, 0.0], [0.02, 0.0], [0.02, 0.3], [0.0, 0.3]])  # 2 cm: 8 px at the scale
+    template = _pattern(a_rather_long_collar_name=narrow, square=SQUARE)
+    wider = _pattern(a_rather_long_collar_name=narrow * [1.0, 1.1], square=SQUARE * 1.1)
+    path = tmp_path / "overlay.png"
+    result = _pattern(a_rather_long_collar_name=narrow * [1.0, 1.05], square=SQUARE * 1.05)
+    save_pattern_overlay({"template": template, "truth": wider, "result": result}, path, scale=400.0)
+    image = np.asarray(Image.open(path).convert("RGB"))
+    label = ImageDraw.Draw(Image.new("RGB", (1, 1))).textlength("a_rather_long_collar_name")
+    assert label > 0.02 * 400.0 + 12  # the name is wider than the panel and its padding
+    # the square's outline starts right of the collar's name, not under it
+    square_columns = np.nonzero((image == OVERLAY_COLOURS["result"]).all(-1).any(0))[0]
+    assert square_columns.max() > 12 + label + 12 + 0.9 * SIDE * 400.0
+    for colour in OVERLAY_COLOURS.values():
+        assert (image == colour).all(-1).any()

@@ -203,16 +203,20 @@ def save_pattern_overlay(patterns: dict, path, scale: float = 400.0) -> None:
         pts = np.concatenate([p.panels[panel].outline() for p in patterns.values()])
         boxes.append((pts.min(0), pts.max(0)))
     pad = 12
-    width = int(sum(scale * (hi[0] - lo[0]) + pad for lo, hi in boxes)) + pad
+    # each panel's column is as wide as the panel or its name, whichever is wider (names of narrow
+    # panels such as collars ran into the next one's)
+    label = ImageDraw.Draw(Image.new("RGB", (1, 1)))
+    columns = [max(scale * (hi[0] - lo[0]), label.textlength(panel)) for panel, (lo, hi) in zip(names, boxes)]
+    width = int(sum(c + pad for c in columns)) + pad
     height = int(max(scale * (hi[1] - lo[1]) for lo, hi in boxes)) + 2 * pad + 16
     img = Image.new("RGB", (width, height), "white")
     draw = ImageDraw.Draw(img)
     x0 = pad
-    for panel, (lo, hi) in zip(names, boxes):
+    for panel, (lo, _hi), column in zip(names, boxes, columns):
         for key, pattern in patterns.items():
             o = pattern.panels[panel].outline() - lo
             pts = [(x0 + scale * x, height - pad - scale * y) for x, y in o]
             draw.polygon(pts, outline=OVERLAY_COLOURS.get(key, (0, 0, 0)), width=2)
         draw.text((x0, 2), panel, fill=(0, 0, 0))
-        x0 += scale * (hi[0] - lo[0]) + pad
+        x0 += column + pad
     img.save(path)
