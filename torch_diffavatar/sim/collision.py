@@ -185,10 +185,21 @@ class _FeatureFaces:
     def outermost(self, x, body_verts, tri, bary):
         """For contacts whose closest point is on an edge or vertex of face ``tri``: the face sharing that
         feature whose plane is farthest from x, and the point's barycentrics on it. (C, 3), (C,), (C, 3)."""
-        if tri.numel() == 0:
-            return tri, bary
         zero = bary <= 0
         nz = zero.sum(-1)
+        # only points on an edge or a vertex can change face: most contacts are inside their face
+        on_feature = torch.nonzero(nz > 0).squeeze(1)
+        if on_feature.numel() == 0:
+            return tri, bary
+        sub_tri, sub_bary = self._outermost(
+            x[on_feature], body_verts, tri[on_feature], bary[on_feature], zero[on_feature], nz[on_feature]
+        )
+        tri, bary = tri.clone(), bary.clone()
+        tri[on_feature], bary[on_feature] = sub_tri, sub_bary
+        return tri, bary
+
+    def _outermost(self, x, body_verts, tri, bary, zero, nz):
+        """`outermost` for contacts on an edge (nz = 1 zero barycentric) or a vertex (nz = 2)."""
         cand = tri[:, None].expand(-1, self.ring.shape[1] + 1).clone()
         cand[:, 1:] = -1
         edge = nz == 1
