@@ -54,7 +54,9 @@ from torch_diffavatar.losses import (
     rest_area_ratio,
     rest_distortion_loss,
     seam_length_loss,
+    signed_rest_areas,
     skin_loss,
+    template_edge_inverse,
 )
 from torch_diffavatar.metrics import triangle_quality
 from torch_diffavatar.pattern.garment_mesh import GarmentMesh
@@ -500,6 +502,9 @@ class Fitter:
         self.dtype = dtype
         self.garment = garment
         self.template_uv = garment.vert_uv.to(dtype)
+        # template constants of the rest-shape terms, evaluated ~60 times per step by `rest_prox`
+        self._template_area = signed_rest_areas(self.template_uv, garment.tri_vertices)
+        self._template_inverse = template_edge_inverse(self.template_uv, garment.tri_vertices)
         self.material = material if material is not None else ClothMaterial()
         self.model: ClothModel = ClothModelBuilder(self.material).add_garment(garment).finalize(dtype=dtype)
         if config.cage:
@@ -670,10 +675,15 @@ class Fitter:
             "seam_length": seam_length_loss(rest_uv, self.garment, segments=self.seam_segments),
             "curvature": curvature_loss(rest_uv, self.template_uv, self.garment),
         }
+        tri = self.garment.tri_vertices
         if w.rest_area > 0:
-            terms["rest_area"] = rest_area_loss(rest_uv, self.template_uv, self.garment.tri_vertices)
+            terms["rest_area"] = rest_area_loss(
+                rest_uv, self.template_uv, tri, template_area=self._template_area
+            )
         if w.rest_shape > 0:
-            terms["rest_shape"] = rest_distortion_loss(rest_uv, self.template_uv, self.garment.tri_vertices)
+            terms["rest_shape"] = rest_distortion_loss(
+                rest_uv, self.template_uv, tri, template_inverse=self._template_inverse
+            )
         return terms
 
     def rest_loss(self, handles: torch.Tensor | None = None) -> torch.Tensor:

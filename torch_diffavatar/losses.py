@@ -389,6 +389,7 @@ def rest_area_loss(
     *,
     threshold: float = 0.5,
     reduction: str = "sum",
+    template_area: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Keeps rest triangles from collapsing: ``Σ_f relu(threshold − A_f / Ā_f)²``.
 
@@ -403,6 +404,8 @@ def rest_area_loss(
             the template's area is divided out).
         threshold: area ratio below which the penalty starts [-].
         reduction: ``"sum"`` / ``"mean"`` over triangles, or ``"none"`` → (…, F).
+        template_area: optional (F,) `signed_rest_areas` of the template, computed once by a caller that
+            evaluates the term many times (a fit's proximal step).
 
     Returns:
         () or (B,) dimensionless (or (…, F) for ``"none"``).
@@ -410,7 +413,7 @@ def rest_area_loss(
     _check_reduction(reduction)
     if not 0.0 < threshold <= 1.0:
         raise ValueError(f"threshold must be in (0, 1], got {threshold}")
-    ratio = rest_area_ratio(rest_uv, template_uv, tri_vertices)
+    ratio = rest_area_ratio(rest_uv, template_uv, tri_vertices, template_area=template_area)
     return _reduce(torch.relu(threshold - ratio) ** 2, None, reduction)
 
 
@@ -421,6 +424,7 @@ def rest_distortion_loss(
     *,
     threshold: float = 0.25,
     reduction: str = "sum",
+    template_inverse: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Keeps rest triangles from turning into slivers: ``Σ_f relu(c_f − threshold)²``.
 
@@ -435,6 +439,8 @@ def rest_distortion_loss(
         tri_vertices: (F, 3) int64 panel-vertex triangles.
         threshold: distortion below which the penalty is 0 [-].
         reduction: ``"sum"`` / ``"mean"`` over triangles, or ``"none"`` → (…, F).
+        template_inverse: optional (F, 2, 2) `template_edge_inverse`, computed once by a caller that
+            evaluates the term many times (a fit's proximal step).
 
     Returns:
         () or (B,) dimensionless (or (…, F) for ``"none"``).
@@ -442,15 +448,21 @@ def rest_distortion_loss(
     _check_reduction(reduction)
     if not threshold >= 0.0:
         raise ValueError(f"threshold must be >= 0, got {threshold}")
+    if template_inverse is None:
+        template_inverse = template_edge_inverse(template_uv.to(rest_uv), tri_vertices)
     p = rest_uv[..., tri_vertices, :]  # (…, F, 3, 2)
-    q = template_uv.to(rest_uv)[tri_vertices]  # (F, 3, 2)
     e = torch.stack([p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :]], dim=-1)  # columns
-    t = torch.stack([q[..., 1, :] - q[..., 0, :], q[..., 2, :] - q[..., 0, :]], dim=-1)
-    jac = e @ torch.linalg.inv(t)  # (…, F, 2, 2)
+    jac = e @ template_inverse.to(rest_uv)  # (…, F, 2, 2)
     det = jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]
     # a collapsing triangle is `rest_area_loss`'s (and the step guard's); keep this one finite there
     distortion = (jac**2).sum((-2, -1)) / (2.0 * det.abs().clamp_min(1e-3)) - 1.0
     return _reduce(torch.relu(distortion - threshold) ** 2, None, reduction)
+
+
+def template_edge_inverse(template_uv: torch.Tensor, tri_vertices: torch.Tensor) -> torch.Tensor:
+    """(F, 2, 2) inverse of each template triangle's edge matrix (columns: edges from corner 0) [1/m]."""
+    q = template_uv[tri_vertices]  # (F, 3, 2)
+    return torch.linalg.inv(torch.stack([q[..., 1, :] - q[..., 0, :], q[..., 2, :] - q[..., 0, :]], dim=-1))
 
 
 def signed_rest_areas(rest_uv: torch.Tensor, tri_vertices: torch.Tensor) -> torch.Tensor:
@@ -461,8 +473,14 @@ def signed_rest_areas(rest_uv: torch.Tensor, tri_vertices: torch.Tensor) -> torc
 
 
 def rest_area_ratio(
-    rest_uv: torch.Tensor, template_uv: torch.Tensor, tri_vertices: torch.Tensor
+    rest_uv: torch.Tensor,
+    template_uv: torch.Tensor,
+    tri_vertices: torch.Tensor,
+    *,
+    template_area: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """(…, F) signed rest area over the template's (1 = unchanged, <= 0 = inverted or collapsed)."""
-    ref = signed_rest_areas(template_uv.to(rest_uv), tri_vertices)
-    return signed_rest_areas(rest_uv, tri_vertices) / ref
+    """(…, F) signed rest area over the template's (1 = unchanged, <= 0 = inverted or collapsed);
+    ``template_area``: the template's `signed_rest_areas` when already computed."""
+    if template_area is None:
+        template_area = signed_rest_areas(template_uv.to(rest_uv), tri_vertices)
+    return signed_rest_areas(rest_uv, tri_vertices) / template_area.to(rest_uv)
