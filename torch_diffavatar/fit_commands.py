@@ -134,7 +134,14 @@ def fit_command(args) -> dict:
             garment_type=garment_type,
         )
     if not args.json:
-        for key in ("chamfer_initial", "chamfer_final", "iterations", "seconds", "rejected_steps"):
+        for key in (
+            "chamfer_initial",
+            "chamfer_final",
+            "iterations",
+            "result_iteration",
+            "seconds",
+            "rejected_steps",
+        ):
             print(f"{key}: {report[key]}")
         print(f"assets: {out}")
     return report
