@@ -9,8 +9,8 @@ equilibrium (the very first start state is a full `sew_and_drape` of the placed 
 
 (`LossWeights`, terms of `torch_diffavatar.losses`), backpropagates through the drape and steps. The
 terms of the rest pattern alone (seam length, curvature, rest area and shape) are cheap and known in closed
-form, so the cage's step is proximal for them: Adam steps on the rest, and they are minimised exactly
-around its result (`Fitter.rest_prox`, ``FitConfig.rest_prox_iterations``).
+form, so the cage's step is proximal for them: Adam steps on the rest, and L-BFGS minimises them around
+its result (`Fitter.rest_prox`, ``FitConfig.rest_prox_iterations``).
 
 Guards: non-finite gradient entries are zeroed (counted, never reach the parameters); a step that would
 shrink a rest triangle below ``min_rest_area_ratio`` of its template area (inverting it), make a
@@ -162,7 +162,7 @@ class FitConfig:
             ``lr_final`` times that value at the last one [-] (1: constant).
         rest_prox_iterations: L-BFGS iterations of the proximal step of the cage handles (`Fitter.step`):
             Adam steps on the drape's terms only, and the terms of the rest pattern alone (seam length,
-            curvature, rest area and shape) are then minimised exactly around Adam's result, in Adam's own
+            curvature, rest area and shape) are then minimised around Adam's result, in Adam's own
             metric [-]. 0: one Adam step on the whole loss. Adam's first step moves every handle by its
             learning rate, whatever its gradient; the curvature term, which has no gradient at the
             template, then rose 17× the whole loss on a T-shirt fit and stalled it (docs/RESULTS.md).

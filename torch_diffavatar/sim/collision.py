@@ -227,9 +227,8 @@ class _FeatureFaces:
         # the closest point is a shared edge / vertex point: move its weights to the new face's corners
         old_c, new_c = self.faces[tri[moved]], self.faces[new[moved]]
         same = (old_c[:, :, None] == new_c[:, None, :]).to(bary.dtype)  # (M, 3 old, 3 new)
-        bary = bary.clone()
+        # tri and bary are `outermost`'s own subsets: written in place
         bary[moved] = (bary[moved][:, :, None] * same).sum(1)
-        tri = tri.clone()
         tri[moved] = new[moved]
         return tri, bary
 
