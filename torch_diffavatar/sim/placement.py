@@ -53,7 +53,14 @@ import torch
 
 from torch_diffavatar.pattern.garment_mesh import GarmentMesh
 
-__all__ = ["GC_BODY", "BodyLandmarks", "body_landmarks", "body_signed_distance", "place_garment"]
+__all__ = [
+    "GC_BODY",
+    "BodyLandmarks",
+    "body_landmarks",
+    "body_signed_distance",
+    "place_from_drape",
+    "place_garment",
+]
 
 # GarmentCode's mean_all body [m], from body/mean_all.yaml (floor at 0): height; crotch = hip level −
 # crotch_hip_diff; waist level = height − head_l − waist_line; neck base = height − head_l; acromion =
@@ -1358,4 +1365,42 @@ def place_garment(
         disp[own] = push
         pos = _untear(pos, disp, tris, rest_inv, push_radius)
     new_pos = torch.as_tensor(pos, dtype=garment.vert_pos.dtype, device=garment.vert_pos.device)
+    return replace(garment, vert_pos=new_pos)
+
+
+def place_from_drape(garment: GarmentMesh, source: GarmentMesh, source_x) -> GarmentMesh:
+    """Place ``garment`` where ``source``, another meshing of the same pattern, lies draped.
+
+    Each panel vertex of ``garment`` is located in the same-named panel of ``source`` by its 2D rest
+    coordinate and takes the barycentric blend of the draped positions of that source triangle (points
+    just outside a curved outline take the nearest triangle's affine extension). A garment meshed at
+    another spacing then starts in the source's fold state, already sewn, instead of being wrapped and
+    sewn anew: a drape is path dependent, and sewing again can end in another equilibrium.
+
+    Args:
+        garment: the mesh to place (its ``vert_uv`` in the same panel frames as ``source``'s).
+        source: a meshed pattern whose panel names include all of ``garment``'s.
+        source_x: (Vs, 3) draped sim-vertex positions of ``source`` [m].
+
+    Returns:
+        a copy of ``garment`` with new ``vert_pos`` (V, 3) (dtype/device of ``garment.vert_pos``); the
+        panel vertices of a seam get (nearly) equal positions, so `sew` closes it at once.
+
+    Raises:
+        ValueError: a panel of ``garment`` is missing from ``source``, or ``source_x`` has the wrong shape.
+    """
+    missing = sorted(set(garment.panel_names) - set(source.panel_names))
+    if missing:
+        raise ValueError(f"place_from_drape: panels {missing} are not in the source garment")
+    x = torch.as_tensor(source_x).detach().cpu().double().numpy()
+    if x.shape != (source.sim_vert_count, 3):
+        raise ValueError(f"source_x must be ({source.sim_vert_count}, 3), got {tuple(x.shape)}")
+    panel_pos = x[source.vert_to_sim.cpu().numpy()]
+    uv = garment.vert_uv.detach().cpu().numpy().astype(np.float64)
+    vert_panel = garment.vert_panel.cpu().numpy()
+    out = np.zeros((garment.vert_count, 3))
+    for p, name in enumerate(garment.panel_names):
+        mine = np.nonzero(vert_panel == p)[0]
+        out[mine] = _PanelSurface(source, source.panel_names.index(name)).to_3d(uv[mine], panel_pos)[0]
+    new_pos = torch.as_tensor(out, dtype=garment.vert_pos.dtype, device=garment.vert_pos.device)
     return replace(garment, vert_pos=new_pos)
