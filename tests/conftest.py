@@ -29,3 +29,23 @@ def default_body(anny_model):
     from torch_diffavatar.body.anny_model import default_body_mesh
 
     return default_body_mesh(anny_model=anny_model)
+
+
+@pytest.fixture(scope="session")
+def skirt_scan(anny_model):
+    """A small synthetic skirt scan (`make_draped_scan` at 5 cm, 8k points) with its ground truth."""
+    from torch_diffavatar.synthetic_scans import make_draped_scan
+
+    torch.manual_seed(0)
+    phenotypes = dict(gender=0.5, age=0.5, muscle=0.5, weight=0.45, height=0.55, proportions=0.5)
+    return make_draped_scan(
+        "skirt",
+        anny_model=anny_model,
+        seed=3,
+        phenotypes=phenotypes,
+        spacing=0.05,
+        garment_points=4000,
+        body_points=4000,
+        noise=0.002,
+        hole_fraction=0.1,
+    )

@@ -50,3 +50,63 @@ def test_fit_rejects_a_garment_that_is_neither_template_nor_file(tmp_path, capsy
     bad = tmp_path / "broken.json"
     bad.write_text("{not json")
     assert main(["fit", str(scan), "--garment", str(bad), "--out", str(tmp_path / "out")]) == 2
+
+
+def test_body_parameters_are_read_from_a_file_or_a_folder(tmp_path):
+    import json
+
+    from torch_diffavatar.errors import InputError
+    from torch_diffavatar.fit_commands import read_body_params
+
+    params = {
+        "phenotypes": [[0.5] * 6],
+        "pose_bones": [],
+        "pose_axis_angle": [[]],
+        "global_orient_axis_angle": [[0.0, 0.0, 0.0]],
+        "translation_m": [[0.0, 0.9, 0.0]],
+        "scale": [1.0],
+    }
+    (tmp_path / "body.json").write_text(json.dumps(params))
+    assert read_body_params(tmp_path) == params == read_body_params(tmp_path / "body.json")
+    with pytest.raises(InputError, match="no body.json"):
+        read_body_params(tmp_path / "nowhere")
+    (tmp_path / "bad.json").write_text("{not json")
+    with pytest.raises(InputError, match="not a JSON file"):
+        read_body_params(tmp_path / "bad.json")
+    (tmp_path / "other.json").write_text(json.dumps({"phenotypes": [[0.5] * 6]}))
+    with pytest.raises(InputError, match="missing pose_bones, pose_axis_angle"):
+        read_body_params(tmp_path / "other.json")
+    # the command says so on one line and exits 2, before any heavy work
+    scan = tmp_path / "scan.ply"
+    scan.write_text("ply\n")
+    args = ["fit", str(scan), "--garment", "skirt", "--out", str(tmp_path / "out")]
+    assert main([*args, "--body", str(tmp_path / "bad.json")]) == 2
+
+
+@pytest.mark.anny
+@pytest.mark.slow
+def test_fit_set_up_on_a_given_body_does_not_fit_one(skirt_scan, anny_model, tmp_path, monkeypatch):
+    import torch
+
+    import torch_diffavatar.body.fit as body_fit
+    from torch_diffavatar.fit import load_config
+    from torch_diffavatar.fit_commands import prepare
+    from torch_diffavatar.sim.placement import body_signed_distance
+    from torch_diffavatar.synthetic_scans import write_scan
+
+    def no_fit(*args, **kwargs):
+        raise AssertionError("the body was fitted although one was given")
+
+    monkeypatch.setattr(body_fit, "fit_body", no_fit)
+    write_scan(skirt_scan, tmp_path / "scan")
+    config = load_config(garment="skirt", spacing=0.05)
+    truth = skirt_scan.body_params
+    setup = prepare(tmp_path / "scan" / "scan.ply", config, anny_model=anny_model, body_params=truth)
+    assert setup["body_fit_chamfer_m"] is None
+    for key in ("phenotypes", "translation_m", "pose_axis_angle"):
+        given = torch.tensor(setup["body_params"][key])
+        torch.testing.assert_close(given, torch.tensor(truth[key]), atol=1e-6, rtol=0)
+    # the template is placed around that body: outside it, and close to it at the waist
+    garment = setup["garment"]
+    dist = body_signed_distance(garment.vert_pos.numpy(), skirt_scan.body_vertices, skirt_scan.body_faces)
+    assert dist.min() > 0.005 and dist.min() < 0.05

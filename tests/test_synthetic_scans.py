@@ -15,8 +15,6 @@ from torch_diffavatar.pattern.garmentcode import load_pattern
 from torch_diffavatar.pattern.library import load_template
 from torch_diffavatar.synthetic_scans import changed_pattern, make_draped_scan, write_scan
 
-PHENOTYPES = {"gender": 0.5, "age": 0.5, "muscle": 0.5, "weight": 0.45, "height": 0.55, "proportions": 0.5}
-
 
 def test_changed_pattern_reproduces_the_demo_truth():
     """The demo's truth was made by raising the dress's skirt hem 8 cm and widening it 12 %."""
@@ -37,22 +35,6 @@ def test_changed_pattern_moves_only_the_hem_corners():
     # front and back shorten alike, so the side seams still match
     assert seam_length_mismatch(changed)["max_m"] == pytest.approx(
         seam_length_mismatch(base)["max_m"], abs=1e-9
-    )
-
-
-@pytest.fixture(scope="module")
-def skirt_scan(anny_model):
-    torch.manual_seed(0)
-    return make_draped_scan(
-        "skirt",
-        anny_model=anny_model,
-        seed=3,
-        phenotypes=PHENOTYPES,
-        spacing=0.05,
-        garment_points=4000,
-        body_points=4000,
-        noise=0.002,
-        hole_fraction=0.1,
     )
 
 

@@ -1,11 +1,12 @@
-"""`diffavatar fit SCAN --garment TEMPLATE|PATTERN.json [--config C] --out DIR [--iters N] [--resume]`.
+"""`diffavatar fit SCAN --garment TEMPLATE|PATTERN.json [--config C] --out DIR [--body B] [--iters N]`.
 
 The main job: scan in, simulation-ready assets out. Steps: load the scan (per-point garment labels used
-when present), fit the Anny body to it (`body.fit.fit_body`), segment the garment when the scan is not
-labelled (`body.segment.segment_garment`), find the garment's openings on the body (the segmentation's
-boundary loops: neck, hem, cuffs, waist …) and match them to the template's named loops, mesh and place
-the template (`sim.placement.place_garment`), then run the fit loop (`torch_diffavatar.fit.Fitter`) and
-write the assets (`torch_diffavatar.assets.write_assets`). ``--json`` prints ``report.json`` as one line.
+when present), fit the Anny body to it (`body.fit.fit_body`; ``--body`` starts from a given body
+instead), segment the garment when the scan is not labelled (`body.segment.segment_garment`), find the
+garment's openings on the body (the segmentation's boundary loops: neck, hem, cuffs, waist …) and match
+them to the template's named loops, mesh and place the template (`sim.placement.place_garment`), then
+run the fit loop (`torch_diffavatar.fit.Fitter`) and write the assets
+(`torch_diffavatar.assets.write_assets`). ``--json`` prints ``report.json`` as one line.
 
 ``--garment`` is a bundled template or any GarmentCode pattern file: the fit starts from that pattern with
 the bundled config of its garment type (`infer_garment_type`, or ``--garment-type``).
@@ -87,6 +88,12 @@ def register(subparsers) -> None:
         "--config", help="YAML fit config (default: configs/<garment>.yaml; for a pattern file, its type's)"
     )
     p.add_argument("--out", required=True, help="output folder")
+    p.add_argument(
+        "--body",
+        default=None,
+        help="start from this body instead of fitting one: a body.json, or a folder holding one "
+        "(`diffavatar fit-body --out`, an earlier fit's assets)",
+    )
     p.add_argument("--iters", type=int, default=None, help="iterations (overrides the config)")
     p.add_argument("--spacing", type=float, default=None, help="mesh spacing [m] (overrides the config)")
     p.add_argument("--resume", action="store_true", help="continue from --out's checkpoint")
@@ -121,6 +128,7 @@ def fit_command(args) -> dict:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out} exists and is not a directory")
+    body_params = None if args.body is None else read_body_params(args.body)
     with contextlib.redirect_stdout(sys.stderr):  # warp prints on stdout; keep --json one clean line
         report = fit_scan(
             args.scan,
@@ -132,6 +140,7 @@ def fit_command(args) -> dict:
             progress=not args.no_progress,
             pattern=pattern,
             garment_type=garment_type,
+            body_params=body_params,
         )
     if not args.json:
         for key in (
@@ -145,6 +154,29 @@ def fit_command(args) -> dict:
             print(f"{key}: {report[key]}")
         print(f"assets: {out}")
     return report
+
+
+def read_body_params(path) -> dict:
+    """Body parameters (`BodyModel.parameters_dict`) from a ``body.json`` or a folder holding one.
+
+    Raises:
+        InputError: no such file, not JSON, or not body parameters.
+    """
+    path = Path(path)
+    if path.is_dir():
+        path = path / "body.json"
+    if not path.is_file():
+        raise InputError(f"--body {path}: no body.json there (run `diffavatar fit-body` first)")
+    try:
+        params = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"--body {path}: not a JSON file ({exc})") from exc
+    keys = ("phenotypes", "pose_bones", "pose_axis_angle", "global_orient_axis_angle", "translation_m")
+    keys += ("scale",)
+    missing = [k for k in keys if not isinstance(params, dict) or k not in params]
+    if missing:
+        raise InputError(f"--body {path}: not Anny body parameters (missing {', '.join(missing)})")
+    return params
 
 
 def infer_garment_type(pattern) -> str:
@@ -239,18 +271,29 @@ def match_boundaries(garment, scan_loops: dict[str, np.ndarray], max_distance: f
 
 
 def prepare(
-    scan_path, config, *, units="m", up="y", anny_model=None, pattern=None, garment_type=None
+    scan_path,
+    config,
+    *,
+    units="m",
+    up="y",
+    anny_model=None,
+    pattern=None,
+    garment_type=None,
+    body_params=None,
 ) -> dict:
     """The slow set-up of a fit: scan, body fit, segmentation, openings, meshed and placed template.
 
     ``config.template`` is a template name or a GarmentCode file. ``pattern`` (a `Pattern`) starts the fit
     from it instead: an earlier fit's result, or a ground truth (`scripts/fit_checks.py` ``oracle``).
     ``garment_type`` (a key of `TYPE_CONFIGS`) drives the scan's segmentation and openings; default: the
-    template's (`SEGMENT_TYPES`), else `infer_garment_type` of the pattern.
+    template's (`SEGMENT_TYPES`), else `infer_garment_type` of the pattern. ``body_params`` (a
+    `BodyModel.parameters_dict`, e.g. the ``body.json`` of ``diffavatar fit-body`` or of an earlier fit, in
+    the scan's world frame) is the body to start from instead of fitting one to the scan.
 
     Returns:
         a dict with ``garment`` (placed `GarmentMesh`), ``pattern``, ``target`` (`ScanTarget`),
-        ``body_params`` (`BodyModel.parameters_dict` of the initial fit), ``body_fit_chamfer_m``,
+        ``body_params`` (`BodyModel.parameters_dict` of the initial body), ``body_fit_chamfer_m`` (the
+        body fit's residual [m]; None with ``body_params``),
         ``scan_points``, ``labelled`` and ``setup_seconds``.
     """
     import warnings
@@ -273,7 +316,14 @@ def prepare(
     scan, _ = remove_outliers(scan)
     anny_model = load_anny(dtype=torch.float32) if anny_model is None else anny_model
     body = BodyModel(anny_model=anny_model)
-    fitted = fit_body(scan.points, body)
+    if body_params is None:
+        body_fit_chamfer_m = fit_body(scan.points, body).chamfer_m
+    else:
+        try:
+            body.load_parameters_dict(body_params)
+        except (KeyError, ValueError, TypeError, RuntimeError) as exc:
+            raise InputError(f"the given body parameters do not fit this BodyModel: {exc}") from exc
+        body_fit_chamfer_m = None
     with torch.no_grad():
         body_verts = body().vertices[0].double()
     faces = body.faces.cpu().numpy()
@@ -307,7 +357,7 @@ def prepare(
         "pattern": pattern,
         "target": target,
         "body_params": body.parameters_dict(),
-        "body_fit_chamfer_m": fitted.chamfer_m,
+        "body_fit_chamfer_m": body_fit_chamfer_m,
         "scan_points": scan.point_count,
         "scan_boundaries": sorted(loops),
         "labelled": labelled,
@@ -327,10 +377,12 @@ def fit_scan(
     anny_model=None,
     pattern=None,
     garment_type=None,
+    body_params=None,
 ) -> dict:
     """Run the whole job (see the module docstring); returns the report (also ``out_dir/report.json``).
 
-    ``pattern``: start from this `Pattern` instead of ``config.template``; ``garment_type``: see `prepare`."""
+    ``pattern``: start from this `Pattern` instead of ``config.template``; ``garment_type`` and
+    ``body_params`` (start from this body instead of fitting one): see `prepare`."""
     from torch_diffavatar.assets import write_assets
     from torch_diffavatar.body.anny_model import load_anny
     from torch_diffavatar.body.model import BodyModel
@@ -355,6 +407,7 @@ def fit_scan(
             anny_model=anny_model,
             pattern=pattern,
             garment_type=garment_type,
+            body_params=body_params,
         )
         _atomic_save(setup, setup_path)
     body = BodyModel(anny_model=anny_model)
