@@ -5,7 +5,8 @@
 (``GARMENT_DIR/scan/truth/``), with the garment's fit config. Its Chamfer is what a perfect recovery of
 the pattern and the material would score at the fit's spacing and XPBD settings: the floor of that
 config, against which the template start and the fit's result can be read. ``--iterations N`` then runs
-N fit iterations from there (does the fit stay at the truth?).
+N fit iterations from there (does the fit stay at the truth?); ``--true-body`` starts from the true body
+(``truth/body.json``) instead of fitting one (how much does the body fit cost?).
 
     PYTHONPATH=. python scripts/fit_checks.py oracle /tmp/suite/tshirt --set drape_substeps=10
 
@@ -15,6 +16,17 @@ by ±ε along the normalised gradient, central difference against the gradient's
 adjoint is exact and the drape is smooth in the pattern at that scale).
 
     PYTHONPATH=. python scripts/fit_checks.py fd /tmp/suite/tshirt/fit --set drape_substeps=40
+
+``spacing GARMENT_DIR --spacings 0.025 0.02``: how much the drape itself depends on the mesh: the
+scan's TRUE pattern, material and body, meshed at each spacing and draped like the scan was (sewn from
+the placement), and the same mesh started from the true drape (`placement.place_from_drape`: no sewing,
+the scan's fold state), each against the true drape (symmetric mean surface distance). A fit at a coarser
+spacing than its scan cannot come closer to the true drape than these, whatever pattern it finds. Also
+``pattern_file_sewn_mm``: ``truth/pattern.json`` stores centimetres, and when its round trip moves a
+vertex by an ulp and so meshes it otherwise at the scan's own spacing, that mesh's drape against the true
+one (how chaotic the drape is; null when the file meshes exactly like the truth).
+
+    PYTHONPATH=. python scripts/fit_checks.py spacing /tmp/suite/longsleeve --spacings 0.025 0.02
 
 ``--set key=value`` overrides any `FitConfig` field (``weights.name=value`` for a loss weight); values
 are read as YAML. Prints one JSON line; lengths in mm.
@@ -62,7 +74,10 @@ def oracle(args) -> dict:
     config = config_from_dict({"initial_bend_stiffness": kb, "iterations": args.iterations}, base=config)
     out = Path(args.out)
     pattern = load_pattern(scan_dir / "truth" / "pattern.json")
-    report = fit_scan(scan_dir / "scan.ply", config, out, progress=False, pattern=pattern)
+    body_params = json.loads((scan_dir / "truth" / "body.json").read_text()) if args.true_body else None
+    report = fit_scan(
+        scan_dir / "scan.ply", config, out, progress=False, pattern=pattern, body_params=body_params
+    )
     ev = evaluate_assets(out, scan_dir)
     mm = {
         k.removesuffix("_m"): round(1e3 * ev[k], 2)
@@ -74,11 +89,101 @@ def oracle(args) -> dict:
         "garment": truth["template"],
         "config": {"spacing": config.spacing, "drape_substeps": config.drape_substeps},
         "iterations": args.iterations,
+        "body": "true" if args.true_body else "fitted",
         "chamfer_mm": mm,
         "boundary_chamfer_initial_mm": {
             k: round(1e3 * v, 1) for k, v in report["boundary_chamfer_initial"].items()
         },
         "bending_stiffness_ratio": ev["bending_stiffness_ratio"],
+    }
+
+
+def spacing(args) -> dict:
+    from dataclasses import replace
+
+    from torch_diffavatar.evaluation import mesh_distance_m
+    from torch_diffavatar.fit import FIT_MAX_STRAIN
+    from torch_diffavatar.mesh_io import read_obj
+    from torch_diffavatar.pattern import load_pattern, mesh_pattern
+    from torch_diffavatar.pattern.library import resolve_pattern
+    from torch_diffavatar.sim.drape import DrapeConfig, drape_to_equilibrium, sew_and_drape
+    from torch_diffavatar.sim.material import ClothMaterial
+    from torch_diffavatar.sim.model import ClothModelBuilder
+    from torch_diffavatar.sim.placement import place_from_drape, place_garment
+    from torch_diffavatar.synthetic_scans import changed_pattern
+
+    truth_dir = Path(args.garment_dir) / "scan" / "truth"
+    truth = json.loads((truth_dir / "truth.json").read_text())
+    body, draped = read_obj(truth_dir / "body.obj"), read_obj(truth_dir / "draped.obj")
+    # The true drape's own mesh: pattern.json stores centimetres, and its round trip can move a vertex by
+    # an ulp, which is enough to mesh it otherwise; the template with the design change is exact.
+    design = truth["design_change"]
+    candidates = (
+        changed_pattern(resolve_pattern(truth["template"]), design["hem_up_m"], design["hem_widen"]),
+        load_pattern(truth_dir / "pattern.json"),
+    )
+    meshes = [mesh_pattern(p, spacing=float(truth["spacing_m"])) for p in candidates]
+    exact = [k for k, m in enumerate(meshes) if torch.equal(m.sim_faces, draped.faces)]
+    if not exact:
+        raise SystemExit(f"{truth_dir}/draped.obj is not the true pattern meshed at the scan's spacing")
+    pattern, source = candidates[exact[0]], meshes[exact[0]]
+    body_verts, body_faces = body.verts.float(), body.faces
+    material = ClothMaterial(bend_stiffness=float(truth["material"]["bend_stiffness"]))
+    # the scan's drape settings (make_draped_scan), with the fit's strain limit: sewing a coarse mesh can
+    # pull a seam-corner triangle past the solver's default for a few frames
+    base = DrapeConfig()
+    config = replace(
+        base,
+        xpbd=replace(base.xpbd, max_strain=FIT_MAX_STRAIN),
+        sew_xpbd=replace(base.sew_xpbd, max_strain=FIT_MAX_STRAIN),
+    )
+
+    def to_truth(x, faces) -> float:  # [mm]
+        return round(1e3 * mesh_distance_m(x.double(), faces, draped.verts, draped.faces), 2)
+
+    def sewn(garment):
+        return sew_and_drape(
+            place_garment(garment, body_verts.double(), body_faces),
+            body_verts=body_verts,
+            body_faces=body_faces,
+            material=material,
+            config=config,
+        )
+
+    # the drape's own chaos: pattern.json meshed at the scan's spacing, when its ulp moved the mesh
+    file_mesh = meshes[1]
+    file_mm = None if 1 in exact else to_truth(sewn(file_mesh).x, file_mesh.sim_faces)
+
+    rows = []
+    for s in args.spacings:
+        garment = mesh_pattern(pattern, spacing=s)
+        from_placement = sewn(garment)
+        # the model from the placed mesh, as `sew_and_drape` builds it (attachments keep placed heights)
+        placed = place_from_drape(garment, source, draped.verts)
+        model = ClothModelBuilder(material).add_garment(placed, merge_seams=True).finalize()
+        kept = drape_to_equilibrium(
+            model,
+            garment.vert_uv.float(),
+            body_verts=body_verts,
+            body_faces=body_faces,
+            state=model.initial_state(placed.sim_positions().float()),
+            config=config,
+        )
+        rows.append(
+            {
+                "spacing_m": s,
+                "vertices": garment.sim_vert_count,
+                "sewn_mm": to_truth(from_placement.x, garment.sim_faces),
+                "from_truth_mm": to_truth(kept.x, garment.sim_faces),
+                "converged": bool(from_placement.converged and kept.converged),
+            }
+        )
+    return {
+        "check": "spacing",
+        "garment": truth["template"],
+        "scan_spacing_m": truth["spacing_m"],
+        "pattern_file_sewn_mm": file_mm,
+        "rows": rows,
     }
 
 
@@ -136,13 +241,17 @@ def main(argv=None) -> None:
     p.add_argument("--out", default="oracle_out", help="fit output folder")
     p.add_argument("--iterations", type=int, default=0, help="fit iterations from the truth (default 0)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="FitConfig override")
+    p.add_argument("--true-body", action="store_true", help="start from the true body, not a body fit")
+    p = sub.add_parser("spacing", help="the true drape's own dependence on the mesh spacing")
+    p.add_argument("garment_dir", help="a benchmark-suite garment folder (with scan/truth/)")
+    p.add_argument("--spacings", type=float, nargs="+", default=[0.025], help="mesh spacings [m]")
     p = sub.add_parser("fd", help="finite-difference check of the cage gradient at the first drape")
     p.add_argument("fit_dir", help="a fit folder (setup.pt, config.yaml)")
     p.add_argument("--eps", type=float, nargs="+", default=[1e-3, 3e-3, 1e-2], help="steps [m]")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="FitConfig override")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
-    print(json.dumps(oracle(args) if args.check == "oracle" else fd(args)))
+    print(json.dumps({"oracle": oracle, "spacing": spacing, "fd": fd}[args.check](args)))
 
 
 if __name__ == "__main__":

@@ -33,3 +33,23 @@ def test_overrides_set_fields_and_weights_over_the_config_file(checks):
 def test_unknown_override_is_an_input_error(checks):
     with pytest.raises(InputError, match="drape_substep"):
         checks._config(ROOT / "configs" / "tshirt.yaml", ["drape_substep=10"])
+
+
+@pytest.mark.anny
+@pytest.mark.slow
+def test_spacing_check_reproduces_the_true_drape_at_the_scans_own_spacing(checks, skirt_scan, tmp_path):
+    """At the scan's spacing the check's drape is the scan's (same mesh, same path; the float64 fixture's
+    body is rounded to 9 digits in body.obj), and a drape started from the true drape stays there; at
+    another spacing both are measured."""
+    import argparse
+
+    from torch_diffavatar.synthetic_scans import write_scan
+
+    write_scan(skirt_scan, tmp_path / "skirt" / "scan")
+    args = argparse.Namespace(garment_dir=str(tmp_path / "skirt"), spacings=[0.05, 0.07])
+    out = checks.spacing(args)
+    same, coarse = out["rows"]
+    assert out["scan_spacing_m"] == 0.05 and same["spacing_m"] == 0.05 and coarse["spacing_m"] == 0.07
+    assert same["sewn_mm"] < 0.5 and same["from_truth_mm"] < 0.5
+    assert coarse["vertices"] < same["vertices"] and coarse["sewn_mm"] > 0.0 and coarse["from_truth_mm"] > 0.0
+    assert same["converged"] and coarse["converged"]

@@ -78,7 +78,7 @@ def seam_length_mismatch(pattern) -> dict[str, float]:
     return {"mean_m": float(sum(diffs) / len(diffs)), "max_m": float(max(diffs))}
 
 
-def _mesh_distance(a_verts, a_faces, b_verts, b_faces, samples: int = 50000) -> float:
+def mesh_distance_m(a_verts, a_faces, b_verts, b_faces, samples: int = 50000) -> float:
     """Symmetric mean surface-to-surface distance [m] between two triangle meshes (seeded samples)."""
     from torch_diffavatar.chamfer import sample_surface
     from torch_diffavatar.sim.ops import closest_point_on_mesh
@@ -139,7 +139,7 @@ def evaluate_assets(assets_dir, gt_dir) -> dict:
     for suffix, mesh in drapes.items():
         scan_distance = surface_chamfer_m(mesh.verts, mesh.faces, garment_points)
         out[f"chamfer_scan{suffix}_m"] = scan_distance["symmetric"]
-        out[f"chamfer_truth_drape{suffix}_m"] = _mesh_distance(
+        out[f"chamfer_truth_drape{suffix}_m"] = mesh_distance_m(
             mesh.verts, mesh.faces, true_drape.verts, true_drape.faces
         )
     out.update(compare_with_truth(folder, truth / "pattern.json", float(true_material.bend_stiffness)))
