@@ -4,7 +4,9 @@ GarmentCode places its panels flat around *its own* mean body (1.72 m, waist lev
 ``/work/shared/garmentcode/body/mean_all.yaml``), with gaps and at heights that suit that body only.
 On another body (the default Anny body is 1.625 m) flat panels start inside the body or across it,
 and sewing then pulls cloth through the body. `place_garment` instead *wraps* the panels around the
-body at hand (only the initial 3D positions ``vert_pos`` change; the 2D rest shape is untouched):
+body at hand (only the initial 3D positions ``vert_pos`` change; the 2D rest shape is untouched); see
+the steps below. `place_from_drape` places a mesh where another meshing of the same pattern lies draped
+(already sewn, in that drape's fold state).
 
 1. **Landmarks** (`body_landmarks`): horizontal cross-sections of the body mesh (exact plane
    intersections, split into connected loops) give the floor, crotch, waist, hip, armpit, shoulder
