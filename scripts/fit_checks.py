@@ -99,10 +99,8 @@ def oracle(args) -> dict:
 
 
 def spacing(args) -> dict:
-    from dataclasses import replace
-
     from torch_diffavatar.evaluation import mesh_distance_m
-    from torch_diffavatar.fit import FIT_MAX_STRAIN
+    from torch_diffavatar.fit import with_fit_strain_limit
     from torch_diffavatar.mesh_io import read_obj
     from torch_diffavatar.pattern import load_pattern, mesh_pattern
     from torch_diffavatar.pattern.library import resolve_pattern
@@ -131,12 +129,7 @@ def spacing(args) -> dict:
     material = ClothMaterial(bend_stiffness=float(truth["material"]["bend_stiffness"]))
     # the scan's drape settings (make_draped_scan), with the fit's strain limit: sewing a coarse mesh can
     # pull a seam-corner triangle past the solver's default for a few frames
-    base = DrapeConfig()
-    config = replace(
-        base,
-        xpbd=replace(base.xpbd, max_strain=FIT_MAX_STRAIN),
-        sew_xpbd=replace(base.sew_xpbd, max_strain=FIT_MAX_STRAIN),
-    )
+    config = with_fit_strain_limit(DrapeConfig())
 
     def to_truth(x, faces) -> float:  # [mm]
         return round(1e3 * mesh_distance_m(x.double(), faces, draped.verts, draped.faces), 2)

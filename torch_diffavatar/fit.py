@@ -265,6 +265,16 @@ class FitConfig:
                 raise ValueError(f"FitConfig.{name} must be >= 0 (0 freezes the parameter)")
 
 
+def with_fit_strain_limit(config: DrapeConfig) -> DrapeConfig:
+    """``config`` with the strain limit of a fit's drapes, `FIT_MAX_STRAIN`, while sewing and draping (a
+    seam-corner triangle of a sewn template can pass the solver's default for a few frames)."""
+    return replace(
+        config,
+        xpbd=replace(config.xpbd, max_strain=FIT_MAX_STRAIN),
+        sew_xpbd=replace(config.sew_xpbd, max_strain=FIT_MAX_STRAIN),
+    )
+
+
 def _field_names(cls) -> list[str]:
     return [f.name for f in dataclasses.fields(cls)]
 
@@ -589,12 +599,7 @@ class Fitter:
         """Options of the first sew and drape: the defaults, with the fit's strain limit (see
         `drape_config`): sewing a template onto a fitted body can pull a seam-corner triangle past the
         default limit for a few frames (measured: E = 3.7 on a long-sleeve shirt) without a blow-up."""
-        base = DrapeConfig(max_steps=self.config.first_max_steps)
-        return replace(
-            base,
-            xpbd=replace(base.xpbd, max_strain=FIT_MAX_STRAIN),
-            sew_xpbd=replace(base.sew_xpbd, max_strain=FIT_MAX_STRAIN),
-        )
+        return with_fit_strain_limit(DrapeConfig(max_steps=self.config.first_max_steps))
 
     def adjoint_options(self):
         """`EquilibriumOptions` from the config (equilibrium adjoint), else None (the adjoint's defaults)."""

@@ -156,6 +156,17 @@ def fit_command(args) -> dict:
     return report
 
 
+# the keys `BodyModel.load_parameters_dict` reads
+BODY_PARAM_KEYS = (
+    "phenotypes",
+    "pose_bones",
+    "pose_axis_angle",
+    "global_orient_axis_angle",
+    "translation_m",
+    "scale",
+)
+
+
 def read_body_params(path) -> dict:
     """Body parameters (`BodyModel.parameters_dict`) from a ``body.json`` or a folder holding one.
 
@@ -171,9 +182,7 @@ def read_body_params(path) -> dict:
         params = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise InputError(f"--body {path}: not a JSON file ({exc})") from exc
-    keys = ("phenotypes", "pose_bones", "pose_axis_angle", "global_orient_axis_angle", "translation_m")
-    keys += ("scale",)
-    missing = [k for k in keys if not isinstance(params, dict) or k not in params]
+    missing = [k for k in BODY_PARAM_KEYS if not isinstance(params, dict) or k not in params]
     if missing:
         raise InputError(f"--body {path}: not Anny body parameters (missing {', '.join(missing)})")
     return params
