@@ -330,3 +330,42 @@ def test_the_result_is_the_iteration_with_the_lowest_loss(skirt_problem, keep_be
         assert report["result_iteration"] == 3
         assert report["loss_final"] == result.history[2]["loss/total"]
     assert len(calls) == (5 if keep_best else 4)
+
+
+def test_first_drape_is_the_lowest_loss_of_the_sewing_stiffnesses(skirt_problem):
+    """With several ``first_bend_scales`` the template is sewn once per scale, each settled at the fit's own
+    stiffness; the fit starts from the candidate with the lowest loss, wherever it is in the list. A scale
+    whose sewing fails (3000: too stiff to close the seams) is recorded and skipped."""
+    garment, _, target = skirt_problem
+    config = _config(iterations=0, first_max_steps=80, first_bend_scales=[1, 30, 3000, 10])
+    fitter = Fitter(garment, target, config, progress=False, dtype=DT, tensorboard=False)
+    losses = []
+    original = fitter.evaluate
+
+    def recorded(state):
+        ev = original(state)
+        losses.append(float(ev.loss))
+        if len(losses) != 2:  # the second candidate (scale 30) is the best, whatever the drapes are
+            ev.loss = ev.loss + 1e3
+        return ev
+
+    fitter.evaluate = recorded
+    start = fitter._first_state()
+    ones, thirty, stiff, tens = fitter.first_candidates
+    assert [c["bend_scale"] for c in fitter.first_candidates] == [1.0, 30.0, 3000.0, 10.0]
+    assert ones["loss"] == pytest.approx(losses[0] + 1e3) and thirty["loss"] == losses[1]
+    assert tens["loss"] == pytest.approx(losses[2] + 1e3)
+    assert "loss" not in stiff and "seams did not close" in stiff["error"]
+    assert abs(losses[0] - losses[1]) > 1.0  # the stiffer sewing rests elsewhere: the check can fail
+    fitter.evaluate = original
+    assert float(fitter.evaluate(start).loss) == pytest.approx(losses[1], rel=1e-9)
+    report = fitter.run().report
+    assert [c["bend_scale"] for c in report["first_drape_candidates"]] == [1.0, 30.0, 3000.0, 10.0]
+
+
+def test_first_bend_scales_are_checked():
+    assert config_from_dict({"first_bend_scales": [1, 3]}).first_bend_scales == (1.0, 3.0)
+    assert config_from_dict({"first_bend_scales": 2}).first_bend_scales == (2.0,)
+    for bad in ([], [0.0], [1, -2], ["a"], [float("inf")]):
+        with pytest.raises(InputError, match="first_bend_scales"):
+            config_from_dict({"first_bend_scales": bad})
