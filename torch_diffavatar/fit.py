@@ -141,7 +141,8 @@ class FitConfig:
             starts the fit [-]. Cloth that hangs loose on a body rests in more than one fold state, and
             which one a sewing reaches depends on its path: stiffer cloth while sewing reaches other fold
             states. Measured on the tops' true patterns (docs/RESULTS.md): the lowest-loss candidate of
-            (1, 3, 10) was 1.5-8.6 mm closer to the true drape than the plain sewing. ``(1.0,)``: one sewing.
+            (1, 3, 10) landed 0.9-8.0 mm closer to the true drape than the plain sewing. ``(1.0,)``: one
+            sewing.
         max_scan_points: scan garment points used by the interior loss, and skin points used by the skin
             loss (a fixed random subset of each) [-].
         interior_to_surface: the interior loss's scan → garment direction measures the distance to the
