@@ -3,6 +3,8 @@ a longer skirt. Also the guards, checkpoint/resume and the config loader."""
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -369,3 +371,23 @@ def test_first_bend_scales_are_checked():
     for bad in ([], [0.0], [1, -2], ["a"], [float("inf")]):
         with pytest.raises(InputError, match="first_bend_scales"):
             config_from_dict({"first_bend_scales": bad})
+
+
+def test_the_race_continues_the_candidate_with_the_lowest_loss(skirt_problem):
+    """With ``first_race_iterations`` every sewing is fitted that long from the same start, and the fit
+    continues from the one whose lowest loss is the lowest: it ends where a fit from that sewing alone
+    ends."""
+    garment, _, target = skirt_problem
+    kw = dict(iterations=2, first_max_steps=80, max_loss_rise=float("inf"))
+    config = _config(first_bend_scales=[1, 30], first_race_iterations=1, **kw)
+    raced = Fitter(garment, target, config, progress=False, dtype=DT, tensorboard=False).run()
+    cands = raced.report["first_drape_candidates"]
+    assert [c["bend_scale"] for c in cands] == [1.0, 30.0]
+    assert all(math.isfinite(c["race_loss"]) and c["race_loss"] <= c["loss"] for c in cands)
+    winner = min(cands, key=lambda c: c["race_loss"])
+    assert raced.report["iterations"] == 2 and len(raced.history) == 2
+    alone = _config(first_bend_scales=[winner["bend_scale"]], **kw)
+    single = Fitter(garment, target, alone, progress=False, dtype=DT, tensorboard=False).run()
+    assert raced.report["loss_final"] == pytest.approx(single.report["loss_final"], rel=1e-9)
+    assert raced.report["loss_initial"] == pytest.approx(single.report["loss_initial"], rel=1e-9)
+    assert torch.allclose(raced.rest_uv, single.rest_uv, rtol=0, atol=1e-12)
