@@ -3,7 +3,9 @@
 A standard ``torch.optim.Adam`` loop over `FitParameters` (control-cage handles ζ, body phenotypes /
 translation / pose, log bending stiffness; one parameter group and learning rate each). Every iteration
 drapes the garment with `torch_diffavatar.sim.differentiable.drape`, warm-started from the previous
-equilibrium (the very first start state is a full `sew_and_drape` of the placed template), computes
+equilibrium (the very first start state is a full `sew_and_drape` of the placed template; with several
+``first_bend_scales`` the template is sewn once per scale, and the first drape's loss, or a race of
+``first_race_iterations`` from each, picks the one the fit continues), computes
 
     loss = ρ·boundary + σ·interior + α·seam_length + β·curvature  (+ a weak phenotype prior)
 
