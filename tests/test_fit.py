@@ -373,14 +373,15 @@ def test_first_bend_scales_are_checked():
             config_from_dict({"first_bend_scales": bad})
 
 
-def test_the_race_continues_the_candidate_with_the_lowest_loss(skirt_problem):
+def test_the_race_continues_the_candidate_with_the_lowest_loss(skirt_problem, tmp_path):
     """With ``first_race_iterations`` every sewing is fitted that long from the same start, and the fit
     continues from the one whose lowest loss is the lowest: it ends where a fit from that sewing alone
     ends."""
     garment, _, target = skirt_problem
     kw = dict(iterations=2, first_max_steps=80, max_loss_rise=float("inf"))
     config = _config(first_bend_scales=[1, 30], first_race_iterations=1, **kw)
-    raced = Fitter(garment, target, config, progress=False, dtype=DT, tensorboard=False).run()
+    raced = Fitter(garment, target, config, progress=False, dtype=DT, out_dir=tmp_path).run()
+    assert list((tmp_path / "tb").glob("events.out.tfevents.*")) and (tmp_path / "checkpoint.pt").is_file()
     cands = raced.report["first_drape_candidates"]
     assert [c["bend_scale"] for c in cands] == [1.0, 30.0]
     assert all(math.isfinite(c["race_loss"]) and c["race_loss"] <= c["loss"] for c in cands)

@@ -1152,6 +1152,8 @@ class Fitter:
             if self.first is None:
                 self.first = self._summary(ev)
                 self._log(writer, ev, self._scalars(ev), 0, images=True)
+            elif race:  # the winner's pictures where its race ended
+                self._log(writer, ev, self._scalars(ev), self.iteration, images=True)
             self._note_best(ev, start)
             self.seconds += time.perf_counter() - t0
             ev, start = self._iterate(ev, start, total, writer, bar)
