@@ -141,16 +141,17 @@ class FitConfig:
         first_max_steps: frames at most of the first (sew and) drape [-].
         first_bend_scales: the first drape is sewn and draped once per entry, with the bending stiffness
             scaled by it, then each is settled at the fit's own stiffness; the one with the lowest loss
-            starts the fit [-]. Cloth that hangs loose on a body rests in more than one fold state, and
-            which one a sewing reaches depends on its path: stiffer cloth while sewing reaches other fold
-            states. Measured on the tops' true patterns (docs/RESULTS.md): the lowest-loss candidate of
-            (1, 3, 10) landed 0.9-8.0 mm closer to the true drape than the plain sewing. ``(1.0,)``: one
-            sewing.
+            (or the race's winner, ``first_race_iterations``) starts the fit [-]. Cloth that hangs loose
+            on a body rests in more than one fold state, and which one a sewing reaches depends on its
+            path: stiffer cloth while sewing reaches other fold states. Measured on the tops' true
+            patterns (docs/RESULTS.md): the lowest-loss candidate of (1, 3, 10) landed 0.9-8.0 mm closer
+            to the true drape than the plain sewing. ``(1.0,)``: one sewing.
         first_race_iterations: with several ``first_bend_scales``, the fit runs this many iterations from
             every candidate sewing and continues from the one whose lowest loss is the lowest [-]. A fold
             state and the pattern that suits it are found together, so the first drape's loss alone can
             pick the wrong one (measured: the T-shirt's 10× sewing starts at a higher loss than the 1×
-            one, and its fit ends lower, 13.2 against 15.8). 0: the first drape's loss decides.
+            one, and its fit ends lower, 13.2 against 15.8). The cost is one fit of this length per extra
+            sewing. 0: the first drape's loss decides.
         max_scan_points: scan garment points used by the interior loss, and skin points used by the skin
             loss (a fixed random subset of each) [-].
         interior_to_surface: the interior loss's scan → garment direction measures the distance to the
