@@ -380,12 +380,20 @@ def test_the_race_continues_the_candidate_with_the_lowest_loss(skirt_problem, tm
     garment, _, target = skirt_problem
     kw = dict(iterations=2, first_max_steps=80, max_loss_rise=float("inf"))
     config = _config(first_bend_scales=[1, 30], first_race_iterations=1, **kw)
-    raced = Fitter(garment, target, config, progress=False, dtype=DT, out_dir=tmp_path).run()
+    fitter = Fitter(garment, target, config, progress=False, dtype=DT, out_dir=tmp_path)
+    first_states = fitter._first_states
+
+    def worst_first():  # the race, not the order of the first drapes' losses, must pick the winner
+        return sorted(first_states(), key=lambda s: -s[0])
+
+    fitter._first_states = worst_first
+    raced = fitter.run()
     assert list((tmp_path / "tb").glob("events.out.tfevents.*")) and (tmp_path / "checkpoint.pt").is_file()
     cands = raced.report["first_drape_candidates"]
     assert [c["bend_scale"] for c in cands] == [1.0, 30.0]
     assert all(math.isfinite(c["race_loss"]) and c["race_loss"] <= c["loss"] for c in cands)
     winner = min(cands, key=lambda c: c["race_loss"])
+    assert winner["loss"] == min(c["loss"] for c in cands)  # so the race started with the other sewing
     assert raced.report["iterations"] == 2 and len(raced.history) == 2
     alone = _config(first_bend_scales=[winner["bend_scale"]], **kw)
     single = Fitter(garment, target, alone, progress=False, dtype=DT, tensorboard=False).run()
