@@ -1124,8 +1124,6 @@ class Fitter:
             starts = self._first_states()
             start = starts[0][1]
         race = 0 if starts is None or len(starts) < 2 else min(self.config.first_race_iterations, total)
-        if race:
-            starts = [(s, c) for _, s, c in starts]
         writer = None
         if self.tensorboard:
             from torch.utils.tensorboard import SummaryWriter
@@ -1143,10 +1141,11 @@ class Fitter:
         try:
             if race:
                 start = self._race(starts, race, bar)
-                for entry in self.history:  # the winner's iterations, which were not logged
-                    for k, v in entry.items():
-                        if k != "iteration" and writer is not None:
-                            writer.add_scalar(k, v, entry["iteration"])
+                if writer is not None:  # the winner's iterations, which the race did not log
+                    for entry in self.history:
+                        for k, v in entry.items():
+                            if k != "iteration":
+                                writer.add_scalar(k, v, entry["iteration"])
             ev = self._checked_evaluate(start)
             if ev is None:
                 raise SimulationError("the first drape of the fit failed (blow-up or non-finite values)")
@@ -1204,15 +1203,15 @@ class Fitter:
                 )
         return ev, start
 
-    def _race(self, starts: list[tuple[ClothState, dict]], iterations: int, bar=None) -> ClothState:
-        """Fit ``iterations`` iterations from each (start, its ``first_candidates`` entry) of ``starts``,
-        from the same parameters and optimizer, then take on the whole state of the one whose lowest loss
-        is the lowest; returns its drape start. Each start's lowest loss goes to its entry
+    def _race(self, starts: list[tuple[float, ClothState, dict]], iterations: int, bar=None) -> ClothState:
+        """Fit ``iterations`` iterations from each start of ``starts`` (`_first_states`), from the same
+        parameters and optimizer, then take on the whole state of the one whose lowest loss is the lowest;
+        returns its drape start. Each start's lowest loss goes to its ``first_candidates`` entry
         (``race_loss``)."""
         candidates = self.first_candidates  # `load_state_dict` replaces the list by a snapshot's copy
-        initial = copy.deepcopy(self.state_dict(starts[0][0]))
+        initial = copy.deepcopy(self.state_dict(starts[0][1]))
         best = None
-        for state, candidate in starts:
+        for _, state, candidate in starts:
             self.load_state_dict(copy.deepcopy(initial))
             ev = self._checked_evaluate(state)
             if ev is None:

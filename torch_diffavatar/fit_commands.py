@@ -173,9 +173,11 @@ def read_body_params(path) -> dict:
     Raises:
         InputError: no such file, not JSON, or not body parameters.
     """
+    from torch_diffavatar.body.commands import BODY_JSON
+
     path = Path(path)
     if path.is_dir():
-        path = path / "body.json"
+        path = path / BODY_JSON
     if not path.is_file():
         raise InputError(f"--body {path}: no body.json there (run `diffavatar fit-body` first)")
     try:
