@@ -221,7 +221,10 @@ def test_template_library():
     }
 
 
-def test_resolve_pattern(tmp_path):
+def test_resolve_pattern(tmp_path, monkeypatch):
+    assert resolve_pattern("skirt").garment_type == "skirt"
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "skirt").mkdir()  # e.g. `diffavatar fit … --garment skirt --out skirt` run twice
     assert resolve_pattern("skirt").garment_type == "skirt"
     path = tmp_path / "mine.json"
     save_pattern(load_template("skirt"), path)

@@ -38,13 +38,14 @@ def resolve_pattern(name_or_path: str | os.PathLike) -> Pattern:
     """A template name (``"dress"``) or a path to a GarmentCode JSON file -> `Pattern`.
 
     A string that names an existing file, or that looks like a path (contains a path separator or ends
-    in ``.json``), is read as a file; anything else must be a template name.
+    in ``.json``), is read as a file; anything else must be a template name (a folder named like a
+    template in the working directory, e.g. a fit's output ``skirt/``, does not hide the template).
 
     Raises:
         PatternError: unknown template name (listing the valid ones), or any loading error.
     """
     text = os.fspath(name_or_path)
-    looks_like_path = os.sep in text or "/" in text or text.endswith(".json") or Path(text).exists()
+    looks_like_path = os.sep in text or "/" in text or text.endswith(".json") or Path(text).is_file()
     if isinstance(name_or_path, os.PathLike) or looks_like_path:
         return load_pattern(text)
     return load_template(text)
