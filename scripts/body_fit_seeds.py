@@ -9,6 +9,7 @@ A third scan per seed (``--draped``) is a garment draped by our simulator (`synt
 
     PYTHONPATH=. python scripts/body_fit_seeds.py --seeds 0 1 2 3 4
     PYTHONPATH=. python scripts/body_fit_seeds.py --bare-only --seeds 0 1 2 3 4 5 6 7 8 9
+    PYTHONPATH=. python scripts/body_fit_seeds.py --missing-bottom 0.3  # scans that miss the feet
 """
 
 from __future__ import annotations
@@ -38,6 +39,13 @@ def main() -> None:
     parser.add_argument(
         "--bare-only", action="store_true", help="fit only the bare scan of each seed (no garment scans)"
     )
+    parser.add_argument(
+        "--missing-bottom",
+        type=float,
+        default=0.0,
+        help="drop every scan's points below this height [m] above its lowest point (a capture that "
+        "misses the feet)",
+    )
     args = parser.parse_args()
     if args.bare_only:
         args.garment, args.draped = None, ""
@@ -48,6 +56,8 @@ def main() -> None:
     for seed in args.seeds:
         for garment in (None, args.garment) if args.garment else (None,):
             scan = make_scan(anny_model, seed=seed, garment=garment)
+            keep = _kept(scan.points, args.missing_bottom)
+            scan.points, scan.labels = scan.points[keep], scan.labels[keep]
             cpu = time.process_time()
             result = fit_body(scan.points, anny_model=anny_model)
             cpu = time.process_time() - cpu
@@ -59,6 +69,8 @@ def main() -> None:
                 "height_err_cm": 100 * (result.height_m - scan.height),
                 "vertex_err_cm": 100 * np.linalg.norm(verts - scan.body_vertices, axis=1).mean(),
                 "cpu_s": cpu,
+                "start": result.start,
+                **{k: v for k, v in result.losses.items() if k.startswith("pose_")},
             }
             if garment is not None:
                 normals = vertex_normals(torch.from_numpy(scan.body_vertices), faces).numpy()
@@ -73,7 +85,7 @@ def main() -> None:
             rows.append(row)
             _print_row(row)
         if args.draped:
-            rows.append(_draped_row(anny_model, seed, args.draped, args.garment))
+            rows.append(_draped_row(anny_model, seed, args.draped, args.garment, args.missing_bottom))
             _print_row(rows[-1])
     kinds = ("bare",) + ((args.garment,) if args.garment else ())
     kinds += (f"draped {args.draped}",) if args.draped else ()
@@ -89,35 +101,44 @@ def main() -> None:
         print(line)
 
 
+def _kept(points: np.ndarray, missing_bottom: float) -> np.ndarray:
+    """(N,) bool: the points higher than ``missing_bottom`` [m] above the lowest one (all if 0)."""
+    return points[:, 1] >= points[:, 1].min() + missing_bottom
+
+
 def _print_row(row: dict) -> None:
     text = (f"{k}={v:.3f}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items())
     print("  ".join(text), flush=True)
 
 
-def _draped_row(anny_model, seed: int, template: str, garment_type: str) -> dict:
+def _draped_row(anny_model, seed: int, template: str, garment_type: str, missing_bottom: float) -> dict:
     """The same measures on a scan of ``template`` draped by our simulator (`make_draped_scan`: moderate
     random phenotypes, A-pose, 3 mm noise, 10 % holes plus underarm holes)."""
     from torch_diffavatar.sim.placement import body_signed_distance
     from torch_diffavatar.synthetic_scans import make_draped_scan
 
     scan = make_draped_scan(template, anny_model=anny_model, seed=seed, spacing=0.03)
+    keep = _kept(scan.points, missing_bottom)
+    points, labels = scan.points[keep], scan.labels[keep]
     cpu = time.process_time()
-    result = fit_body(scan.points, anny_model=anny_model)
+    result = fit_body(points, anny_model=anny_model)
     cpu = time.process_time() - cpu
     with torch.no_grad():
         verts = result.body().vertices[0].double()
     faces = torch.as_tensor(scan.body_faces)
     sd = np.asarray(body_signed_distance(torch.as_tensor(scan.cloth_x), verts, faces))
     seg = segment_garment(
-        scan.points, garment_type, verts.numpy(), scan.body_faces, result.body.vertex_parts.numpy()
+        points, garment_type, verts.numpy(), scan.body_faces, result.body.vertex_parts.numpy()
     )
-    truth = scan.labels == 1
+    truth = labels == 1
     return {
         "seed": seed,
         "scan": f"draped {template}",
         "height_err_cm": 100 * (result.height_m - scan.height),
         "vertex_err_cm": 100 * float(np.linalg.norm(verts.numpy() - scan.body_vertices, axis=1).mean()),
         "cpu_s": cpu,
+        "start": result.start,
+        **{k: v for k, v in result.losses.items() if k.startswith("pose_")},
         "inside": float((sd >= -0.002).mean()),  # cloth outside the fitted body (within 2 mm)
         "seg_recall": float((seg.labels & truth).sum() / truth.sum()),
         "seg_precision": float((seg.labels & truth).sum() / max(seg.labels.sum(), 1)),
