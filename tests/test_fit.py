@@ -4,6 +4,7 @@ a longer skirt. Also the guards, checkpoint/resume and the config loader."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -238,6 +239,18 @@ def test_bundled_configs_load(garment):
     config = load_config(garment=garment)
     assert config.template == garment
     assert 0 < config.spacing <= 0.05
+
+
+@pytest.mark.parametrize(("template", "kind"), [("dress_pencil", "dress"), ("shorts", "pants")])
+def test_a_template_without_a_config_takes_its_kinds(template, kind):
+    """The bare `FitConfig` defaults (20 trajectory-adjoint iterations of 3 frames) are a quick, weak fit:
+    a bundled template without a config of its own is fitted with its kind's, as itself."""
+    config = load_config(garment=template)
+    expected = load_config(garment=kind)
+    assert config.template == template
+    assert config == replace(expected, template=template)
+    assert load_config(garment=template, template="mine.json").template == "mine.json"
+    assert load_config(garment="cape") == FitConfig(template="cape")  # no config of its kind: defaults
 
 
 def test_without_the_cage_the_rest_mesh_degrades(skirt_problem):

@@ -52,6 +52,24 @@ def test_fit_rejects_a_garment_that_is_neither_template_nor_file(tmp_path, capsy
     assert main(["fit", str(scan), "--garment", str(bad), "--out", str(tmp_path / "out")]) == 2
 
 
+def test_fit_config_follows_the_garment(tmp_path, monkeypatch):
+    """`fit --garment dress_pencil` fitted with the bare `FitConfig` defaults (a quick, weak fit), and
+    `--config configs/dress.yaml --garment dress_pencil` fitted the plain dress (the file's template)."""
+    import torch_diffavatar.fit_commands as commands
+    from torch_diffavatar.fit import CONFIG_DIR, load_config
+
+    seen = []
+    monkeypatch.setattr(commands, "fit_scan", lambda scan, config, *a, **k: seen.append(config) or {})
+    base = ["fit", str(tmp_path / "scan.ply"), "--out", str(tmp_path / "out"), "--json"]
+    assert main([*base, "--garment", "dress_pencil"]) == 0
+    assert main([*base, "--garment", "dress_pencil", "--config", str(CONFIG_DIR / "dress.yaml")]) == 0
+    assert main([*base, "--garment", "shorts", "--iters", "3"]) == 0
+    dress, pants = load_config(garment="dress"), load_config(garment="pants")
+    assert seen[0].template == seen[1].template == "dress_pencil"
+    assert seen[0].adjoint == seen[1].adjoint == dress.adjoint and seen[0].spacing == dress.spacing
+    assert seen[2].template == "shorts" and seen[2].iterations == 3 and seen[2].spacing == pants.spacing
+
+
 def test_body_parameters_are_read_from_a_file_or_a_folder(tmp_path):
     import json
 

@@ -354,14 +354,30 @@ def config_to_dict(config: FitConfig) -> dict:
     return dataclasses.asdict(config)
 
 
+def default_config_path(garment: str) -> Path | None:
+    """The bundled config of a garment: ``configs/<garment>.yaml``; for a bundled template without one,
+    the config of its kind (``dress_pencil`` → ``dress.yaml``, ``shorts`` → ``pants.yaml``: the bare
+    `FitConfig` defaults are a quick, weak fit); else None."""
+    from torch_diffavatar.pattern.library import list_templates, load_template
+
+    own = CONFIG_DIR / f"{garment}.yaml"
+    if own.is_file():
+        return own
+    if garment in list_templates():
+        kind = CONFIG_DIR / f"{load_template(garment).garment_type}.yaml"
+        if kind.is_file():
+            return kind
+    return None
+
+
 def load_config(
     path: str | os.PathLike | None = None, *, garment: str | None = None, **overrides
 ) -> FitConfig:
     """Resolve a fit configuration.
 
     Args:
-        path: a YAML file; when None, ``configs/<garment>.yaml`` of the source tree if present, else the
-            `FitConfig` defaults with ``template = garment``.
+        path: a YAML file; when None, `default_config_path` of ``garment`` (with ``template = garment``),
+            else the `FitConfig` defaults with ``template = garment``.
         garment: the garment type / template name (used when ``path`` is None).
         overrides: fields set last (e.g. ``iterations=5``; None values are ignored).
 
@@ -371,8 +387,10 @@ def load_config(
     import yaml
 
     base = FitConfig() if garment is None else FitConfig(template=garment)
-    if path is None and garment is not None and (CONFIG_DIR / f"{garment}.yaml").is_file():
-        path = CONFIG_DIR / f"{garment}.yaml"
+    if path is None and garment is not None:
+        path = default_config_path(garment)
+        if path is not None and path.stem != garment and overrides.get("template") is None:
+            overrides["template"] = garment  # the config of its kind names that kind's template
     config = base
     if path is not None:
         path = Path(path)

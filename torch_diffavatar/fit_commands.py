@@ -85,7 +85,9 @@ def register(subparsers) -> None:
         "inferred from where a pattern file's panels go on the body)",
     )
     p.add_argument(
-        "--config", help="YAML fit config (default: configs/<garment>.yaml; for a pattern file, its type's)"
+        "--config",
+        help="YAML fit config (default: configs/<garment>.yaml, else its kind's: for a pattern file, its "
+        "type's); --garment replaces the config's template",
     )
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument(
@@ -111,7 +113,8 @@ def fit_command(args) -> dict:
         raise InputError(f"--iters must be >= 0, got {args.iters}")
     if args.spacing is not None and not args.spacing > 0:
         raise InputError(f"--spacing must be a positive length in metres, got {args.spacing}")
-    template, garment_type, overrides, pattern = args.garment, args.garment_type, {}, None
+    template, garment_type, pattern = args.garment, args.garment_type, None
+    overrides = {"template": args.garment}  # --garment says what to fit, whatever --config's template
     if args.garment not in SEGMENT_TYPES:
         from torch_diffavatar.pattern.library import resolve_pattern
 
