@@ -144,8 +144,8 @@ class FitConfig:
             (or the race's winner, ``first_race_iterations``) starts the fit [-]. Cloth that hangs loose
             on a body rests in more than one fold state, and which one a sewing reaches depends on its
             path: stiffer cloth while sewing reaches other fold states. Measured on the tops' true
-            patterns (docs/RESULTS.md): the lowest-loss candidate of (1, 3, 10) landed 0.9-8.0 mm closer
-            to the true drape than the plain sewing. ``(1.0,)``: one sewing.
+            patterns (docs/RESULTS_HISTORY.md): the lowest-loss candidate of (1, 3, 10) landed 0.9-8.0 mm
+            closer to the true drape than the plain sewing. ``(1.0,)``: one sewing.
         first_race_iterations: with several ``first_bend_scales``, the fit runs this many iterations from
             every candidate sewing and continues from the one whose lowest loss is the lowest [-]. A fold
             state and the pattern that suits it are found together, so the first drape's loss alone can
@@ -181,7 +181,7 @@ class FitConfig:
             curvature, rest area and shape) are then minimised around Adam's result, in Adam's own
             metric [-]. 0: one Adam step on the whole loss. Adam's first step moves every handle by its
             learning rate, whatever its gradient; the curvature term, which has no gradient at the
-            template, then rose 17× the whole loss on a T-shirt fit and stalled it (docs/RESULTS.md).
+            template, then rose 17× the whole loss on a T-shirt fit and stalled it (docs/RESULTS_HISTORY.md).
         keep_best: the fit's result is the iteration with the lowest loss (its drape reproduced from its
             own start), not the last one. ``max_loss_rise`` lets single steps raise the loss, and a drape
             can jump to another rest state on a small pattern change (measured: a T-shirt fit's loss
@@ -888,7 +888,7 @@ class Fitter:
         # trials continue from the accepted drape's end state, except after a dropped step: then they start
         # where the reproduced drape started, so the halvings probe the very map (start -> drape) whose
         # gradient was taken (on a T-shirt fit that stalls, rejected trials 95 -> 61 in 30 iterations; it
-        # still stalls: docs/RESULTS.md)
+        # still stalls: docs/RESULTS_HISTORY.md)
         if self.trial_from_start:
             next_start = start
         else:
