@@ -91,6 +91,9 @@ def oracle(args) -> dict:
         "iterations": args.iterations,
         "body": "true" if args.true_body else "fitted",
         "chamfer_mm": mm,
+        # against a fit's report.json (loss_final): does the fit's loss prefer the truth to its result?
+        "loss_initial": report["loss_initial"],
+        "loss_final": report["loss_final"],
         "boundary_chamfer_initial_mm": {
             k: round(1e3 * v, 1) for k, v in report["boundary_chamfer_initial"].items()
         },
