@@ -91,8 +91,9 @@ class BodyFitConfig:
             scan cut above the feet (a capture that misses them) makes the first start far too short.
             Measured on simulated dress scans cut 30 cm above their lowest point, seeds 0-2
             (``scripts/body_fit_seeds.py --missing-bottom 0.3``): height error -3.3 / -8.9 / -4.6 cm
-            without, -0.1 / +1.2 / -0.7 cm with; complete scans keep the first start. Body vertices below
-            every scan point are left out of the coarse body→scan term either way (not observed).
+            before it (4902e0d), -0.1 / +1.2 / -0.7 cm with it; complete scans keep the first start.
+            Body vertices below every scan point are left out of the coarse body→scan term either way
+            (not observed).
         seed: seed of the scan subsampling.
     """
 
