@@ -69,8 +69,7 @@ def main() -> None:
                 "height_err_cm": 100 * (result.height_m - scan.height),
                 "vertex_err_cm": 100 * np.linalg.norm(verts - scan.body_vertices, axis=1).mean(),
                 "cpu_s": cpu,
-                "start": result.start,
-                **{k: v for k, v in result.losses.items() if k.startswith("pose_")},
+                **_start_fields(result),
             }
             if garment is not None:
                 normals = vertex_normals(torch.from_numpy(scan.body_vertices), faces).numpy()
@@ -106,6 +105,11 @@ def _kept(points: np.ndarray, missing_bottom: float) -> np.ndarray:
     return points[:, 1] >= points[:, 1].min() + missing_bottom
 
 
+def _start_fields(result) -> dict:
+    """Which start of the body fit won, and the pose-stage loss of each (`BodyFitConfig.head_start`)."""
+    return {"start": result.start, **{k: v for k, v in result.losses.items() if k.startswith("pose_")}}
+
+
 def _print_row(row: dict) -> None:
     text = (f"{k}={v:.3f}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items())
     print("  ".join(text), flush=True)
@@ -137,8 +141,7 @@ def _draped_row(anny_model, seed: int, template: str, garment_type: str, missing
         "height_err_cm": 100 * (result.height_m - scan.height),
         "vertex_err_cm": 100 * float(np.linalg.norm(verts.numpy() - scan.body_vertices, axis=1).mean()),
         "cpu_s": cpu,
-        "start": result.start,
-        **{k: v for k, v in result.losses.items() if k.startswith("pose_")},
+        **_start_fields(result),
         "inside": float((sd >= -0.002).mean()),  # cloth outside the fitted body (within 2 mm)
         "seg_recall": float((seg.labels & truth).sum() / truth.sum()),
         "seg_precision": float((seg.labels & truth).sum() / max(seg.labels.sum(), 1)),
