@@ -40,6 +40,25 @@ def test_changed_pattern_moves_only_the_hem_corners():
 
 @pytest.mark.anny
 @pytest.mark.slow
+def test_make_scan_sews_a_long_sleeve_onto_a_large_body(anny_model):
+    """Closing the shoulder tips, where four panels meet at 6 mm pattern edges, strains their small
+    triangles past the solver's default limit (E = 3) for a frame; sewing must not call that a blow-up
+    (`drape.SEW_MAX_STRAIN`). Before, this scan failed: "Green strain 3.36 > max_strain 3"."""
+    scan = make_draped_scan(
+        "longsleeve",
+        anny_model=anny_model,
+        seed=5,
+        phenotypes=dict(weight=0.8, height=0.7, gender=0.8),
+        garment_points=1000,
+        body_points=1000,
+    )
+    drape = scan.info["drape"]
+    assert drape["converged"] and drape["max_stitch_gap_m"] < 0.005
+    assert scan.height > 1.75  # the large body the failure needed
+
+
+@pytest.mark.anny
+@pytest.mark.slow
 def test_draped_scan_is_labelled_noisy_and_holey(skirt_scan):
     scan = skirt_scan
     labels = scan.labels
