@@ -1,12 +1,13 @@
 """The rim helpers of the segmentation on synthetic garments: `_lower_rim` (a skirt's hem as its lower
-envelope) and `_edge_points` (the points on an opening's edge)."""
+envelope), `_distal_rim` (a sleeve's cuff as its far end along the arm) and `_edge_points` (the points on
+an opening's edge)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from torch_diffavatar.body.segment import _edge_points, _lower_rim
+from torch_diffavatar.body.segment import _distal_rim, _edge_points, _lower_rim
 
 RADIUS, Y0, Y1 = 0.25, 0.5, 1.0  # the skirt: an open cylinder about the y axis [m]
 BAND = 0.015  # `_lower_rim`'s default band [m]
@@ -167,3 +168,46 @@ def test_opening_rim_tells_a_hole_from_an_opening():
     assert np.mean(kind[left] == 1) > 0.8
     interior = (np.abs(xy) < 0.17).all(1) & (r > 0.09)
     assert not (kind[interior] > 0).any()
+
+
+def _arm(direction=(0.7, -0.7, 0.0)) -> list[np.ndarray]:
+    """Upper arm, forearm and hand as point clouds along a straight arm from the shoulder at the origin."""
+    d = np.asarray(direction) / np.linalg.norm(direction)
+    return [np.outer(np.linspace(a, b, 50), d) for a, b in ((0.0, 0.3), (0.3, 0.55), (0.55, 0.7))]
+
+
+def _ring(centre_t: float, count: int, rng, direction=(0.7, -0.7, 0.0), radius=0.06) -> np.ndarray:
+    """``count`` points of a ring across the arm at ``centre_t`` [m] along it, with 2 mm noise."""
+    d = np.asarray(direction) / np.linalg.norm(direction)
+    u = np.cross(d, [0.0, 0.0, 1.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(d, u)
+    a = rng.uniform(-np.pi, np.pi, count)
+    p = centre_t * d + radius * (np.cos(a)[:, None] * u + np.sin(a)[:, None] * v)
+    return p + rng.normal(0.0, 0.002, p.shape)
+
+
+def test_distal_rim_keeps_the_cuff_and_drops_a_shoulder_patch():
+    """A T-shirt's unlabelled scan: tight cloth on the shoulder taken for skin left a bare patch whose
+    rim was taken into the cuff's (the suite's T-shirt then ended 16.2 mm from its scan, started at 12.0).
+    Only the points at the sleeve's end stay, all the way round."""
+    rng = np.random.default_rng(0)
+    cuff = _ring(0.22, 60, rng)
+    patch = _ring(0.06, 40, rng, radius=0.03) + np.array([0.0, 0.05, 0.0])  # on top of the shoulder
+    points = np.concatenate([cuff, patch])
+    kept = _distal_rim(points, np.arange(len(points)), _arm())
+    assert set(kept.tolist()) == set(range(len(cuff)))
+
+
+def test_distal_rim_keeps_a_cuff_with_a_hole_and_falls_back_when_too_few():
+    rng = np.random.default_rng(1)
+    cuff = _ring(0.22, 60, rng)
+    # a scan hole took a sector of the cuff; the sleeve's edge around the hole lies 8 cm up the arm
+    d = np.array([0.7, -0.7, 0.0]) / np.sqrt(0.98)
+    hole_rim = cuff[:5] - 0.08 * d
+    points = np.concatenate([cuff[5:], hole_rim])
+    kept = _distal_rim(points, np.arange(len(points)), _arm())
+    assert set(kept.tolist()) == set(range(len(cuff) - 5))
+    # fewer points than ``min_count``: all are kept
+    few = np.arange(10)
+    np.testing.assert_array_equal(_distal_rim(points, few, _arm()), few)

@@ -416,6 +416,52 @@ def _lower_rim(
     return idx[keep] if keep.any() else sel
 
 
+def _distal_rim(
+    garment_points: np.ndarray,
+    sel: np.ndarray,
+    limb: list[np.ndarray],
+    sectors: int = 24,
+    band: float = 0.04,
+    max_drop: float = 0.05,
+    min_count: int = 24,
+) -> np.ndarray:
+    """Of a cuff's rim points ``sel`` (indices into ``garment_points`` (G, 3)), those at the sleeve's end.
+
+    A cuff is the garment's far end along its arm. Rim points nearer the shoulder belong to a gap in the
+    garment's labels (tight cloth on a shoulder taken for skin leaves a bare patch named after the arm,
+    whose rim also lies within reach of the arm). ``limb``: the (n, 3) vertices of the arm's parts from
+    the shoulder out (upper arm, forearm, hand). The axis runs from the mean of the part nearest the
+    points' centre to the next part's mean (the upper arm's for a short sleeve, the forearm's for a long
+    one: their cuffs lie across it). Around that axis, in each of ``sectors`` angular sectors, the points
+    within ``band`` [m] of the sector's farthest along the axis are kept (why 4 cm: on the suite's
+    labelled tops the cuffs' rim points lie up to 3-5 cm behind their sector's farthest, a hanging sleeve
+    end or a hole's rim beside it; at 1.5 cm their fits moved; the shoulder patch lay 8+ cm back). A sector
+    whose farthest point falls more than ``max_drop`` [m] short of the median sector's is a hole in the
+    scan, not the cuff, and is skipped. Falls back to ``sel`` when fewer than ``min_count`` remain.
+    """
+    if len(sel) < min_count or len(limb) < 2 or any(len(part) == 0 for part in limb):
+        return sel
+    centre = garment_points[sel].mean(0)
+    near = [float(cKDTree(part).query(centre)[0]) for part in limb[:-1]]
+    k = int(np.argmin(near))
+    origin = limb[k].mean(0)
+    axis = limb[k + 1].mean(0) - origin
+    axis /= np.linalg.norm(axis)
+    u = np.cross(axis, [0.0, 0.0, 1.0] if abs(axis[2]) < 0.9 else [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(axis, u)
+    d = garment_points[sel] - origin
+    t = d @ axis
+    angle = np.arctan2(d @ v, d @ u)
+    sector = np.minimum(((angle + np.pi) / (2 * np.pi) * sectors).astype(np.int64), sectors - 1)
+    far = np.full(sectors, -np.inf)
+    np.maximum.at(far, sector, t)
+    seen = np.isfinite(far)
+    ok = seen & (far >= np.median(far[seen]) - max_drop)
+    keep = ok[sector] & (t >= far[sector] - band)
+    return sel[keep] if keep.sum() >= min_count else sel
+
+
 def _edge_gaps(garment_points: np.ndarray, sel: np.ndarray, k: int = 32) -> tuple[np.ndarray, np.ndarray]:
     """Widest angular gap [rad] (S,) among the ``k`` nearest garment points of each of the points ``sel``
     (indices into ``garment_points`` (G, 3)), seen in its local tangent plane (PCA of those neighbours),
@@ -631,6 +677,10 @@ def _boundary_loops(
                 arm = np.isin(vertex_parts, [PART_NAMES.index(p + name[-2:]) for p in _ARM_PARTS])
                 limb_dist, _ = cKDTree(body_vertices[arm]).query(garment_points[mine])
                 mine = mine[limb_dist < limb_reach]
+                if name.startswith("cuff"):
+                    arm_side = name[-2:]
+                    limb = [body_vertices[vertex_parts == PART_NAMES.index(p + arm_side)] for p in _ARM_PARTS]
+                    mine = _distal_rim(garment_points, mine, limb)
             if len(mine) >= min_rim:
                 sel = mine
             elif len(sel) == 0:
