@@ -126,9 +126,10 @@ class FitConfig:
         lr_translation: Adam step of the body translation [m] (0 freezes it).
         lr_pose: Adam step of the body pose [rad] (0 freezes it).
         lr_log_bend_stiffness: Adam step of log k_b [-] (0 freezes the material).
-        initial_bend_stiffness: k_b at the start [N·m]. Set it near the fabric's when known: 30 iterations
-            move k_b by about ×6 at most (a dress 20× stiffer than 5e-6 ended at 0.28× its k_b and 13.1 mm
-            from the scan; started at its k_b, at 6.0 mm: docs/BENCHMARKS.md, "A stiff dress").
+        initial_bend_stiffness: k_b at the start [N·m]. Set it near the fabric's when known: Adam's steps
+            of ``lr_log_bend_stiffness`` (0.15, decaying) move log k_b by about 2.5 (×12) in 30 iterations
+            at most. A dress 20× stiffer than 5e-6 moved ×5.6 and ended at 0.28× its k_b, 13.1 mm from the
+            scan; started at its k_b, at 6.0 mm (docs/BENCHMARKS.md, "A stiff dress").
         weights: the loss weights.
         adjoint: ``"trajectory"`` or ``"equilibrium"`` (see `sim.differentiable.drape`).
         drape_steps: frames of every warm-started drape [-]. Trajectory adjoint: exactly this many (the

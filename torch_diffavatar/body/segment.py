@@ -434,8 +434,9 @@ def _distal_rim(
     points' centre to the next part's mean (the upper arm's for a short sleeve, the forearm's for a long
     one: their cuffs lie across it). Around that axis, in each of ``sectors`` angular sectors, the points
     within ``band`` [m] of the sector's farthest along the axis are kept (why 4 cm: on the suite's
-    labelled tops the cuffs' rim points lie up to 3-5 cm behind their sector's farthest, a hanging sleeve
-    end or a hole's rim beside it; at 1.5 cm their fits moved; the shoulder patch lay 8+ cm back). A sector
+    labelled tops all but 3 cuff rim points lie within it, some 1.5-4 cm behind their sector's farthest,
+    a hanging sleeve end or a hole's rim beside it; a 1.5 cm band dropped them and moved the fits; the
+    unlabelled T-shirt's shoulder patches lay 8 cm and more back). A sector
     whose farthest point falls more than ``max_drop`` [m] short of the median sector's is a hole in the
     scan, not the cuff, and is skipped. Falls back to ``sel`` when fewer than ``min_count`` remain.
     """
