@@ -63,7 +63,7 @@ from torch_diffavatar.losses import (
 )
 from torch_diffavatar.metrics import triangle_quality
 from torch_diffavatar.pattern.garment_mesh import GarmentMesh
-from torch_diffavatar.sim.drape import DrapeConfig
+from torch_diffavatar.sim.drape import SEW_MAX_STRAIN, DrapeConfig
 from torch_diffavatar.sim.material import ClothMaterial
 from torch_diffavatar.sim.model import ClothModel, ClothModelBuilder
 from torch_diffavatar.sim.solver import XPBDConfig
@@ -72,8 +72,9 @@ from torch_diffavatar.sim.state import ClothState
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
 CHECKPOINT = "checkpoint.pt"
 SETUP = "setup.pt"
-# strain limit of every drape of a fit (see `Fitter.drape_config` for why it is above the solver's 3)
-FIT_MAX_STRAIN = 100.0
+# strain limit of every drape of a fit, the sewing's (see `Fitter.drape_config` for why it is above the
+# solver's 3)
+FIT_MAX_STRAIN = SEW_MAX_STRAIN
 
 # ---------------------------------------------------------------------------------------------------------
 # Configuration

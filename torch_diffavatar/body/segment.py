@@ -407,13 +407,22 @@ def _lower_rim(
     p = g[idx]
     axis = p[:, [0, 2]].mean(0)
     angle = np.arctan2(p[:, 2] - axis[1], p[:, 0] - axis[0])
-    sector = np.minimum(((angle + np.pi) / (2 * np.pi) * sectors).astype(np.int64), sectors - 1)
-    low = np.full(sectors, np.inf)
-    np.minimum.at(low, sector, p[:, 1])
-    seen = np.isfinite(low)
-    ok = seen & (low <= np.median(low[seen]) + max_rise)
-    keep = ok[sector] & (p[:, 1] <= low[sector] + band)
+    keep = _sector_envelope(-p[:, 1], angle, sectors, band, max_rise)  # the lowest: farthest down
     return idx[keep] if keep.any() else sel
+
+
+def _sector_envelope(
+    t: np.ndarray, angle: np.ndarray, sectors: int, band: float, max_drop: float
+) -> np.ndarray:
+    """(n,) bool: the points within ``band`` of the largest ``t`` (n,) [m] of their angular sector (``angle``
+    (n,) [rad] in [−π, π], ``sectors`` equal sectors), except in sectors whose largest ``t`` falls more than
+    ``max_drop`` [m] short of the median sector's (a hole in the scan, not the rim)."""
+    sector = np.minimum(((angle + np.pi) / (2 * np.pi) * sectors).astype(np.int64), sectors - 1)
+    far = np.full(sectors, -np.inf)
+    np.maximum.at(far, sector, t)
+    seen = np.isfinite(far)
+    ok = seen & (far >= np.median(far[seen]) - max_drop)
+    return ok[sector] & (t >= far[sector] - band)
 
 
 def _distal_rim(
@@ -452,14 +461,7 @@ def _distal_rim(
     u /= np.linalg.norm(u)
     v = np.cross(axis, u)
     d = garment_points[sel] - origin
-    t = d @ axis
-    angle = np.arctan2(d @ v, d @ u)
-    sector = np.minimum(((angle + np.pi) / (2 * np.pi) * sectors).astype(np.int64), sectors - 1)
-    far = np.full(sectors, -np.inf)
-    np.maximum.at(far, sector, t)
-    seen = np.isfinite(far)
-    ok = seen & (far >= np.median(far[seen]) - max_drop)
-    keep = ok[sector] & (t >= far[sector] - band)
+    keep = _sector_envelope(d @ axis, np.arctan2(d @ v, d @ u), sectors, band, max_drop)
     return sel[keep] if keep.sum() >= min_count else sel
 
 
@@ -675,12 +677,10 @@ def _boundary_loops(
             if name.startswith(("cuff", "armhole")):
                 # a sleeve's or an armhole's rim lies by its arm (a garment labelled short of a
                 # shoulder leaves a bare "arm" patch there that the body names after the arm)
-                arm = np.isin(vertex_parts, [PART_NAMES.index(p + name[-2:]) for p in _ARM_PARTS])
-                limb_dist, _ = cKDTree(body_vertices[arm]).query(garment_points[mine])
+                limb = [body_vertices[vertex_parts == PART_NAMES.index(p + name[-2:])] for p in _ARM_PARTS]
+                limb_dist, _ = cKDTree(np.concatenate(limb)).query(garment_points[mine])
                 mine = mine[limb_dist < limb_reach]
                 if name.startswith("cuff"):
-                    arm_side = name[-2:]
-                    limb = [body_vertices[vertex_parts == PART_NAMES.index(p + arm_side)] for p in _ARM_PARTS]
                     mine = _distal_rim(garment_points, mine, limb)
             if len(mine) >= min_rim:
                 sel = mine
