@@ -132,3 +132,52 @@ def test_make_scan_rejects_bad_settings_before_any_work(kw):
 
     with pytest.raises(InputError, match=next(iter(kw))):
         make_draped_scan("skirt", **kw)
+
+
+def test_make_scan_pose_option(tmp_path, capsys):
+    """``--pose``: 'a' is no pose, 'random' is seeded (its own draws: the phenotypes stay the A-pose
+    scan's), a JSON file sets the bones it names; bad files are one error line, exit 2."""
+    from torch_diffavatar.body.model import POSE_BONES
+    from torch_diffavatar.synthetic_scans import _parse_pose
+
+    assert _parse_pose("a", 0) is None and _parse_pose("A-pose", 0) is None
+    one, again, other = _parse_pose("random", 0), _parse_pose("random", 0), _parse_pose("random", 1)
+    assert one.shape == (1, len(POSE_BONES), 3) and torch.equal(one, again) and not torch.equal(one, other)
+    assert one.abs().max() > 0.1
+    path = tmp_path / "pose.json"
+    path.write_text(json.dumps({"lowerarm01.L": [0.0, 0.0, -0.6]}))
+    pose = _parse_pose(str(path), 0)
+    k = POSE_BONES.index("lowerarm01.L")
+    assert pose[0, k].tolist() == [0.0, 0.0, -0.6] and pose.abs().sum() == pytest.approx(0.6)
+    for text, message in (
+        (json.dumps({"elbow.L": [0, 0, 1]}), "unknown bone 'elbow.L'"),
+        (json.dumps({"head": [0, 1]}), "three numbers"),
+        (json.dumps([0, 1, 2]), "must hold an object"),
+        ("{not json", "not valid JSON"),
+    ):
+        path.write_text(text)
+        assert main(["make-scan", "skirt", "--out", str(tmp_path / "out"), "--pose", str(path)]) == 2
+        assert message in capsys.readouterr().err
+    assert main(["make-scan", "skirt", "--out", str(tmp_path / "out"), "--pose", "sitting"]) == 2
+    assert "neither 'a', 'random' nor a JSON file" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.anny
+@pytest.mark.slow
+def test_posed_scan_records_its_pose(anny_model, skirt_scan):
+    """A scan of a posed body: the truth holds the pose, and the skin follows it (a bent elbow moves
+    the forearm's points)."""
+    from torch_diffavatar.body.model import POSE_BONES
+
+    pose = torch.zeros(1, len(POSE_BONES), 3, dtype=torch.float64)
+    pose[0, POSE_BONES.index("lowerarm01.L")] = torch.tensor([0.0, 0.0, -0.6], dtype=torch.float64)
+    phenotypes = dict(gender=0.5, age=0.5, muscle=0.5, weight=0.45, height=0.55, proportions=0.5)
+    kw = dict(spacing=0.05, garment_points=4000, body_points=4000, noise=0.002, hole_fraction=0.1)
+    posed = make_draped_scan("skirt", anny_model=anny_model, seed=3, phenotypes=phenotypes, pose=pose, **kw)
+    assert list(posed.info["pose_rad"]) == ["lowerarm01.L"] and skirt_scan.info["pose_rad"] == {}
+    assert torch.allclose(torch.as_tensor(posed.body_params["pose_axis_angle"]).double(), pose, atol=1e-6)
+    moved = np.linalg.norm(posed.body_vertices - skirt_scan.body_vertices, axis=1)
+    left_hand = skirt_scan.body_vertices[:, 0] > skirt_scan.body_vertices[:, 0].max() - 0.05
+    right_hand = skirt_scan.body_vertices[:, 0] < skirt_scan.body_vertices[:, 0].min() + 0.05
+    assert moved[left_hand].min() > 0.05 and moved[right_hand].max() < 1e-5

@@ -339,7 +339,8 @@ def prepare(
             raise InputError(f"the given body parameters do not fit this BodyModel: {exc}") from exc
         body_fit_chamfer_m = None
     with torch.no_grad():
-        body_verts = body().vertices[0].double()
+        body_out = body()
+        body_verts = body_out.vertices[0].double()
     faces = body.faces.cpu().numpy()
     parts = vertex_parts(anny_model).cpu().numpy()
     if pattern is None:
@@ -359,7 +360,7 @@ def prepare(
         raise InputError(f"{scan_path}: only {int(mask.sum())} garment points; cannot fit a garment")
     loops = scan_boundaries(scan.points, mask, body_verts.numpy(), faces, parts, seg_type)
     garment = mesh_pattern(pattern, spacing=config.spacing)
-    garment = place_garment(garment, body_verts, body.faces)
+    garment = place_garment(garment, body_verts, body.faces, arm_joints=body.arm_joints(body_out.joints[0]))
     boundaries = match_boundaries(garment, loops)
     target = ScanTarget(
         garment_points=torch.as_tensor(scan.points[mask]),

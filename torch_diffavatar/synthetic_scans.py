@@ -32,6 +32,8 @@ from torch_diffavatar.errors import InputError
 HEM_LOOPS = ("hem", "hem_left", "hem_right")
 # Default range of the random phenotypes of `make_draped_scan` (each of the six, uniform).
 DEFAULT_PHENOTYPE_RANGE = (0.35, 0.65)
+# ``--pose random`` draws from seed + this offset, apart from the phenotypes' draws.
+POSE_SEED_OFFSET = 1000
 
 
 def changed_pattern(pattern, hem_up: float = 0.0, hem_widen: float = 0.0, spacing: float = 0.03):
@@ -198,7 +200,12 @@ def make_draped_scan(
         normals = vertex_normals(verts, body.faces)
         height = float(body.standing_height()[0])
     pattern = changed_pattern(resolve_pattern(template), hem_up, hem_widen)
-    garment = place_garment(mesh_pattern(pattern, spacing=spacing), verts.double(), body.faces)
+    garment = place_garment(
+        mesh_pattern(pattern, spacing=spacing),
+        verts.double(),
+        body.faces,
+        arm_joints=body.arm_joints(out.joints[0]),
+    )
     material = ClothMaterial(bend_stiffness=bend_stiffness)
     result = sew_and_drape(garment, body_verts=verts, body_faces=body.faces, material=material)
     cloth = result.x.double().numpy()
@@ -226,6 +233,8 @@ def make_draped_scan(
         "seed": seed,
         "design_change": {"hem_up_m": hem_up, "hem_widen": hem_widen},
         "phenotypes": dict(zip(body.phenotype_labels, body.phenotypes[0].tolist())),
+        # The bones off the A-pose, axis-angle [rad] (`BodyModel`'s pose convention).
+        "pose_rad": {b: r for b, r in zip(body.pose_bones, body.pose[0].tolist()) if any(r)},
         "height_m": height,
         "material": {"bend_stiffness": bend_stiffness, "unit": "N*m"},
         "spacing_m": spacing,
@@ -301,6 +310,12 @@ def register(subparsers) -> None:
     p.add_argument(
         "--phenotypes", default=None, help="e.g. 'weight=0.6,height=0.4' (others 0.5; default: all random)"
     )
+    p.add_argument(
+        "--pose",
+        default="a",
+        help="'a' (the A-pose, default), 'random' (a random plausible pose from --seed) or a JSON file "
+        "{bone: [rx, ry, rz]} of axis-angles [rad] of the posed bones (others stay at the A-pose)",
+    )
     p.add_argument("--bend-stiffness", type=float, default=2.0e-5, help="[N*m] (default 2e-5)")
     p.add_argument("--hem-up", type=float, default=0.05, help="hem raised by [m] (default 0.05)")
     p.add_argument("--hem-widen", type=float, default=0.1, help="hem widened by [-] (default 0.1)")
@@ -334,11 +349,42 @@ def _parse_phenotypes(text: str | None) -> dict[str, float] | None:
     return values
 
 
+def _parse_pose(text: str, seed: int) -> torch.Tensor | None:
+    """``--pose``: None (the A-pose), a random pose seeded by ``seed``, or (1, K, 3) from a JSON file."""
+    from torch_diffavatar.body.model import POSE_BONES
+    from torch_diffavatar.body.synthetic import random_pose
+
+    if text.lower() in ("a", "a-pose"):
+        return None
+    if text.lower() == "random":
+        # A generator of its own, so that the phenotypes drawn from the seed stay those of the A-pose scan.
+        return random_pose(torch.Generator().manual_seed(seed + POSE_SEED_OFFSET))
+    path = Path(text)
+    if not path.is_file():
+        raise InputError(f"--pose: {text!r} is neither 'a', 'random' nor a JSON file")
+    try:
+        bones = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise InputError(f"--pose: {text} is not valid JSON ({exc})") from exc
+    if not isinstance(bones, dict):
+        raise InputError(f"--pose: {text} must hold an object {{bone: [rx, ry, rz]}}")
+    pose = torch.zeros(1, len(POSE_BONES), 3, dtype=torch.float64)
+    for bone, value in bones.items():
+        if bone not in POSE_BONES:
+            raise InputError(f"--pose: unknown bone {bone!r}; the posed bones are {', '.join(POSE_BONES)}")
+        try:
+            pose[0, POSE_BONES.index(bone)] = torch.tensor([float(v) for v in value], dtype=torch.float64)
+        except (TypeError, ValueError, RuntimeError) as exc:
+            raise InputError(f"--pose: {bone!r} must be three numbers [rad], got {value!r}") from exc
+    return pose
+
+
 def _make_scan_command(args) -> dict:
     scan = make_draped_scan(
         args.template,
         seed=args.seed,
         phenotypes=_parse_phenotypes(args.phenotypes),
+        pose=_parse_pose(args.pose, args.seed),
         bend_stiffness=args.bend_stiffness,
         hem_up=args.hem_up,
         hem_widen=args.hem_widen,

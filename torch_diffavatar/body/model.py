@@ -11,6 +11,7 @@ from __future__ import annotations
 import copy
 from dataclasses import dataclass
 
+import numpy as np
 import roma
 import torch
 from torch import nn
@@ -244,6 +245,26 @@ class BodyModel(nn.Module):
             raise ValueError(f"unknown body parts {unknown}; known: {PART_NAMES}")
         ids = torch.tensor([PART_NAMES.index(n) for n in names], device=self.vertex_parts.device)
         return torch.nonzero(torch.isin(self.vertex_parts, ids)).flatten()
+
+    def arm_joints(self, joints: torch.Tensor) -> dict[str, np.ndarray]:
+        """Each arm's joints for `sim.placement.place_garment` (a body not in the A-pose).
+
+        Args:
+            joints: (J, 3) one body's `BodyOutput.joints` [m].
+
+        Returns:
+            ``{"left": (4, 3), "right": (4, 3)}`` float64 numpy: the shoulder joint, the elbow, the wrist
+            and the middle of the hand (halfway to the middle finger's knuckle, where the fingers part).
+        """
+        labels = self.anny.bone_labels
+        j = joints.detach().cpu().double().numpy()
+        out = {}
+        for name, s in (("left", "L"), ("right", "R")):
+            shoulder, elbow, wrist, knuckle = (
+                j[labels.index(f"{b}.{s}")] for b in ("upperarm01", "lowerarm01", "wrist", "finger3-1")
+            )
+            out[name] = np.stack([shoulder, elbow, wrist, 0.5 * (wrist + knuckle)])
+        return out
 
     def parameters_dict(self) -> dict:
         """JSON-friendly copy of the fit variables (batch element lists)."""
