@@ -89,7 +89,8 @@ _CUFF_MARGIN = 0.01  # [m] a sleeve longer than the arm starts with its cuff thi
 _ARM_STEP = 0.01  # [m] sample spacing of an arm axis along its joints (`_arm_axis_along`)
 # an arm axis from horizontal sections that misses the body's elbow or wrist joint by more than this, or
 # starts farther than the other from its shoulder joint, is taken along the joints instead. On the A-pose
-# (10 bodies) they miss by 0.6-1.2 cm and 2.4-3.0 cm; on a bent elbow or a level upper arm, by 4-38 cm.
+# (10 bodies) they miss by 0.6-1.2 cm and 2.4-3.0 cm; posed (`random_pose`), 13 of 20 arms missed by
+# 3.9-28.5 cm and 5.4-19.2 cm, or had no axis.
 _ARM_JOINT_TOL = 0.03
 _ARM_ROOT_TOL = 0.05
 _MAX_SLOPE = 0.3  # largest change of a wrap radius per metre along the body / arm (near-isometric)
@@ -417,14 +418,14 @@ def _strays_from(poly: np.ndarray, chain: np.ndarray) -> bool:
 def _arm_axis_along(slicer: _Slicer, chain: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(K, 3) arm axis and (K,) radii [m] along a joint chain (J, 3) from the shoulder joint to the hand.
 
-    The chain is resampled every `_ARM_STEP`; at each sample the section by the plane across the chain
+    The chain is resampled about every `_ARM_STEP`; at each sample the section by the plane across the chain
     (direction over ±2 samples, which rounds the elbow) gives the loop nearest the sample, whose centre is
     the axis point and whose largest distance from it the radius (the same as the horizontal sections'
     axis). Near the shoulder that plane also cuts the torso, in one loop: samples whose loop lies far off
     or is more than twice the median radius keep the chain point and an interpolated radius.
     """
     arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(chain, axis=0), axis=1))])
-    s = np.append(np.arange(0.0, arc[-1], _ARM_STEP), arc[-1])
+    s = np.linspace(0.0, arc[-1], max(2, round(arc[-1] / _ARM_STEP) + 1))
     pts = np.stack([np.interp(s, arc, chain[:, i]) for i in range(3)], axis=1)
     n = len(pts)
     ahead, behind = np.minimum(np.arange(n) + 2, n - 1), np.maximum(np.arange(n) - 2, 0)
