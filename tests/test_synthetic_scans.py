@@ -150,9 +150,9 @@ def test_make_scan_pose_option(tmp_path, capsys):
     k = POSE_BONES.index("lowerarm01.L")
     assert pose[0, k].tolist() == [0.0, 0.0, -0.6] and pose.abs().sum() == pytest.approx(0.6)
     for text, message in (
-        (json.dumps({"elbow.L": [0, 0, 1]}), "unknown bone 'elbow.L'"),
+        (json.dumps({"elbow.L": [0, 0, 1]}), "unknown bones ['elbow.L']"),
         (json.dumps({"head": [0, 1]}), "three numbers"),
-        (json.dumps([0, 1, 2]), "must hold an object"),
+        (json.dumps([0, 1, 2]), "a pose is an object"),
         ("{not json", "not valid JSON"),
     ):
         path.write_text(text)

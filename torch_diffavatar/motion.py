@@ -38,7 +38,7 @@ from pathlib import Path
 import roma
 import torch
 
-from torch_diffavatar.body.model import POSE_BONES
+from torch_diffavatar.body.model import POSE_BONES, pose_from_bones
 from torch_diffavatar.errors import InputError
 
 EASES = ("smooth", "linear")
@@ -79,19 +79,10 @@ class KeyframeMotion(Motion):
         times = [k.time for k in keyframes]
         if any(b <= a for a, b in zip(times, times[1:])) or times[0] < 0:
             raise InputError(f"keyframe times must be >= 0 and strictly increasing, got {times}")
-        for k in keyframes:
-            unknown = sorted(set(k.pose) - set(POSE_BONES))
-            if unknown:
-                raise InputError(
-                    f"keyframe at {k.time} s: unknown bones {unknown}; posable: {list(POSE_BONES)}"
-                )
+        key_pose = torch.stack([pose_from_bones(k.pose, f"keyframe at {k.time} s") for k in keyframes])
         self.keyframes = list(keyframes)
         self.ease = ease
         self.duration = times[-1]
-        key_pose = torch.zeros(len(keyframes), len(POSE_BONES), 3, dtype=torch.float64)
-        for i, k in enumerate(keyframes):
-            for bone, rv in k.pose.items():
-                key_pose[i, POSE_BONES.index(bone)] = torch.tensor(rv, dtype=torch.float64)
         self._times = torch.tensor(times, dtype=torch.float64)
         self._pose = key_pose  # (N, K, 3)
         self._transl = torch.tensor([k.translation for k in keyframes], dtype=torch.float64)  # (N, 3)

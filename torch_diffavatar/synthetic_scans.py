@@ -351,7 +351,7 @@ def _parse_phenotypes(text: str | None) -> dict[str, float] | None:
 
 def _parse_pose(text: str, seed: int) -> torch.Tensor | None:
     """``--pose``: None (the A-pose), a random pose seeded by ``seed``, or (1, K, 3) from a JSON file."""
-    from torch_diffavatar.body.model import POSE_BONES
+    from torch_diffavatar.body.model import pose_from_bones
     from torch_diffavatar.body.synthetic import random_pose
 
     if text.lower() in ("a", "a-pose"):
@@ -366,17 +366,7 @@ def _parse_pose(text: str, seed: int) -> torch.Tensor | None:
         bones = json.loads(path.read_text())
     except json.JSONDecodeError as exc:
         raise InputError(f"--pose: {text} is not valid JSON ({exc})") from exc
-    if not isinstance(bones, dict):
-        raise InputError(f"--pose: {text} must hold an object {{bone: [rx, ry, rz]}}")
-    pose = torch.zeros(1, len(POSE_BONES), 3, dtype=torch.float64)
-    for bone, value in bones.items():
-        if bone not in POSE_BONES:
-            raise InputError(f"--pose: unknown bone {bone!r}; the posed bones are {', '.join(POSE_BONES)}")
-        try:
-            pose[0, POSE_BONES.index(bone)] = torch.tensor([float(v) for v in value], dtype=torch.float64)
-        except (TypeError, ValueError, RuntimeError) as exc:
-            raise InputError(f"--pose: {bone!r} must be three numbers [rad], got {value!r}") from exc
-    return pose
+    return pose_from_bones(bones, f"--pose {text}")[None]
 
 
 def _make_scan_command(args) -> dict:

@@ -52,6 +52,28 @@ _LIMITS: dict[str, tuple] = {
 POSE_BONES: tuple[str, ...] = tuple(_LIMITS)
 
 
+def pose_from_bones(bones: dict, context: str = "pose") -> torch.Tensor:
+    """(K, 3) float64 axis-angles [rad] of the `POSE_BONES` from ``{bone: [rx, ry, rz]}``; the bones not
+    named stay at the A-pose (zero). Raises `InputError`, prefixed with ``context``, for anything else."""
+    from torch_diffavatar.errors import InputError
+
+    if not isinstance(bones, dict):
+        raise InputError(f"{context}: a pose is an object {{bone: [rx, ry, rz]}}, got {type(bones).__name__}")
+    unknown = sorted(set(bones) - set(POSE_BONES))
+    if unknown:
+        raise InputError(f"{context}: unknown bones {unknown}; posable: {list(POSE_BONES)}")
+    pose = torch.zeros(len(POSE_BONES), 3, dtype=torch.float64)
+    for bone, value in bones.items():
+        try:
+            row = torch.tensor([float(v) for v in value], dtype=torch.float64)
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"{context}: {bone!r} must be three numbers [rad], got {value!r}") from exc
+        if row.shape != (3,):
+            raise InputError(f"{context}: {bone!r} must be three numbers [rad], got {value!r}")
+        pose[POSE_BONES.index(bone)] = row
+    return pose
+
+
 def pose_limits(bones: tuple[str, ...] = POSE_BONES) -> tuple[torch.Tensor, torch.Tensor]:
     """(lower (K, 3), upper (K, 3)) float64 soft joint limits [rad] of ``bones`` (see `_LIMITS`)."""
     lo, hi = [], []
