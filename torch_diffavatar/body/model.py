@@ -19,6 +19,7 @@ from torch import nn
 from torch_diffavatar.body.anny_model import load_anny
 from torch_diffavatar.body.frames import anny_to_world
 from torch_diffavatar.body.parts import PART_NAMES, vertex_parts
+from torch_diffavatar.errors import InputError
 
 _BODY = (0.35, 0.35, 0.35)
 # Major bones that are posed, with symmetric per-axis soft limits [rad] in Anny's world-aligned axes
@@ -55,8 +56,6 @@ POSE_BONES: tuple[str, ...] = tuple(_LIMITS)
 def pose_from_bones(bones: dict, context: str = "pose") -> torch.Tensor:
     """(K, 3) float64 axis-angles [rad] of the `POSE_BONES` from ``{bone: [rx, ry, rz]}``; the bones not
     named stay at the A-pose (zero). Raises `InputError`, prefixed with ``context``, for anything else."""
-    from torch_diffavatar.errors import InputError
-
     if not isinstance(bones, dict):
         raise InputError(f"{context}: a pose is an object {{bone: [rx, ry, rz]}}, got {type(bones).__name__}")
     unknown = sorted(set(bones) - set(POSE_BONES))
