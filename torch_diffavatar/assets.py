@@ -498,14 +498,9 @@ class Assets:
 
 
 def _read_json(path: Path) -> dict:
-    from torch_diffavatar.errors import InputError
+    from torch_diffavatar.errors import read_json_file
 
-    if not path.is_file():
-        raise InputError(f"{path}: missing (not an asset folder written by write_assets?)")
-    try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{path}: not valid JSON ({exc})") from exc
+    return read_json_file(path, f"{path}: missing (not an asset folder written by write_assets?)")
 
 
 def load_assets(asset_dir: str | os.PathLike) -> Assets:

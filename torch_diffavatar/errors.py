@@ -1,5 +1,10 @@
 """Exceptions raised for bad user input (files, patterns, scans). The CLI turns them into one line."""
 
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
 
 class InputError(ValueError):
     """Bad input that the user can fix; the message names the problem and, where known, the file."""
@@ -15,3 +20,15 @@ class ScanError(InputError):
 
 class SimulationError(RuntimeError):
     """The simulation blew up (NaN, runaway speed or stretch) and returned nothing usable."""
+
+
+def read_json_file(path: str | Path, missing: str):
+    """The parsed JSON of the file ``path``; `InputError` with the message ``missing`` when there is no such
+    file, and one naming the file when it is not valid JSON."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(missing)
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise InputError(f"{path}: not valid JSON ({exc})") from exc

@@ -29,17 +29,15 @@ ramped in so the animation starts at rest.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import roma
 import torch
 
 from torch_diffavatar.body.model import POSE_BONES, pose_from_bones
-from torch_diffavatar.errors import InputError
+from torch_diffavatar.errors import InputError, read_json_file
 
 EASES = ("smooth", "linear")
 
@@ -189,14 +187,7 @@ def load_motion(spec: str | os.PathLike, *, duration: float | None = None) -> Mo
     """``"walk"`` (the procedural walk, ``duration`` s, default 4) or a keyframe JSON file."""
     if str(spec) == "walk":
         return WalkCycle(4.0 if duration is None else duration)
-    path = Path(spec)
-    if not path.is_file():
-        raise InputError(f"--motion {spec}: give 'walk' or a keyframe JSON file")
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{path}: not valid JSON ({exc})") from exc
-    return keyframes_from_dict(data)
+    return keyframes_from_dict(read_json_file(spec, f"--motion {spec}: give 'walk' or a keyframe JSON file"))
 
 
 def compose_pose(base: torch.Tensor, offset: torch.Tensor) -> torch.Tensor:

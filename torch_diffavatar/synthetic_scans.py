@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from torch_diffavatar.errors import InputError
+from torch_diffavatar.errors import InputError, read_json_file
 
 HEM_LOOPS = ("hem", "hem_left", "hem_right")
 # Default range of the random phenotypes of `make_draped_scan` (each of the six, uniform).
@@ -359,13 +359,7 @@ def _parse_pose(text: str, seed: int) -> torch.Tensor | None:
     if text.lower() == "random":
         # A generator of its own, so that the phenotypes drawn from the seed stay those of the A-pose scan.
         return random_pose(torch.Generator().manual_seed(seed + POSE_SEED_OFFSET))
-    path = Path(text)
-    if not path.is_file():
-        raise InputError(f"--pose: {text!r} is neither 'a', 'random' nor a JSON file")
-    try:
-        bones = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise InputError(f"--pose: {text} is not valid JSON ({exc})") from exc
+    bones = read_json_file(text, f"--pose: {text!r} is neither 'a', 'random' nor a JSON file")
     return pose_from_bones(bones, f"--pose {text}")[None]
 
 
