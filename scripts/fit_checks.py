@@ -196,7 +196,15 @@ def fd(args) -> dict:
     body = BodyModel(anny_model=load_anny(dtype=torch.float32))
     body.load_parameters_dict(setup["body_params"])
     material = ClothMaterial(bend_stiffness=config.initial_bend_stiffness)
-    fitter = Fitter(setup["garment"], setup["target"], config, body=body, material=material, progress=False)
+    fitter = Fitter(
+        setup["garment"],
+        setup["target"],
+        config,
+        body=body,
+        material=material,
+        sewing_fallback=setup.get("sewing_fallback"),
+        progress=False,
+    )
     start = fitter._first_state()
     ev = fitter.evaluate(start)
     fitter.optimizer.zero_grad()

@@ -63,7 +63,7 @@ from torch_diffavatar.losses import (
 )
 from torch_diffavatar.metrics import triangle_quality
 from torch_diffavatar.pattern.garment_mesh import GarmentMesh
-from torch_diffavatar.sim.drape import SEW_MAX_STRAIN, DrapeConfig
+from torch_diffavatar.sim.drape import SEW_MAX_STRAIN, DrapeConfig, PoseRoute
 from torch_diffavatar.sim.material import ClothMaterial
 from torch_diffavatar.sim.model import ClothModel, ClothModelBuilder
 from torch_diffavatar.sim.solver import XPBDConfig
@@ -544,6 +544,8 @@ class Fitter:
         material: the base cloth material (its bending stiffness is replaced by the fitted one).
         start_state: the first warm start (e.g. a `sew_and_drape` result's state); None runs
             `sew_and_drape` from the placement.
+        sewing_fallback: how to dress the body when sewing the placed garment on it fails
+            (`sew_and_drape`'s ``fallback``; `sim.placement.a_pose_route` for a posed body).
         out_dir: where checkpoints and TensorBoard logs go (None: nowhere).
         progress: show a tqdm bar on stderr.
         dtype: float32 for fits (float64 for tiny tests).
@@ -559,6 +561,7 @@ class Fitter:
         body_mesh: tuple[torch.Tensor, torch.Tensor] | None = None,
         material: ClothMaterial | None = None,
         start_state: ClothState | None = None,
+        sewing_fallback: PoseRoute | None = None,
         out_dir: str | os.PathLike | None = None,
         progress: bool = True,
         tensorboard: bool = True,
@@ -618,6 +621,7 @@ class Fitter:
         self.lr_scale = 1.0  # shrunk by rejected steps, regrown by steps accepted whole (see step)
         self.trial_from_start = False  # after a dropped step, trials drape from the accepted drape's start
         self.start_state = start_state
+        self.sewing_fallback = sewing_fallback
         self.iteration = 0
         self.history: list[dict] = []
         self.rejected_steps = 0
@@ -1107,10 +1111,13 @@ class Fitter:
                         rest_uv=rest_uv,
                         body_verts=body_verts,
                         body_faces=None if body_verts is None else self.body_faces,
+                        fallback=self.sewing_fallback,
                         material=replace(material, bend_stiffness=float(kb) * scale),
                         config=self._first_drape_config(),
                         dtype=self.dtype,
                     )
+                    if "fallback_after" in res.diagnostics:
+                        candidate["sewn_in_a_pose"] = True
                     state = self._settled(res.state, rest_uv, body_verts, material)
                     if len(scales) == 1:  # nothing to choose; `run` evaluates it anyway
                         return [(math.nan, state, candidate)]

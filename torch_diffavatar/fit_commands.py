@@ -306,8 +306,9 @@ def prepare(
 
     Returns:
         a dict with ``garment`` (placed `GarmentMesh`), ``pattern``, ``target`` (`ScanTarget`),
-        ``body_params`` (`BodyModel.parameters_dict` of the initial body), ``body_fit_chamfer_m`` (the
-        body fit's residual [m]; None with ``body_params``),
+        ``body_params`` (`BodyModel.parameters_dict` of the initial body), ``sewing_fallback`` (the
+        garment's `a_pose_route` onto it, None in the A-pose), ``body_fit_chamfer_m`` (the body fit's
+        residual [m]; None with ``body_params``),
         ``scan_points``, ``labelled`` and ``setup_seconds``.
     """
     import warnings
@@ -319,7 +320,7 @@ def prepare(
     from torch_diffavatar.fit import ScanTarget
     from torch_diffavatar.pattern import mesh_pattern
     from torch_diffavatar.scan import ScanWarning, load_scan, remove_outliers
-    from torch_diffavatar.sim.placement import place_garment
+    from torch_diffavatar.sim.placement import a_pose_route, place_garment
 
     t0 = time.perf_counter()
     with warnings.catch_warnings():
@@ -359,8 +360,8 @@ def prepare(
     if mask.sum() < 50:
         raise InputError(f"{scan_path}: only {int(mask.sum())} garment points; cannot fit a garment")
     loops = scan_boundaries(scan.points, mask, body_verts.numpy(), faces, parts, seg_type)
-    garment = mesh_pattern(pattern, spacing=config.spacing)
-    garment = place_garment(garment, body_verts, body.faces, arm_joints=body.arm_joints(body_out.joints[0]))
+    mesh = mesh_pattern(pattern, spacing=config.spacing)
+    garment = place_garment(mesh, body_verts, body.faces, arm_joints=body.arm_joints(body_out.joints[0]))
     boundaries = match_boundaries(garment, loops)
     target = ScanTarget(
         garment_points=torch.as_tensor(scan.points[mask]),
@@ -372,6 +373,7 @@ def prepare(
         "pattern": pattern,
         "target": target,
         "body_params": body.parameters_dict(),
+        "sewing_fallback": a_pose_route(mesh, body),
         "body_fit_chamfer_m": body_fit_chamfer_m,
         "scan_points": scan.point_count,
         "scan_boundaries": sorted(loops),
@@ -429,7 +431,16 @@ def fit_scan(
     body.load_parameters_dict(setup["body_params"])
     garment, target = setup["garment"], setup["target"]
     material = ClothMaterial(bend_stiffness=config.initial_bend_stiffness)
-    fitter = Fitter(garment, target, config, body=body, material=material, out_dir=out, progress=progress)
+    fitter = Fitter(
+        garment,
+        target,
+        config,
+        body=body,
+        material=material,
+        sewing_fallback=setup.get("sewing_fallback"),
+        out_dir=out,
+        progress=progress,
+    )
     result = fitter.run(resume=resume)
     report = dict(result.report)
     report.update(

@@ -171,7 +171,7 @@ def make_draped_scan(
     from torch_diffavatar.pattern.library import resolve_pattern
     from torch_diffavatar.sim.drape import sew_and_drape
     from torch_diffavatar.sim.material import ClothMaterial
-    from torch_diffavatar.sim.placement import place_garment
+    from torch_diffavatar.sim.placement import a_pose_route, place_garment
 
     for name, value in (("spacing", spacing), ("bend_stiffness", bend_stiffness)):
         if not value > 0:
@@ -200,14 +200,13 @@ def make_draped_scan(
         normals = vertex_normals(verts, body.faces)
         height = float(body.standing_height()[0])
     pattern = changed_pattern(resolve_pattern(template), hem_up, hem_widen)
-    garment = place_garment(
-        mesh_pattern(pattern, spacing=spacing),
-        verts.double(),
-        body.faces,
-        arm_joints=body.arm_joints(out.joints[0]),
-    )
+    mesh = mesh_pattern(pattern, spacing=spacing)
+    garment = place_garment(mesh, verts.double(), body.faces, arm_joints=body.arm_joints(out.joints[0]))
     material = ClothMaterial(bend_stiffness=bend_stiffness)
-    result = sew_and_drape(garment, body_verts=verts, body_faces=body.faces, material=material)
+    route = a_pose_route(mesh, body)
+    result = sew_and_drape(
+        garment, body_verts=verts, body_faces=body.faces, fallback=route, material=material
+    )
     cloth = result.x.double().numpy()
     g_pts, _, _ = sample_surface(cloth, garment.sim_faces.numpy(), garment_points, rng)
     bv, bf = verts.double().numpy(), body.faces.numpy()
@@ -248,6 +247,8 @@ def make_draped_scan(
             "converged": bool(result.converged),
             "max_stitch_gap_m": float(result.diagnostics.get("max_stitch_gap_m", 0.0)),
             "penetrating_count": int(result.diagnostics.get("penetrating_count", 0)),
+            # sewn on the body's A-pose and carried to its pose, after sewing on the pose failed
+            "sewn_in_a_pose": "fallback_after" in result.diagnostics,
         },
         "seconds": round(time.perf_counter() - t0, 2),
     }

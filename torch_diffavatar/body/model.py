@@ -267,6 +267,40 @@ class BodyModel(nn.Module):
         ids = torch.tensor([PART_NAMES.index(n) for n in names], device=self.vertex_parts.device)
         return torch.nonzero(torch.isin(self.vertex_parts, ids)).flatten()
 
+    @torch.no_grad()
+    def pose_path(self, keys: int = 4, tol: float = 1e-3) -> BodyOutput | None:
+        """The first body of the batch on its way from the A-pose to its own pose, for sewing a garment
+        in the A-pose and then posing the body under it (`sim.drape.sew_and_drape`'s ``body_path``).
+
+        Args:
+            keys: poses on the way: the pose scaled by 0, 1/keys, ..., (keys − 1)/keys (each bone turns
+                about its own axis; shape, orientation and placement stay the body's).
+            tol: a body whose every bone is within this of the A-pose [rad] has no path.
+
+        Returns:
+            `BodyOutput` with ``vertices`` (keys, Vb, 3) and ``joints`` (keys, J, 3) [m], the A-pose first
+            and the body's own pose excluded; None when the body is in the A-pose.
+        """
+        if keys < 1:
+            raise ValueError(f"keys must be >= 1, got {keys}")
+        pose = self.pose[:1]
+        if float(pose.abs().max()) <= tol:
+            return None
+        s = torch.arange(keys, dtype=pose.dtype, device=pose.device) / keys
+
+        def rep(t):  # the first body's parameter, once per key
+            return t[:1].repeat(keys, *([1] * (t.ndim - 1)))
+
+        local = None if self.local_changes is None else rep(self.local_changes)
+        return self(
+            phenotypes=rep(self.phenotypes),
+            pose=s[:, None, None] * pose,
+            global_orient=rep(self.global_orient),
+            translation=rep(self.translation),
+            scale=rep(self.scale),
+            local_changes=local,
+        )
+
     def arm_joints(self, joints: torch.Tensor) -> dict[str, np.ndarray]:
         """Each arm's joints for `sim.placement.place_garment` (a body not in the A-pose).
 

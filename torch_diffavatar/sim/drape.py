@@ -7,6 +7,11 @@ patterns whose panels start apart (notes/draping-lessons.md): phase 1 "sew" on t
 mesh with zero-length stitches ramped from soft to stiff, no gravity and strong damping, until the largest
 stitch gap is under ``sew_gap_tol``; phase 2 "drape" on the seam-merged mesh (sim vertex = mean of its
 panel vertices) with gravity until quasi-equilibrium.
+
+A posed body the placement cannot dress (arms held low leave no room between arm and torso) is dressed
+from its A-pose instead: `sew_and_drape`'s ``body_path`` sews on the first body of a path and carries the
+sewn cloth along it to the pose (`follow_body`); its ``fallback`` (a `PoseRoute`) does so only when sewing
+on the pose itself fails.
 """
 
 from __future__ import annotations
@@ -62,13 +67,20 @@ class DrapeConfig:
             1.25 times that gap (at most ``sew_stall_snap_max`` [m]). A single seam vertex pair held open
             just beyond the snap distance by the elastic pull of a pleat (a longsleeve's elbow on a short
             arm stayed 17 mm open for 300 frames with a 15 mm snap; a T-shirt's underarm on a slim body,
-            31 mm) then closes instead of failing.
+            31 mm) then closes instead of failing. The bound keeps a seam laid across the body failing
+            (and a `PoseRoute` fallback then tried): at 6 cm, long sleeves on arms lowered 0.3-0.4 rad from
+            the A-pose were snapped shut crumpled at the shoulder.
         sew_gravity_scale: gravity factor while sewing.
         sew_velocity_scale: velocity factor per frame while sewing (strong damping).
         sew_friction_scale: friction factor while sewing (0: seams pulled over the body slide freely).
         sew_gap_max: `sew_and_drape` raises `SimulationError` when a stitch gap is still larger than
             this [m] after sewing (merging it would tear the mesh).
         drape_velocity_scale: velocity factor per frame while draping (mild artificial damping).
+        pose_frames: frames over which `sew_and_drape` moves the body along its ``body_path`` [-].
+        pose_velocity_scale: velocity factor per frame while the body moves along a path (`follow_body`):
+            strong damping, as while sewing, for the move is a way to the pose, not a motion to simulate.
+            At the drape's 0.97, cloth squeezed out from between a lowering arm and the torso flew on
+            and the drape then tore around the arm (Green strain 13, a long sleeve, arms 0.4 rad low).
     """
 
     xpbd: XPBDConfig = field(default_factory=XPBDConfig)
@@ -93,6 +105,8 @@ class DrapeConfig:
     sew_friction_scale: float = 0.0
     sew_gap_max: float = 0.01
     drape_velocity_scale: float = 0.97
+    pose_frames: int = 60
+    pose_velocity_scale: float = 0.7
 
 
 @dataclass
@@ -122,6 +136,21 @@ class DrapeResult:
     def state(self) -> ClothState:
         """The final state, e.g. to warm-start the next drape."""
         return ClothState(self.x, self.v)
+
+
+@dataclass(frozen=True)
+class PoseRoute:
+    """A second way onto a posed body, for `sew_and_drape`'s ``fallback``: the garment placed on the
+    body in another pose (the A-pose, which templates are made for), sewn there, and carried along the
+    body's path to its own pose. Built by `torch_diffavatar.sim.placement.a_pose_route`.
+
+    Attributes:
+        vert_pos: (V, 3) [m] the garment's placement on ``body_path[0]``.
+        body_path: (K, Vb, 3) [m] the body from that pose toward its own (`sew_and_drape`'s ``body_path``).
+    """
+
+    vert_pos: torch.Tensor
+    body_path: torch.Tensor
 
 
 def _check_body(body_verts, body_faces, model: ClothModel):
@@ -207,6 +236,83 @@ def drape_to_equilibrium(
         steps=steps,
         max_speed=speed,
         converged=settled >= config.settle_steps,
+        seconds=time.perf_counter() - t0,
+        diagnostics=diagnostics,
+        model=model,
+    )
+
+
+def follow_body(
+    model: ClothModel,
+    rest_uv: torch.Tensor,
+    state: ClothState,
+    bodies: torch.Tensor,
+    body_faces: torch.Tensor,
+    *,
+    frames: int,
+    material: ClothMaterial | None = None,
+    config: DrapeConfig | None = None,
+) -> DrapeResult:
+    """Step the cloth while the body moves through keyframes, linearly between them (gravity on).
+
+    Brings a garment sewn on one pose of a body to another: the body starts at ``bodies[0]`` and ends at
+    ``bodies[-1]`` after ``frames`` frames, each frame's substeps seeing the body interpolated within the
+    frame (`XPBDSolver.step`'s ``body_verts_end``), so the cloth is carried, not tunnelled through.
+
+    Args:
+        model: the cloth model; rest_uv: (V, 2) rest coordinates [m]; state: the start state.
+        bodies: (K, Vb, 3) body keyframes [m], K >= 2; body_faces: (Fb, 3) int64.
+        frames: frames of the move (>= 1), spread evenly over the K − 1 segments.
+        material: overrides ``model.material``; config: ``xpbd``, ``dt`` and ``pose_velocity_scale``.
+
+    Returns:
+        a `DrapeResult` (``converged`` is whether the cloth was below ``speed_tol`` at the end).
+
+    Raises:
+        SimulationError: the simulation blew up.
+    """
+    config = DrapeConfig() if config is None else config
+    if bodies.ndim != 3 or bodies.shape[0] < 2 or bodies.shape[2] != 3:
+        raise ValueError(f"bodies must be (K >= 2, Vb, 3), got {tuple(bodies.shape)}")
+    if frames < 1:
+        raise ValueError(f"frames must be >= 1, got {frames}")
+    bodies = bodies.to(device=model.device, dtype=model.dtype)
+    _, body_faces = _check_body(bodies[0], body_faces, model)
+    t0 = time.perf_counter()
+    rest = model.rest_data(rest_uv, material)
+    solver = XPBDSolver(model, config.xpbd)
+    state = state.to(device=model.device, dtype=model.dtype)
+    segments = bodies.shape[0] - 1
+
+    def body_at(frame: int) -> torch.Tensor:
+        u = frame * segments / frames
+        k = min(int(u), segments - 1)
+        return torch.lerp(bodies[k], bodies[k + 1], u - k)
+
+    start = body_at(0)
+    for f in range(frames):
+        end = body_at(f + 1)
+        state = solver.step(
+            state,
+            rest,
+            config.dt,
+            body_verts=start,
+            body_faces=body_faces,
+            body_verts_end=end,
+            velocity_scale=config.pose_velocity_scale,
+        )
+        start = end
+    speed = float(state.v.norm(dim=-1).max())
+    diagnostics = {
+        "max_strain": float(green_strain(state.x, model.tri_vertices, rest.tri_rest_inv).abs().max())
+    }
+    diagnostics.update(penetration_diagnostics(state.x, bodies[-1], body_faces))
+    return DrapeResult(
+        x=state.x,
+        v=state.v,
+        steps=frames,
+        max_speed=speed,
+        converged=speed < config.speed_tol,
         seconds=time.perf_counter() - t0,
         diagnostics=diagnostics,
         model=model,
@@ -301,6 +407,8 @@ def sew_and_drape(
     rest_uv: torch.Tensor | None = None,
     body_verts: torch.Tensor | None = None,
     body_faces: torch.Tensor | None = None,
+    body_path: torch.Tensor | None = None,
+    fallback: PoseRoute | None = None,
     material: ClothMaterial | None = None,
     config: DrapeConfig | None = None,
     device=None,
@@ -312,24 +420,74 @@ def sew_and_drape(
         garment: meshed and placed pattern (panels apart, ``stitch_pairs`` open).
         rest_uv: (V, 2) rest coordinates [m] (default ``garment.vert_uv``).
         body_verts, body_faces: the body (both or neither).
+        body_path: (K, Vb, 3) [m], K >= 1: the body in other poses, from the one the garment was placed
+            on (``body_path[0]``) toward ``body_verts``. The garment is then sewn on ``body_path[0]``, the
+            body moves through the rest of the path to ``body_verts`` over ``config.pose_frames`` frames
+            with the sewn cloth on it (`follow_body`), and the drape settles on ``body_verts``. For poses
+            the placement cannot dress directly, such as arms lowered against the torso: sew in the
+            A-pose, then pose the body (`BodyModel.pose_path`).
+        fallback: when sewing or draping on ``body_verts`` (along ``body_path``, if given) fails, dress
+            the body this way instead (`PoseRoute`); ``diagnostics["fallback_after"]`` then holds the
+            first attempt's error.
         material: cloth material (default `medium_cotton`).
         config: drape options.
 
     Returns:
         the phase-2 `DrapeResult` on the merged model (``result.model``), whose diagnostics also hold
         ``max_stitch_gap_m``, ``sew_steps``, ``sew_seconds``, ``sew_converged`` and ``sew_snap_m`` from
-        phase 1.
+        phase 1 (and ``pose_frames``, with a ``body_path``).
 
     Raises:
-        SimulationError: either phase blew up (the message says which).
+        SimulationError: a phase blew up or the seams did not close (the message says which; with a
+            ``fallback``, the message holds both attempts' errors).
     """
+    if fallback is not None and (body_verts is None or fallback.vert_pos.shape != garment.vert_pos.shape):
+        raise ValueError("a fallback needs body_verts and a vert_pos of the garment's (V, 3)")
+    kwargs = dict(rest_uv=rest_uv, body_verts=body_verts, body_faces=body_faces, material=material)
+    kwargs.update(config=config, device=device, dtype=dtype)
+    t0 = time.perf_counter()
+    try:
+        return _sew_and_drape(garment, body_path=body_path, **kwargs)
+    except SimulationError as exc:
+        if fallback is None:
+            raise
+        first = str(exc)
+    try:
+        result = _sew_and_drape(
+            replace(garment, vert_pos=fallback.vert_pos), body_path=fallback.body_path, **kwargs
+        )
+    except SimulationError as exc:
+        raise SimulationError(f"{first}; and from the A-pose along the body's path: {exc}") from exc
+    result.diagnostics["fallback_after"] = first
+    result.seconds = time.perf_counter() - t0
+    return result
+
+
+def _sew_and_drape(
+    garment: GarmentMesh,
+    *,
+    rest_uv: torch.Tensor | None,
+    body_verts: torch.Tensor | None,
+    body_faces: torch.Tensor | None,
+    body_path: torch.Tensor | None,
+    material: ClothMaterial | None,
+    config: DrapeConfig | None,
+    device,
+    dtype: torch.dtype,
+) -> DrapeResult:
+    """`sew_and_drape` without its fallback."""
     config = DrapeConfig() if config is None else config
     rest_uv = garment.vert_uv if rest_uv is None else rest_uv
+    sew_body = body_verts
+    if body_path is not None:
+        if body_verts is None or body_path.ndim != 3 or body_path.shape[1:] != body_verts.shape:
+            raise ValueError("body_path must be (K, Vb, 3) of the body_verts' Vb, with body_verts given")
+        sew_body = body_path[0]
     sew_model = ClothModelBuilder(material).add_garment(garment, merge_seams=False).finalize(device, dtype)
     drape_model = ClothModelBuilder(material).add_garment(garment, merge_seams=True).finalize(device, dtype)
     rest_uv = rest_uv.to(device=sew_model.device, dtype=dtype)
     try:
-        sewn = sew(sew_model, rest_uv, body_verts=body_verts, body_faces=body_faces, config=config)
+        sewn = sew(sew_model, rest_uv, body_verts=sew_body, body_faces=body_faces, config=config)
     except SimulationError as exc:
         raise SimulationError(f"sewing phase: {exc}") from exc
     gap = sewn.diagnostics["max_stitch_gap_m"]
@@ -345,14 +503,24 @@ def sew_and_drape(
             f"{panels[1]!r} at {[round(float(c), 3) for c in sewn.x[a]]}); the placement probably lays "
             "that seam across the body"
         )
-    x0 = drape_model.sim_positions(sewn.x)
+    state = drape_model.initial_state(drape_model.sim_positions(sewn.x))
+    moved = None
+    if body_path is not None:
+        bodies = torch.cat([body_path, body_verts[None].to(body_path)])
+        try:
+            moved = follow_body(
+                drape_model, rest_uv, state, bodies, body_faces, frames=config.pose_frames, config=config
+            )
+        except SimulationError as exc:
+            raise SimulationError(f"posing phase: {exc}") from exc
+        state = moved.state
     try:
         result = drape_to_equilibrium(
             drape_model,
             rest_uv,
             body_verts=body_verts,
             body_faces=body_faces,
-            state=drape_model.initial_state(x0),
+            state=state,
             config=config,
         )
     except SimulationError as exc:
@@ -365,4 +533,7 @@ def sew_and_drape(
         sew_snap_m=sewn.diagnostics["sew_snap_m"],
     )
     result.seconds += sewn.seconds
+    if moved is not None:
+        result.diagnostics["pose_frames"] = moved.steps
+        result.seconds += moved.seconds
     return result

@@ -40,7 +40,8 @@ the steps below. `place_from_drape` places a mesh where another meshing of the s
 
 Limitations: assumes our world frame (Y up, metres, facing +Z), a roughly symmetric GarmentCode-style
 layout (front panels at +Z, back panels at −Z, centred on x = 0) and a standing body with arms away from
-the torso below the armpits (near the A-pose; elbows bent or upper arms level need ``arm_joints``). Without
+the torso below the armpits (near the A-pose; elbows bent or upper arms level need ``arm_joints``; arms
+held lower are dressed in the A-pose and then posed, `a_pose_route`). Without
 separable arms or joints, sleeves fall back to GarmentCode's arm line scaled to the body. The wrap is not
 an exact isometry: on the bundled templates 95 % of the triangles start within a Green strain of 0.35 of
 their rest shape, but a handful near the armpits (where the clearance pushes act) start more distorted;
@@ -57,6 +58,7 @@ import numpy as np
 import torch
 
 from torch_diffavatar.pattern.garment_mesh import GarmentMesh
+from torch_diffavatar.sim.drape import PoseRoute
 
 __all__ = [
     "GC_BODY",
@@ -1464,6 +1466,31 @@ def place_garment(
         pos = _untear(pos, disp, tris, rest_inv, push_radius)
     new_pos = torch.as_tensor(pos, dtype=garment.vert_pos.dtype, device=garment.vert_pos.device)
     return replace(garment, vert_pos=new_pos)
+
+
+def a_pose_route(garment: GarmentMesh, body, **place_kwargs) -> PoseRoute | None:
+    """The `PoseRoute` of ``garment`` onto a posed body: placed on the body's A-pose, which the
+    templates are made for, to be sewn there and carried along the body's path to its pose.
+
+    `sew_and_drape` takes it as its ``fallback``: arms held low or against the torso leave the placement
+    no room to wrap a sleeve or the torso's sides on the posed body itself (a long sleeve with the upper
+    arms turned 0.3 rad down from the A-pose), while the A-pose has it.
+
+    Args:
+        garment: the mesher's output (as for `place_garment`).
+        body: a `torch_diffavatar.body.model.BodyModel` (its first body of the batch).
+        place_kwargs: passed to `place_garment`.
+
+    Returns:
+        the `PoseRoute`, or None when the body is in the A-pose (`BodyModel.pose_path`).
+    """
+    path = body.pose_path()
+    if path is None:
+        return None
+    a_pose = path.vertices[0].detach()
+    arms = body.arm_joints(path.joints[0])
+    placed = place_garment(garment, a_pose.double(), body.faces, arm_joints=arms, **place_kwargs)
+    return PoseRoute(vert_pos=placed.vert_pos, body_path=path.vertices.detach())
 
 
 def place_from_drape(garment: GarmentMesh, source: GarmentMesh, source_x) -> GarmentMesh:
