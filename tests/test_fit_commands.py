@@ -128,3 +128,12 @@ def test_fit_set_up_on_a_given_body_does_not_fit_one(skirt_scan, anny_model, tmp
     garment = setup["garment"]
     dist = body_signed_distance(garment.vert_pos.numpy(), skirt_scan.body_vertices, skirt_scan.body_faces)
     assert dist.min() > 0.005 and dist.min() < 0.05
+    assert setup["sewing_fallback"] is None  # an A-pose body: nothing else to try
+    # on a posed body the fit also gets the way through the A-pose, placed for the same garment
+    posed = dict(truth, pose_axis_angle=torch.tensor(truth["pose_axis_angle"]).add(0.1).tolist())
+    setup = prepare(tmp_path / "scan" / "scan.ply", config, anny_model=anny_model, body_params=posed)
+    route = setup["sewing_fallback"]
+    assert route.vert_pos.shape == setup["garment"].vert_pos.shape
+    assert route.body_path.shape[1:] == skirt_scan.body_vertices.shape
+    dist = body_signed_distance(route.vert_pos.numpy(), route.body_path[0], skirt_scan.body_faces)
+    assert dist.min() > 0.005
