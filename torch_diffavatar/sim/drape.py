@@ -225,20 +225,8 @@ def drape_to_equilibrium(
         settled = settled + 1 if speed < config.speed_tol else 0
         if steps >= config.min_steps and settled >= config.settle_steps:
             break
-    diagnostics = {
-        "max_strain": float(green_strain(state.x, model.tri_vertices, rest.tri_rest_inv).abs().max())
-    }
-    if body_verts is not None:
-        diagnostics.update(penetration_diagnostics(state.x, body_verts, body_faces))
-    return DrapeResult(
-        x=state.x,
-        v=state.v,
-        steps=steps,
-        max_speed=speed,
-        converged=settled >= config.settle_steps,
-        seconds=time.perf_counter() - t0,
-        diagnostics=diagnostics,
-        model=model,
+    return _result(
+        model, rest, state, steps, speed, settled >= config.settle_steps, t0, body_verts, body_faces
     )
 
 
@@ -303,16 +291,24 @@ def follow_body(
         )
         start = end
     speed = float(state.v.norm(dim=-1).max())
+    return _result(model, rest, state, frames, speed, speed < config.speed_tol, t0, bodies[-1], body_faces)
+
+
+def _result(model, rest, state, steps, speed, converged, t0, body_verts, body_faces, **extra) -> DrapeResult:
+    """The `DrapeResult` of a run that started at ``t0`` (perf_counter): ``max_strain``, the body's
+    penetration diagnostics when there is a body, and ``extra`` diagnostics."""
     diagnostics = {
-        "max_strain": float(green_strain(state.x, model.tri_vertices, rest.tri_rest_inv).abs().max())
+        "max_strain": float(green_strain(state.x, model.tri_vertices, rest.tri_rest_inv).abs().max()),
+        **extra,
     }
-    diagnostics.update(penetration_diagnostics(state.x, bodies[-1], body_faces))
+    if body_verts is not None:
+        diagnostics.update(penetration_diagnostics(state.x, body_verts, body_faces))
     return DrapeResult(
         x=state.x,
         v=state.v,
-        steps=frames,
+        steps=steps,
         max_speed=speed,
-        converged=speed < config.speed_tol,
+        converged=converged,
         seconds=time.perf_counter() - t0,
         diagnostics=diagnostics,
         model=model,
@@ -384,20 +380,10 @@ def sew(
         gap = max_stitch_gap(model, state.x)
         if frac >= 1.0 and gap < config.sew_gap_tol:
             break
-    diagnostics = {
-        "max_stitch_gap_m": gap,
-        "max_strain": float(green_strain(state.x, model.tri_vertices, rest.tri_rest_inv).abs().max()),
-        "sew_snap_m": snap,
-    }
-    return DrapeResult(
-        x=state.x,
-        v=state.v,
-        steps=steps,
-        max_speed=float(state.v.norm(dim=-1).max()),
-        converged=gap < config.sew_gap_tol,
-        seconds=time.perf_counter() - t0,
-        diagnostics=diagnostics,
-        model=model,
+    speed = float(state.v.norm(dim=-1).max())
+    converged = gap < config.sew_gap_tol
+    return _result(
+        model, rest, state, steps, speed, converged, t0, None, None, max_stitch_gap_m=gap, sew_snap_m=snap
     )
 
 
