@@ -18,6 +18,7 @@ from torch_diffavatar.fit import (
     config_from_dict,
     load_config,
     rest_area_ratio,
+    result_warnings,
 )
 
 DT = torch.float64
@@ -67,6 +68,25 @@ def test_fit_reduces_the_loss(skirt_problem):
     )
     assert report["inverted_rest_triangles"] == 0
     assert torch.isfinite(result.x).all()
+    assert report["warnings"] == result_warnings(
+        result.x,
+        garment.sim_faces,
+        rest_area_ratio(result.rest_uv, garment.vert_uv, garment.tri_vertices),
+        0.1,
+    )
+
+
+def test_result_warnings_flag_crushed_drapes_and_inverted_rest_triangles():
+    x = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 0.0]], dtype=DT)
+    faces = torch.tensor([[0, 1, 2], [1, 3, 2]])
+    ok = torch.ones(2, dtype=DT)
+    assert result_warnings(x, faces, ok, 0.025) == []
+    crushed = x.clone()
+    crushed[3] = torch.tensor([0.5, 0.52, 0.0], dtype=DT)  # the second triangle nearly flat
+    (message,) = result_warnings(crushed, faces, ok, 0.025)
+    assert message.startswith("1 draped triangles have quality below 0.3") and "--spacing 0.02" in message
+    (message,) = result_warnings(x, faces, torch.tensor([1.0, -0.2], dtype=DT), 0.025)
+    assert message == "1 rest triangles are inverted: the pattern cannot be cut as it is"
 
 
 def test_step_that_inverts_a_rest_triangle_is_rejected(skirt_problem):

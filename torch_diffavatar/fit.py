@@ -75,6 +75,9 @@ SETUP = "setup.pt"
 # strain limit of every drape of a fit, the sewing's (see `Fitter.drape_config` for why it is above the
 # solver's 3)
 FIT_MAX_STRAIN = SEW_MAX_STRAIN
+# a draped triangle below this quality (`metrics.triangle_quality`) is flagged in the fit's report: the
+# evaluation's target for a simulation-ready drape (docs/RESULTS.md)
+DRAPED_QUALITY_FLOOR = 0.3
 
 # ---------------------------------------------------------------------------------------------------------
 # Configuration
@@ -1356,7 +1359,37 @@ class Fitter:
             "faces": self.garment.tri_count,
             "matched_boundaries": [lp.name for lp in self.loops],
             "first_drape_candidates": list(self.first_candidates),
+            "warnings": result_warnings(final["x"], self.garment.sim_faces, ratio, self.config.spacing),
         }
+
+
+def result_warnings(
+    x: torch.Tensor, sim_faces: torch.Tensor, rest_area_ratio: torch.Tensor, spacing: float
+) -> list[str]:
+    """What a user should know about a fit's result before simulating it (empty when nothing).
+
+    Args:
+        x: (Vs, 3) draped positions [m]; sim_faces: (F, 3) int64; rest_area_ratio: (F,) rest areas over
+            the template's (`losses.rest_area_ratio`); spacing: the mesh spacing [m].
+    """
+    warnings = []
+    q = triangle_quality(x, sim_faces)
+    bad = q < DRAPED_QUALITY_FLOOR
+    if bool(bad.any()):
+        worst = int(q.argmin())
+        where = [round(float(c), 3) for c in x[sim_faces[worst]].mean(0)]
+        # measured on tops fitted on arms held low: slivers pressed flat on the upper arm and held there
+        # by friction (docs/BENCHMARKS.md, "Arms held low"); at 2 cm instead of 2.5 they were gone
+        warnings.append(
+            f"{int(bad.sum())} draped triangles have quality below {DRAPED_QUALITY_FLOOR} (min "
+            f"{float(q.min()):.2f}, at {where} m): cloth pressed flat on the body, which a mesh this coarse "
+            f"does not fold; a finer spacing than {spacing:g} m (e.g. --spacing {0.8 * spacing:.3g}) usually "
+            "removes them"
+        )
+    inverted = int((rest_area_ratio <= 0).sum())
+    if inverted:
+        warnings.append(f"{inverted} rest triangles are inverted: the pattern cannot be cut as it is")
+    return warnings
 
 
 def _yaml_dump(data: dict) -> str:

@@ -472,4 +472,6 @@ def fit_scan(
         report=report,
         before=before,
     )
+    for message in report["warnings"]:
+        print(f"diffavatar fit: warning: {message}", file=sys.stderr)
     return json.loads(Path(files["report_json"]).read_text())
