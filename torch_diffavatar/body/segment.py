@@ -33,21 +33,35 @@ from torch_diffavatar.body.parts import PART_NAMES
 from torch_diffavatar.errors import InputError
 
 # Body parts a garment of each type may cover (a dilated region: where the garment ends inside it is
-# decided by offset and colour).
+# decided by offset and colour). A long sleeve's cuff lies over the wrist, whose nearest body vertices
+# belong to the hand: without the hands its last centimetres were skin and the cuffs' targets moved up
+# the sleeve (docs/BENCHMARKS.md, "Scans without labels: long sleeves").
 GARMENT_REGIONS: dict[str, tuple[str, ...]] = {
     "dress": ("torso", "hips", "thigh.L", "thigh.R", "shin.L", "shin.R", "upperarm.L", "upperarm.R"),
-    "shirt": ("torso", "hips", "upperarm.L", "upperarm.R", "forearm.L", "forearm.R", "thigh.L", "thigh.R"),
+    "shirt": (
+        "torso",
+        "hips",
+        "upperarm.L",
+        "upperarm.R",
+        "forearm.L",
+        "forearm.R",
+        "hand.L",
+        "hand.R",
+        "thigh.L",
+        "thigh.R",
+    ),
     "tshirt": ("torso", "hips", "upperarm.L", "upperarm.R", "forearm.L", "forearm.R", "thigh.L", "thigh.R"),
     "polo": ("torso", "hips", "upperarm.L", "upperarm.R", "forearm.L", "forearm.R", "thigh.L", "thigh.R"),
     "skirt": ("torso", "hips", "thigh.L", "thigh.R", "shin.L", "shin.R"),
     "pants": ("torso", "hips", "thigh.L", "thigh.R", "shin.L", "shin.R", "foot.L", "foot.R"),
 }
-# Body parts each garment type hangs from or grips (tops: the shoulders and upper arms; a dress also
-# its hips, never bare under it; skirts and trousers: the hips). There the cloth lies on the skin,
-# within the offset threshold, and the garment labels grow across them (see `_grow_on_support`).
+# Body parts each garment type hangs from or grips (tops: the shoulders and upper arms, long sleeves
+# their forearms too; a dress also its hips, never bare under it; skirts and trousers: the hips). There
+# the cloth lies on the skin, within the offset threshold, and the garment labels grow across them (see
+# `_grow_on_support`).
 GARMENT_SUPPORT: dict[str, tuple[str, ...]] = {
     "dress": ("torso", "hips"),
-    "shirt": ("torso", "upperarm.L", "upperarm.R"),
+    "shirt": ("torso", "upperarm.L", "upperarm.R", "forearm.L", "forearm.R"),
     "tshirt": ("torso", "upperarm.L", "upperarm.R"),
     "polo": ("torso", "upperarm.L", "upperarm.R"),
     "skirt": ("hips",),
