@@ -1,13 +1,13 @@
 """The rim helpers of the segmentation on synthetic garments: `_lower_rim` (a skirt's hem as its lower
-envelope), `_distal_rim` (a sleeve's cuff as its far end along the arm) and `_edge_points` (the points on
-an opening's edge)."""
+envelope), `_distal_rim` (a sleeve's cuff as its far end along the arm), `_neck_rim` (a neckline as the
+top edge around the neck) and `_edge_points` (the points on an opening's edge)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from torch_diffavatar.body.segment import _distal_rim, _edge_points, _lower_rim
+from torch_diffavatar.body.segment import _distal_rim, _edge_points, _lower_rim, _neck_rim
 
 RADIUS, Y0, Y1 = 0.25, 0.5, 1.0  # the skirt: an open cylinder about the y axis [m]
 BAND = 0.015  # `_lower_rim`'s default band [m]
@@ -211,3 +211,36 @@ def test_distal_rim_keeps_a_cuff_with_a_hole_and_falls_back_when_too_few():
     # fewer points than ``min_count``: all are kept
     few = np.arange(10)
     np.testing.assert_array_equal(_distal_rim(points, few, _arm()), few)
+
+
+def _neckline(count: int, rng) -> np.ndarray:
+    """(count, 3) a scoop neckline about the y axis: 7 cm out, 1.45 m high at the back (−z), dipping to
+    1.33 m at the front (+z), with 2 mm noise."""
+    a = rng.uniform(-np.pi, np.pi, count)
+    y = 1.45 - 0.06 * (1.0 + np.sin(a))
+    p = np.stack([0.07 * np.cos(a), y, 0.07 * np.sin(a)], axis=1)
+    return p + rng.normal(0.0, 0.002, p.shape)
+
+
+def _trunk():
+    """(head, torso) stand-in body vertices: the neck axis is the y axis."""
+    ring = np.stack([np.cos(np.linspace(0, 6, 12)), np.zeros(12), np.sin(np.linspace(0, 6, 12))], axis=1)
+    return ring * 0.08 + [0.0, 1.6, 0.0], ring * 0.15 + [0.0, 1.2, 0.0]
+
+
+def test_neck_rim_keeps_the_neckline_and_drops_a_bare_patch_below_it():
+    """A T-shirt's unlabelled scan: tight cloth on the upper back taken for skin left a bare patch whose
+    rim the body names after the head, like the neckline's (the suite's T-shirt: 41 of 130 neck points
+    2-10 cm down the back and front). The patch's rim lies below the neckline in its sectors and goes;
+    the whole neckline stays, its low front too."""
+    rng = np.random.default_rng(0)
+    neck = _neckline(120, rng)
+    a = rng.uniform(-np.pi + 0.3, -0.3, 40)  # behind the neck, 3-8 cm below it, 8-15 cm out
+    r, drop = rng.uniform(0.08, 0.15, 40), rng.uniform(0.03, 0.08, 40)
+    patch = np.stack([r * np.cos(a), 1.45 - 0.06 * (1.0 + np.sin(a)) - drop, r * np.sin(a)], axis=1)
+    points = np.concatenate([neck, patch])
+    kept = _neck_rim(points, np.arange(len(points)), *_trunk())
+    assert set(kept.tolist()) == set(range(len(neck)))
+    # fewer points than ``min_count``: all are kept
+    few = np.arange(10)
+    np.testing.assert_array_equal(_neck_rim(points, few, *_trunk()), few)

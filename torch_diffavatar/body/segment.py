@@ -479,6 +479,39 @@ def _distal_rim(
     return sel[keep] if keep.sum() >= min_count else sel
 
 
+def _neck_rim(
+    garment_points: np.ndarray,
+    sel: np.ndarray,
+    head: np.ndarray,
+    torso: np.ndarray,
+    sectors: int = 24,
+    band: float = 0.02,
+    min_count: int = 24,
+) -> np.ndarray:
+    """Of a neckline's rim points ``sel`` (indices into ``garment_points`` (G, 3)), those on the neckline.
+
+    The neckline is the garment's top edge around the neck. Rim points below it belong to a gap in the
+    garment's labels: tight cloth on the shoulders or the upper back taken for skin leaves a bare patch
+    that borders the neckline, and the body names its rim after the head too (measured on the suite's
+    T-shirt without labels: 41 of 130 neck points 2-10 cm down the back and the front). Around the axis
+    from the torso's mean to the head's (``torso``, ``head``: (n, 3) body vertices of those parts), in each
+    of ``sectors`` angular sectors, the points within ``band`` [m] of the sector's highest along the axis
+    are kept. No sector is skipped: a V or scoop neck lies far lower in front than at the back. Falls
+    back to ``sel`` when fewer than ``min_count`` remain.
+    """
+    if len(sel) < min_count or len(head) == 0 or len(torso) == 0:
+        return sel
+    origin = head.mean(0)
+    axis = origin - torso.mean(0)
+    axis /= np.linalg.norm(axis)
+    u = np.cross(axis, [0.0, 0.0, 1.0] if abs(axis[2]) < 0.9 else [1.0, 0.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(axis, u)
+    d = garment_points[sel] - origin
+    keep = _sector_envelope(d @ axis, np.arctan2(d @ v, d @ u), sectors, band, np.inf)
+    return sel[keep] if keep.sum() >= min_count else sel
+
+
 def _edge_gaps(garment_points: np.ndarray, sel: np.ndarray, k: int = 32) -> tuple[np.ndarray, np.ndarray]:
     """Widest angular gap [rad] (S,) among the ``k`` nearest garment points of each of the points ``sel``
     (indices into ``garment_points`` (G, 3)), seen in its local tangent plane (PCA of those neighbours),
@@ -696,6 +729,9 @@ def _boundary_loops(
                 mine = mine[limb_dist < limb_reach]
                 if name.startswith("cuff"):
                     mine = _distal_rim(garment_points, mine, limb)
+            elif name == "neck":
+                trunk = [body_vertices[vertex_parts == PART_NAMES.index(p)] for p in ("head", "torso")]
+                mine = _neck_rim(garment_points, mine, *trunk)
             if len(mine) >= min_rim:
                 sel = mine
             elif len(sel) == 0:
