@@ -469,14 +469,20 @@ def _distal_rim(
     near = [float(cKDTree(part).query(centre)[0]) for part in limb[:-1]]
     k = int(np.argmin(near))
     origin = limb[k].mean(0)
-    axis = limb[k + 1].mean(0) - origin
-    axis /= np.linalg.norm(axis)
+    along, angle = _about_axis(garment_points[sel], origin, limb[k + 1].mean(0) - origin)
+    keep = _sector_envelope(along, angle, sectors, band, max_drop)
+    return sel[keep] if keep.sum() >= min_count else sel
+
+
+def _about_axis(points: np.ndarray, origin: np.ndarray, direction: np.ndarray):
+    """(n,) coordinate [m] along the axis through ``origin`` (3,) along ``direction`` (3,) and (n,) angle
+    [rad] about it of ``points`` (n, 3)."""
+    axis = direction / np.linalg.norm(direction)
     u = np.cross(axis, [0.0, 0.0, 1.0] if abs(axis[2]) < 0.9 else [0.0, 1.0, 0.0])
     u /= np.linalg.norm(u)
     v = np.cross(axis, u)
-    d = garment_points[sel] - origin
-    keep = _sector_envelope(d @ axis, np.arctan2(d @ v, d @ u), sectors, band, max_drop)
-    return sel[keep] if keep.sum() >= min_count else sel
+    d = points - origin
+    return d @ axis, np.arctan2(d @ v, d @ u)
 
 
 def _neck_rim(
@@ -501,14 +507,8 @@ def _neck_rim(
     """
     if len(sel) < min_count or len(head) == 0 or len(torso) == 0:
         return sel
-    origin = head.mean(0)
-    axis = origin - torso.mean(0)
-    axis /= np.linalg.norm(axis)
-    u = np.cross(axis, [0.0, 0.0, 1.0] if abs(axis[2]) < 0.9 else [1.0, 0.0, 0.0])
-    u /= np.linalg.norm(u)
-    v = np.cross(axis, u)
-    d = garment_points[sel] - origin
-    keep = _sector_envelope(d @ axis, np.arctan2(d @ v, d @ u), sectors, band, np.inf)
+    height, angle = _about_axis(garment_points[sel], head.mean(0), head.mean(0) - torso.mean(0))
+    keep = _sector_envelope(height, angle, sectors, band, np.inf)
     return sel[keep] if keep.sum() >= min_count else sel
 
 
