@@ -1382,9 +1382,9 @@ def result_warnings(
         # by friction (docs/BENCHMARKS.md, "Arms held low"); at 2 cm instead of 2.5 they were gone
         warnings.append(
             f"{int(bad.sum())} draped triangles have quality below {DRAPED_QUALITY_FLOOR} (min "
-            f"{float(q.min()):.2f}, at {where} m): cloth pressed flat on the body, which a mesh this coarse "
-            f"does not fold; a finer spacing than {spacing:g} m (e.g. --spacing {0.8 * spacing:.3g}) usually "
-            "removes them"
+            f"{float(q.min()):.2f}, at {where} m): crushed cloth, e.g. pressed flat on the body where a mesh "
+            f"this coarse does not fold; a finer spacing than {spacing:g} m (e.g. --spacing "
+            f"{0.8 * spacing:.3g}) usually removes them"
         )
     inverted = int((rest_area_ratio <= 0).sum())
     if inverted:

@@ -35,7 +35,7 @@ from torch_diffavatar.errors import InputError
 # Body parts a garment of each type may cover (a dilated region: where the garment ends inside it is
 # decided by offset and colour). A long sleeve's cuff lies over the wrist, whose nearest body vertices
 # belong to the hand: without the hands its last centimetres were skin and the cuffs' targets moved up
-# the sleeve (docs/BENCHMARKS.md, "Scans without labels: long sleeves").
+# the sleeve (docs/BENCHMARKS.md, "Scans without labels: long sleeves' cuffs, and necklines").
 GARMENT_REGIONS: dict[str, tuple[str, ...]] = {
     "dress": ("torso", "hips", "thigh.L", "thigh.R", "shin.L", "shin.R", "upperarm.L", "upperarm.R"),
     "shirt": (
