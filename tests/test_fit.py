@@ -72,7 +72,7 @@ def test_fit_reduces_the_loss(skirt_problem):
         result.x,
         garment.sim_faces,
         rest_area_ratio(result.rest_uv, garment.vert_uv, garment.tri_vertices),
-        0.1,
+        fitter.config.spacing,
     )
 
 
