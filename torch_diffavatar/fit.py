@@ -1364,13 +1364,13 @@ class Fitter:
 
 
 def result_warnings(
-    x: torch.Tensor, sim_faces: torch.Tensor, rest_area_ratio: torch.Tensor, spacing: float
+    x: torch.Tensor, sim_faces: torch.Tensor, area_ratio: torch.Tensor, spacing: float
 ) -> list[str]:
     """What a user should know about a fit's result before simulating it (empty when nothing).
 
     Args:
-        x: (Vs, 3) draped positions [m]; sim_faces: (F, 3) int64; rest_area_ratio: (F,) rest areas over
-            the template's (`losses.rest_area_ratio`); spacing: the mesh spacing [m].
+        x: (Vs, 3) draped positions [m]; sim_faces: (F, 3) int64; area_ratio: (F,) rest areas over the
+            template's (`losses.rest_area_ratio`); spacing: the mesh spacing [m].
     """
     warnings = []
     q = triangle_quality(x, sim_faces)
@@ -1386,7 +1386,7 @@ def result_warnings(
             f"this coarse does not fold; a finer spacing than {spacing:g} m (e.g. --spacing "
             f"{0.8 * spacing:.3g}) usually removes them"
         )
-    inverted = int((rest_area_ratio <= 0).sum())
+    inverted = int((area_ratio <= 0).sum())
     if inverted:
         warnings.append(f"{inverted} rest triangles are inverted: the pattern cannot be cut as it is")
     return warnings
