@@ -58,11 +58,6 @@ import numpy as np
 # ----------------------------------------------------------------------------------------------------
 
 
-# [m/s] a run whose fastest vertex is faster than this at the end has not come to rest: the next setting
-# is tried
-SETTLED_SPEED = 1.0
-
-
 def _unique_edges(faces: np.ndarray) -> np.ndarray:
     e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     return np.unique(np.sort(e, axis=1), axis=0)
@@ -173,6 +168,11 @@ def newton_side(work: Path) -> None:
 # ----------------------------------------------------------------------------------------------------
 # Our side (torch): export arrays, run Newton, measure
 # ----------------------------------------------------------------------------------------------------
+
+
+# [m/s] a run whose fastest vertex is faster than this at the end has not come to rest: the next setting
+# is tried
+SETTLED_SPEED = 1.0
 
 
 def export_scene(
