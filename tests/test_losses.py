@@ -13,6 +13,7 @@ from torch_diffavatar.losses import (
     boundary_loss,
     boundary_triplets,
     curvature_loss,
+    folded_collar_loop,
     interior_loss,
     rest_area_loss,
     rest_area_ratio,
@@ -491,3 +492,44 @@ def test_rest_distortion_loss_sees_shape_not_size_or_rotation():
     assert torch.autograd.gradcheck(lambda u: rest_distortion_loss(u, uv0, tri, threshold=0.1), (x,))
     with pytest.raises(ValueError, match="threshold"):
         rest_distortion_loss(sheared, uv0, tri, threshold=-1.0)
+
+
+def _neck_and_yoke(collar: bool) -> tuple[torch.Tensor, BoundaryLoop, torch.Tensor]:
+    """A neckline of 36 vertices around a 7 cm neck, 1.5 cm lower in front (+z) than at the back, over a
+    yoke of cloth sloping down and out from it; with ``collar``, a collar folded over the neckline: its
+    free edge (the loop) 4 cm below its fold, which lies 1 cm above and outside the neckline."""
+    a = torch.arange(36, dtype=F64) * (2 * math.pi / 36)
+    ring = torch.stack([torch.sin(a), torch.zeros_like(a), torch.cos(a)], 1)  # unit radial directions
+
+    def circle(radius: float, height) -> torch.Tensor:
+        return ring * radius + torch.stack([torch.zeros_like(a), height, torch.zeros_like(a)], 1)
+
+    neckline = 1.45 - 0.0075 * (1 + torch.cos(a))  # 1.45 m at the back, 1.435 m in front
+    layers = [circle(0.07, neckline)] + [circle(0.07 + 0.02 * k, neckline - 0.015 * k) for k in (1, 2, 3)]
+    if collar:
+        fold = circle(0.075, neckline + 0.01)
+        free = circle(0.085, neckline - 0.03)
+        layers += [fold, 0.5 * (fold + free), free]
+    x = torch.cat(layers)
+    loop = torch.arange(36) + (36 * 6 if collar else 0)  # the free edge, else the neckline
+    return x, BoundaryLoop("neck", loop), torch.arange(36 * 4, 36 * 5)
+
+
+@pytest.mark.parametrize("collar", [False, True])
+def test_folded_collar_loop_is_the_fold_over_a_collar_and_the_loop_otherwise(collar):
+    x, loop, fold = _neck_and_yoke(collar)
+    out = folded_collar_loop(x, loop)
+    if not collar:  # a plain neckline is its own top edge, though it rises toward the back
+        assert out is loop
+        return
+    assert out.name == "neck" and out.vertices.shape == loop.vertices.shape
+    # every free-edge vertex is lifted to the fold, beside its own angle, and the fold goes all around
+    assert set(out.vertices.tolist()) <= set(fold.tolist())
+    assert ((out.vertices - fold + 18) % 36 - 18).abs().max() <= 1  # within 10 degrees
+    assert len(set(out.vertices.tolist())) >= 12
+    # a narrow reach misses the fold (4 cm up), and the loop stays
+    assert folded_collar_loop(x, loop, reach=0.03) is loop
+    # turned upright (a hood's face opening, with the hood's crown above it), the loop stays too
+    upright = x[:, [0, 2, 1]] * torch.tensor([1.0, 1.0, -1.0], dtype=F64)
+    assert folded_collar_loop(upright, loop) is loop
+    assert folded_collar_loop(upright, loop, max_tilt_deg=90.0) is not loop

@@ -52,6 +52,7 @@ from torch_diffavatar.errors import InputError, SimulationError
 from torch_diffavatar.losses import (
     boundary_loss,
     curvature_loss,
+    folded_collar_loop,
     interior_loss,
     rest_area_loss,
     rest_area_ratio,
@@ -62,7 +63,7 @@ from torch_diffavatar.losses import (
     template_edge_inverse,
 )
 from torch_diffavatar.metrics import triangle_quality
-from torch_diffavatar.pattern.garment_mesh import GarmentMesh
+from torch_diffavatar.pattern.garment_mesh import BoundaryLoop, GarmentMesh
 from torch_diffavatar.sim.drape import SEW_MAX_STRAIN, DrapeConfig, PoseRoute
 from torch_diffavatar.sim.material import ClothMaterial
 from torch_diffavatar.sim.model import ClothModel, ClothModelBuilder
@@ -715,7 +716,7 @@ class Fitter:
         if self.loops:
             terms["boundary"] = boundary_loss(
                 x,
-                self.loops,
+                self.openings(x),
                 self.scan_boundaries,
                 samples_per_edge=cfg.boundary_samples,
                 robust=cfg.boundary_robust,
@@ -735,6 +736,11 @@ class Fitter:
             )
         loss = sum(getattr(w, k) * v for k, v in terms.items())
         return Evaluation(loss, terms, x, rest_uv, body_verts, kb, stats)
+
+    def openings(self, x: torch.Tensor) -> list[BoundaryLoop]:
+        """The garment's openings matched to the scan's, on the drape ``x`` (Vs, 3): the loops, but a neck
+        that a folded collar covers is its fold (`folded_collar_loop`), the top edge the scan shows."""
+        return [folded_collar_loop(x, lp) if lp.name == "neck" else lp for lp in self.loops]
 
     def rest_terms(self, rest_uv: torch.Tensor) -> dict[str, torch.Tensor]:
         """The loss terms of the rest pattern alone, unweighted: seam length, curvature, and rest area and
@@ -945,10 +951,10 @@ class Fitter:
             out[f"loss/{k}"] = float(v.detach())
             out[f"loss_weighted/{k}"] = float(getattr(w, k) * v.detach())
         out["chamfer/interior_m"] = chamfer_m(ev.x, self.scan_points)
-        for name, pts in self.scan_boundaries.items():
-            loop = next((lp for lp in self.loops if lp.name == name), None)
-            if loop is not None:
-                out[f"chamfer/boundary_{name}_m"] = chamfer_m(ev.x[loop.vertices], pts)
+        for loop in self.openings(ev.x):
+            out[f"chamfer/boundary_{loop.name}_m"] = chamfer_m(
+                ev.x[loop.vertices], self.scan_boundaries[loop.name]
+            )
         with torch.no_grad():
             q_rest = triangle_quality(ev.rest_uv.detach(), self.garment.tri_vertices)
             q_drape = triangle_quality(ev.x.detach(), self.garment.sim_faces)
@@ -1303,7 +1309,8 @@ class Fitter:
                 "symmetric"
             ],
             "boundary_chamfer_m": {
-                lp.name: chamfer_m(ev.x[lp.vertices], self.scan_boundaries[lp.name]) for lp in self.loops
+                lp.name: chamfer_m(ev.x[lp.vertices], self.scan_boundaries[lp.name])
+                for lp in self.openings(ev.x)
             },
             "bend_stiffness": float(ev.bend_stiffness.detach()),
             "phenotypes": None
