@@ -7,8 +7,8 @@ widened ``--hem-widen``, bending stiffness 2e-5 N·m, on a random moderate Anny 
 ``--ablation-garments`` also the fit without the cage, without the seam-length term, without the
 curvature term, and without the cage's seam ties with and without the seam-length term. Writes
 ``docs/RESULTS.md`` (tables like the paper's Tables 1 and 2, with the command and date) and pictures in
-``docs/results/`` (before/after drapes, pattern overlays of template, result and truth); a hand-written
-part of RESULTS.md after the line `DISCUSSION_MARKER` is kept across reruns.
+``docs/results/`` (first, fitted and true drapes; pattern overlays of template, result and truth); a
+hand-written part of RESULTS.md after the line `DISCUSSION_MARKER` is kept across reruns.
 Everything is seeded: a rerun with the same arguments reproduces the numbers.
 
     PYTHONPATH=. python scripts/benchmark_suite.py --out /tmp/suite
@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import json
 import re
-import shutil
 import sys
 import time
 import traceback
@@ -120,6 +119,7 @@ def main() -> int:
     torch.set_num_threads(1)
 
     from torch_diffavatar.body.anny_model import load_anny
+    from torch_diffavatar.evaluation import save_drape_comparison
     from torch_diffavatar.fit import config_from_dict, load_config
     from torch_diffavatar.synthetic_scans import make_draped_scan, write_scan
 
@@ -150,7 +150,7 @@ def main() -> int:
             fit = _fit_and_eval(scan_dir, work / garment / "fit", config, anny)
             row.update(initial=_initial(garment, scan_dir, fit), final=fit["eval"], seconds=fit["seconds"])
             row["iterations"] = fit["report"]["iterations"]
-            shutil.copy(work / garment / "fit" / "before_after.png", pictures / f"{garment}_before_after.png")
+            save_drape_comparison(work / garment / "fit", scan_dir, pictures / f"{garment}_drapes.png")
             _overlay(garment, work / garment / "fit", scan_dir, pictures / f"{garment}_patterns.png")
             if garment in args.ablation_garments:
                 ablation_rows.append({"garment": garment, "name": "full", "eval": fit["eval"]})
@@ -234,7 +234,8 @@ def _write_results(path: Path, rows: list, ablations: list, args, started: str) 
         if "error" not in r:
             g = r["garment"]
             lines += [
-                f"**{g}**: first and last drape (front, back) — ![{g}](results/{g}_before_after.png); "
+                f"**{g}**: the fit's first drape, its result and the true drape (front, back) — "
+                f"![{g}](results/{g}_drapes.png); "
                 "patterns "
                 f"(grey template, green truth, red result) — ![{g} patterns](results/{g}_patterns.png)",
                 "",

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from torch_diffavatar.cli import main
-from torch_diffavatar.evaluation import evaluate_assets, seam_length_mismatch
+from torch_diffavatar.evaluation import DRAPE_PICTURE, evaluate_assets, seam_length_mismatch
 from torch_diffavatar.pattern.garmentcode import load_pattern
 from torch_diffavatar.pattern.library import load_template
 from torch_diffavatar.synthetic_scans import changed_pattern, make_draped_scan, write_scan
@@ -116,6 +116,13 @@ def test_eval_of_the_truth_itself_is_exact(skirt_scan, tmp_path):
     # the command prints the same as one JSON line; a missing truth folder is one error line, exit 2
     assert main(["eval", str(tmp_path / "fit"), "--gt", str(tmp_path / "gt"), "--json"]) == 0
     assert main(["eval", str(tmp_path / "fit"), "--gt", str(tmp_path / "nowhere"), "--json"]) == 2
+    # and draws the first drape, the result and the truth, front and back: here the last two are the same
+    from PIL import Image
+
+    picture = np.asarray(Image.open(tmp_path / "fit" / DRAPE_PICTURE))
+    views = np.split(picture[16:], 6, axis=1)  # below the titles
+    assert np.array_equal(views[2], views[4]) and np.array_equal(views[3], views[5])
+    assert not np.array_equal(views[0], views[2]) and (views[2] < 250).any()
     truth = json.loads((tmp_path / "gt" / "truth" / "truth.json").read_text())
     assert truth["design_change"] == {"hem_up_m": 0.05, "hem_widen": 0.1}
 

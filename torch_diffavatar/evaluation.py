@@ -10,6 +10,9 @@ material:
 * ``pattern_outline_hausdorff_m``: the same with the largest distance (dart tips and corners dominate);
 * ``pattern_outline_errors``: both per panel;
 * ``bending_stiffness_ratio``: fitted / true bending stiffness [-] (1 is exact).
+
+`save_drape_comparison` draws the fit's first drape, its result and the true drape side by side, front
+and back (the command writes it as ``ASSETS_DIR/eval_drapes.png``).
 """
 
 from __future__ import annotations
@@ -161,6 +164,76 @@ def evaluate_assets(assets_dir, gt_dir) -> dict:
     return out
 
 
+DRAPE_PICTURE = "eval_drapes.png"
+
+
+def save_drape_comparison(assets_dir, gt_dir, path, *, size: int = 320, frame: float = 0.1) -> Path:
+    """A PNG of the fit's first drape, its result and the true drape, each from the front and the back.
+
+    All six views share one camera per side, so sizes compare: the box around the three garments, grown
+    by ``frame`` [m] (the body beyond it is cut off). The first
+    drape (``draped_initial.obj``, left out when missing) is drawn on the fitted body, the result on the
+    fitted body, the truth on the true body. A title names each pair.
+
+    Args:
+        assets_dir: a ``diffavatar fit`` output; gt_dir: a ``diffavatar make-scan`` output.
+        path: the PNG to write.
+        size: width of one view [px] (height 5/4 of it).
+
+    Returns:
+        ``path``.
+
+    Raises:
+        InputError: a mesh is missing.
+    """
+    import numpy as np
+    from PIL import Image, ImageDraw
+
+    from torch_diffavatar.mesh_io import read_obj
+    from torch_diffavatar.render import CLOTH_COLOR, CLOTH_DEPTH_BIAS, RenderMesh, look_at_camera, render
+
+    folder, truth = Path(assets_dir), Path(gt_dir) / "truth"
+    for name in ("draped.obj", "body.obj"):
+        if not (folder / name).is_file():
+            raise InputError(f"{folder / name} is missing (ASSETS_DIR: a fit's output)")
+    for name in ("draped.obj", "body.obj"):
+        if not (truth / name).is_file():
+            raise InputError(f"{truth / name} is missing (--gt: a make-scan output)")
+    body, true_body = read_obj(folder / "body.obj"), read_obj(truth / "body.obj")
+    columns = []
+    if (folder / "draped_initial.obj").is_file():
+        columns.append(("first drape", read_obj(folder / "draped_initial.obj"), body))
+    columns += [
+        ("fitted", read_obj(folder / "draped.obj"), body),
+        ("truth", read_obj(truth / "draped.obj"), true_body),
+    ]
+    scenes = [
+        [
+            RenderMesh(b.verts.numpy(), b.faces.numpy()),
+            RenderMesh(c.verts.numpy(), c.faces.numpy(), CLOTH_COLOR, CLOTH_DEPTH_BIAS),
+        ]
+        for _, c, b in columns
+    ]
+    cloth = np.concatenate([scene[1].verts for scene in scenes])
+    lo, hi = cloth.min(0) - frame, cloth.max(0) + frame  # the garments fill the views; the body is cut
+    width, height, title = size, size * 5 // 4, 16
+    views = []
+    for scene in scenes:
+        for view in ("front", "back"):
+            camera = look_at_camera(lo, hi, view, width=width, height=height)
+            views.append(render(scene, width=width, height=height, camera=camera))
+    image = Image.fromarray(np.concatenate(views, axis=1))
+    canvas = Image.new("RGB", (image.width, image.height + title), "white")
+    canvas.paste(image, (0, title))
+    draw = ImageDraw.Draw(canvas)
+    for k, (name, _, _) in enumerate(columns):
+        draw.text((2 * k * width + 4, 2), f"{name} (front, back)", fill=(0, 0, 0))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    canvas.save(path)
+    return path
+
+
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "eval",
@@ -171,11 +244,18 @@ def register(subparsers) -> None:
     p.add_argument("assets", help="the fit's output folder")
     p.add_argument("--gt", required=True, help="the make-scan output folder (scan.ply, truth/)")
     p.add_argument("--json", action="store_true", help="print the measures as one JSON line")
+    p.add_argument(
+        "--no-picture",
+        action="store_true",
+        help=f"do not write ASSETS_DIR/{DRAPE_PICTURE} (first drape, fitted and true drape, front and back)",
+    )
     p.set_defaults(func=_eval_command)
 
 
 def _eval_command(args) -> dict:
     out = evaluate_assets(args.assets, args.gt)
+    if not args.no_picture:
+        save_drape_comparison(args.assets, args.gt, Path(args.assets) / DRAPE_PICTURE)
     if not args.json:
         for key, value in out.items():
             print(f"{key}: {value}")
