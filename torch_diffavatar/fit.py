@@ -1333,7 +1333,8 @@ class Fitter:
             "chamfer_definition": "symmetric mean surface distance, not squared: (mean distance of the scan "
             "garment points to the draped surface + mean distance of 50k area samples of the draped surface "
             "to the nearest scan garment point) / 2; boundary chamfers: mean nearest-neighbour distance "
-            "between loop vertices and scan loop points, (a->b + b->a) / 2",
+            "between loop vertices and scan loop points, (a->b + b->a) / 2 (a neck under a folded collar: "
+            "its fold, losses.folded_collar_loop)",
             "template": self.config.template,
             "chamfer_initial": first["chamfer_m"],
             "chamfer_final": final["chamfer_m"],
