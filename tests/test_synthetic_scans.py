@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 
 import numpy as np
@@ -36,6 +37,14 @@ def test_changed_pattern_moves_only_the_hem_corners():
     assert seam_length_mismatch(changed)["max_m"] == pytest.approx(
         seam_length_mismatch(base)["max_m"], abs=1e-9
     )
+    # seam by seam: one entry per stitch; a panel grown 2 % moves exactly the seams it is on
+    per_seam = seam_length_mismatch(base)["per_seam_m"]
+    assert len(per_seam) == len(base.stitches)
+    assert max(per_seam.values()) == seam_length_mismatch(base)["max_m"]
+    grown = copy.deepcopy(base)
+    grown.panels["right_sleeve_b"].vertices = 1.02 * grown.panels["right_sleeve_b"].vertices
+    moved = {k for k, v in seam_length_mismatch(grown)["per_seam_m"].items() if abs(v - per_seam[k]) > 1e-6}
+    assert moved and moved == {k for k in per_seam if "right_sleeve_b[" in k}
 
 
 @pytest.mark.anny

@@ -65,20 +65,28 @@ def compare_with_truth(assets_dir, truth_pattern, truth_bend_stiffness: float | 
     return out
 
 
-def seam_length_mismatch(pattern) -> dict[str, float]:
+def seam_length_mismatch(pattern) -> dict:
     """How much the two sides of the pattern's seams differ in length (darts included).
 
     Returns:
-        ``{"mean_m", "max_m"}``: absolute length differences of the stitched edge pairs [m]
-        (``{0, 0}`` without stitches).
+        ``mean_m`` and ``max_m``: of the absolute length differences of the stitched edge pairs [m] (0
+        without stitches); ``per_seam_m``: each seam's, keyed ``"panel[edge]~panel[edge]"`` (edge indices
+        as in the pattern JSON) [m].
     """
-    diffs = [
-        abs(pattern.panels[s.a.panel].edge_length(s.a.edge) - pattern.panels[s.b.panel].edge_length(s.b.edge))
+    per_seam = {
+        f"{s.a.panel}[{s.a.edge}]~{s.b.panel}[{s.b.edge}]": abs(
+            pattern.panels[s.a.panel].edge_length(s.a.edge) - pattern.panels[s.b.panel].edge_length(s.b.edge)
+        )
         for s in pattern.stitches
-    ]
+    }
+    diffs = [float(d) for d in per_seam.values()]
     if not diffs:
-        return {"mean_m": 0.0, "max_m": 0.0}
-    return {"mean_m": float(sum(diffs) / len(diffs)), "max_m": float(max(diffs))}
+        return {"mean_m": 0.0, "max_m": 0.0, "per_seam_m": {}}
+    return {
+        "mean_m": float(sum(diffs) / len(diffs)),
+        "max_m": float(max(diffs)),
+        "per_seam_m": {k: float(v) for k, v in per_seam.items()},
+    }
 
 
 def mesh_distance_m(a_verts, a_faces, b_verts, b_faces, samples: int = 50000) -> float:
