@@ -98,8 +98,9 @@ def folded_collar_loop(
     is lifted to the highest vertex (world +Y) within ``reach`` [m] of it and within ``window_deg`` of
     its angle about the vertical axis through the loop's centre. When the median lift exceeds
     ``min_lift`` [m] the loop is covered, and the lifted vertices (in loop order, repeats allowed) are
-    the opening. Why 2.5 cm: on the suite's tops the lift is the rise of a curved neckline to a
-    neighbouring loop vertex, median 7 mm and at most 24 mm; a polo's collar folds 3-6 cm above it.
+    the opening. Why 2.5 cm: on the suite's other tops the lift is a curved neckline's rise to a
+    neighbouring loop vertex (median 0-8.5 mm, at most 24 mm); a polo's collar folds 3-6 cm above its
+    free edge (median 36-45 mm).
     Only a loop around the neck is lifted: its plane (least-squares) lies within ``max_tilt_deg`` of
     horizontal (measured: 5-31 degrees on nine tops' necklines and collars). A hood's face opening, the
     ``neck`` loop of a hoody, stands upright (80-85 degrees), with the hood's crown above it.
