@@ -74,19 +74,18 @@ def seam_length_mismatch(pattern) -> dict:
         as in the pattern JSON) [m].
     """
     per_seam = {
-        f"{s.a.panel}[{s.a.edge}]~{s.b.panel}[{s.b.edge}]": abs(
-            pattern.panels[s.a.panel].edge_length(s.a.edge) - pattern.panels[s.b.panel].edge_length(s.b.edge)
+        f"{s.a.panel}[{s.a.edge}]~{s.b.panel}[{s.b.edge}]": float(
+            abs(
+                pattern.panels[s.a.panel].edge_length(s.a.edge)
+                - pattern.panels[s.b.panel].edge_length(s.b.edge)
+            )
         )
         for s in pattern.stitches
     }
-    diffs = [float(d) for d in per_seam.values()]
+    diffs = list(per_seam.values())
     if not diffs:
         return {"mean_m": 0.0, "max_m": 0.0, "per_seam_m": {}}
-    return {
-        "mean_m": float(sum(diffs) / len(diffs)),
-        "max_m": float(max(diffs)),
-        "per_seam_m": {k: float(v) for k, v in per_seam.items()},
-    }
+    return {"mean_m": sum(diffs) / len(diffs), "max_m": max(diffs), "per_seam_m": per_seam}
 
 
 def mesh_distance_m(a_verts, a_faces, b_verts, b_faces, samples: int = 50000) -> float:
@@ -179,9 +178,9 @@ def save_drape_comparison(assets_dir, gt_dir, path, *, size: int = 320, frame: f
     """A PNG of the fit's first drape, its result and the true drape, each from the front and the back.
 
     All six views share one camera per side, so sizes compare: the box around the three garments, grown
-    by ``frame`` [m] (the body beyond it is cut off). The first
-    drape (``draped_initial.obj``, left out when missing) is drawn on the fitted body, the result on the
-    fitted body, the truth on the true body. A title names each pair.
+    by ``frame`` [m] (the body beyond it is cut off). The first drape (``draped_initial.obj``, left out
+    when missing) and the result are drawn on the fitted body (the asset folder keeps no other), the
+    truth on the true body. A title names each pair.
 
     Args:
         assets_dir: a ``diffavatar fit`` output; gt_dir: a ``diffavatar make-scan`` output.
@@ -201,12 +200,10 @@ def save_drape_comparison(assets_dir, gt_dir, path, *, size: int = 320, frame: f
     from torch_diffavatar.render import CLOTH_COLOR, CLOTH_DEPTH_BIAS, RenderMesh, look_at_camera, render
 
     folder, truth = Path(assets_dir), Path(gt_dir) / "truth"
-    for name in ("draped.obj", "body.obj"):
-        if not (folder / name).is_file():
-            raise InputError(f"{folder / name} is missing (ASSETS_DIR: a fit's output)")
-    for name in ("draped.obj", "body.obj"):
-        if not (truth / name).is_file():
-            raise InputError(f"{truth / name} is missing (--gt: a make-scan output)")
+    for where, what in ((folder, "ASSETS_DIR: a fit's output"), (truth, "--gt: a make-scan output")):
+        for name in ("draped.obj", "body.obj"):
+            if not (where / name).is_file():
+                raise InputError(f"{where / name} is missing ({what})")
     body, true_body = read_obj(folder / "body.obj"), read_obj(truth / "body.obj")
     columns = []
     if (folder / "draped_initial.obj").is_file():

@@ -1,6 +1,7 @@
 """Fit losses (paper §4.2.5): feature terms against the scan and regularizers of the 2D pattern.
 
-* `boundary_loss`: the garment's labelled openings (hem, cuffs, neck, waist) vs the scan's [m²].
+* `boundary_loss`: the garment's labelled openings (hem, cuffs, neck, waist) vs the scan's [m²];
+  `folded_collar_loop` gives a collar-covered neck's opening as the scan sees it, the collar's fold.
 * `interior_loss`: Chamfer distance between the draped garment and the segmented scan garment [m²].
 * `seam_length_loss`: the two sides of every seam keep equal segment lengths (eq. 7) [m⁴].
 * `curvature_loss`: boundary curvature kept up to a per-vertex similarity transform (eq. 8) [m²].
