@@ -103,7 +103,7 @@ def folded_collar_loop(
     neighbouring loop vertex (median 0-8.5 mm, at most 24 mm); a polo's collar folds 3-6 cm above its
     free edge (median 36-45 mm).
     Only a loop around the neck is lifted: its plane (least-squares) lies within ``max_tilt_deg`` of
-    horizontal (measured: 5-31 degrees on nine tops' necklines and collars). A hood's face opening, the
+    horizontal (measured: 5-31 degrees on eight tops' necklines and collars). A hood's face opening, the
     ``neck`` loop of a hoody, stands upright (80-85 degrees), with the hood's crown above it.
 
     Args:
