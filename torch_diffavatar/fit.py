@@ -508,6 +508,7 @@ class Evaluation:
     body_verts: torch.Tensor | None
     bend_stiffness: torch.Tensor
     stats: dict
+    openings: list[BoundaryLoop]  # the garment's openings matched to the scan's, on x (`Fitter.openings`)
 
 
 @dataclass
@@ -713,10 +714,11 @@ class Fitter:
                 x, self.scan_points, garment_faces=faces, robust=cfg.interior_robust, scale=cfg.robust_scale
             )
         }
-        if self.loops:
+        openings = self.openings(x)
+        if openings:
             terms["boundary"] = boundary_loss(
                 x,
-                self.openings(x),
+                openings,
                 self.scan_boundaries,
                 samples_per_edge=cfg.boundary_samples,
                 robust=cfg.boundary_robust,
@@ -735,7 +737,7 @@ class Fitter:
                 scale=cfg.robust_scale,
             )
         loss = sum(getattr(w, k) * v for k, v in terms.items())
-        return Evaluation(loss, terms, x, rest_uv, body_verts, kb, stats)
+        return Evaluation(loss, terms, x, rest_uv, body_verts, kb, stats, openings)
 
     def openings(self, x: torch.Tensor) -> list[BoundaryLoop]:
         """The garment's openings matched to the scan's, on the drape ``x`` (Vs, 3): the loops, but a neck
@@ -951,7 +953,7 @@ class Fitter:
             out[f"loss/{k}"] = float(v.detach())
             out[f"loss_weighted/{k}"] = float(getattr(w, k) * v.detach())
         out["chamfer/interior_m"] = chamfer_m(ev.x, self.scan_points)
-        for loop in self.openings(ev.x):
+        for loop in ev.openings:
             out[f"chamfer/boundary_{loop.name}_m"] = chamfer_m(
                 ev.x[loop.vertices], self.scan_boundaries[loop.name]
             )
@@ -1309,8 +1311,7 @@ class Fitter:
                 "symmetric"
             ],
             "boundary_chamfer_m": {
-                lp.name: chamfer_m(ev.x[lp.vertices], self.scan_boundaries[lp.name])
-                for lp in self.openings(ev.x)
+                lp.name: chamfer_m(ev.x[lp.vertices], self.scan_boundaries[lp.name]) for lp in ev.openings
             },
             "bend_stiffness": float(ev.bend_stiffness.detach()),
             "phenotypes": None

@@ -128,8 +128,9 @@ def folded_collar_loop(
         turn = angle(x)[None, :] - angle(ring)[:, None]  # (L, Vs)
         turn = torch.remainder(turn + math.pi, 2 * math.pi) - math.pi
         near = (turn.abs() < math.radians(window_deg)) & (torch.cdist(ring, x) < reach)
-        height = torch.where(near, x[:, 1].expand_as(near), torch.full_like(near, -math.inf, dtype=x.dtype))
-        top = height.argmax(1)  # the loop vertex itself is always a candidate
+        top = (
+            x[:, 1].expand_as(near).masked_fill(~near, -math.inf).argmax(1)
+        )  # the loop vertex itself is always a candidate
         lift = x[top, 1] - ring[:, 1]
     if float(lift.median()) <= min_lift:
         return loop
