@@ -23,7 +23,7 @@ PATTERN_FILES = {
     "dress_fitted_short_sleeve_pencil": "dress",
     "repo_examples/shirt_mean": "shirt",  # sleeves to mid-forearm
     "repo_examples/hoody_mean": "dress",  # sleeveless top with a hood: the dress's regions and armholes
-    "repo_examples/js_mean_all": "pants",  # jumpsuit: legs decide
+    "repo_examples/js_mean_all": "jumpsuit",  # legs, and sleeves above the waist
 }
 
 

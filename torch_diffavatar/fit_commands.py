@@ -59,6 +59,10 @@ TYPE_CONFIGS = {
     "polo": "polo",
     "skirt": "skirt",
     "pants": "pants",
+    # a jumpsuit hangs from its shoulders: the tops' 40 substeps (on a jumpsuit scan with pants.yaml's 10
+    # the fit softened k_b to 0.13x and bent the sleeves: outline 2.78 / 5.81 cm, against 1.24 / 4.76)
+    "jumpsuit": "longsleeve",
+    "jumpsuit_sleeveless": "dress",
 }
 LONG_SLEEVE = 0.45  # [m] a sleeve reaching farther than this from the shoulder point is a long one
 GARMENT_LABEL = 1  # label of the garment's points in a labelled scan (0 = body / not garment)
@@ -197,7 +201,8 @@ def infer_garment_type(pattern) -> str:
     """The garment type (a key of `TYPE_CONFIGS`) of a pattern, from where its panels go on the body.
 
     GarmentCode lays panels out around its mean body; `sim.placement` reads that layout into panel kinds
-    (torso, arm, leg, collar-like panels attached to a partner). Legs: ``pants``; nothing above the waist:
+    (torso, arm, leg, collar-like panels attached to a partner). Legs: ``pants``, or ``jumpsuit`` (with
+    sleeves) and ``jumpsuit_sleeveless`` when the panels reach above the waist too; nothing above the waist:
     ``skirt``; panels reaching below the crotch: ``dress`` (with or without sleeves); sleeves: ``polo``
     with an attached collar, else ``shirt`` when a sleeve reaches farther than `LONG_SLEEVE` from the
     shoulder point, else ``tshirt``; otherwise ``dress`` (a sleeveless top: the dress's body regions and
@@ -210,13 +215,16 @@ def infer_garment_type(pattern) -> str:
     pos = garment.vert_pos.detach().cpu().numpy().astype(np.float64)
     kinds = _panel_kinds(garment, pos)
     panel_kind = np.array(kinds)[garment.vert_panel.cpu().numpy()]
+    above_waist = pos[:, 1].max() >= GC_BODY["waist"] + 0.05
+    arm = np.char.startswith(panel_kind.astype(str), "arm")
     if any(k.startswith("leg") for k in kinds):
-        return "pants"
-    if pos[:, 1].max() < GC_BODY["waist"] + 0.05:
+        if not above_waist:
+            return "pants"
+        return "jumpsuit" if arm.any() else "jumpsuit_sleeveless"
+    if not above_waist:
         return "skirt"
     if pos[:, 1].min() < GC_BODY["crotch"]:
         return "dress"
-    arm = np.char.startswith(panel_kind.astype(str), "arm")
     if arm.any():
         if _attachments(garment, kinds):
             return "polo"

@@ -1,13 +1,14 @@
 """The rim helpers of the segmentation on synthetic garments: `_lower_rim` (a skirt's hem as its lower
 envelope), `_distal_rim` (a sleeve's cuff as its far end along the arm), `_neck_rim` (a neckline as the
-top edge around the neck) and `_edge_points` (the points on an opening's edge)."""
+top edge around the neck), `_neck_opening` (a neckline, or a hood's upright face opening) and
+`_edge_points` (the points on an opening's edge)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from torch_diffavatar.body.segment import _distal_rim, _edge_points, _lower_rim, _neck_rim
+from torch_diffavatar.body.segment import _distal_rim, _edge_points, _lower_rim, _neck_opening, _neck_rim
 
 RADIUS, Y0, Y1 = 0.25, 0.5, 1.0  # the skirt: an open cylinder about the y axis [m]
 BAND = 0.015  # `_lower_rim`'s default band [m]
@@ -244,3 +245,48 @@ def test_neck_rim_keeps_the_neckline_and_drops_a_bare_patch_below_it():
     # fewer points than ``min_count``: all are kept
     few = np.arange(10)
     np.testing.assert_array_equal(_neck_rim(points, few, *_trunk()), few)
+
+
+def _face_opening(count: int, rng) -> np.ndarray:
+    """(count, 3) a hood's face opening: upright in the plane z = 0.11 m in front of the head, 30 cm wide
+    and 28 cm high (1.37-1.65 m), with 2 mm noise (GarmentCode's hoody: 31 cm wide)."""
+    a = rng.uniform(-np.pi, np.pi, count)
+    p = np.stack([0.15 * np.cos(a), 1.51 + 0.14 * np.sin(a), np.full(count, 0.11)], axis=1)
+    return p + rng.normal(0.0, 0.002, p.shape)
+
+
+def test_neck_opening_of_a_hood_is_its_whole_face_opening():
+    """Under a hood the bare skin's boundary runs around the face, upright. The hood's face opening
+    stands in front of the face, its sides 7 cm and more off it: only its top and its bottom lie near
+    that boundary (``near``). The whole opening is kept, and the rims of holes in the hood behind it
+    (skin seen through them) go."""
+    rng = np.random.default_rng(0)
+    face = _face_opening(240, rng)
+    a = rng.uniform(0.3, np.pi - 0.3, 30)  # hole rims on the hood's sides and back, 12 cm about the head
+    holes = np.stack([0.12 * np.cos(a), rng.uniform(1.45, 1.7, 30), -0.12 * np.sin(a) + 0.02], axis=1)
+    points = np.concatenate([face, holes])
+    rim = np.arange(len(points))
+    near = np.flatnonzero(np.abs(points[:, 0]) < 0.05)  # the top and the bottom of the opening
+    face_loop = _face_opening(40, rng) * [0.5, 1.0, 1.0] + [0.0, 0.0, -0.02]
+    forward = np.array([0.0, 0.0, 1.0])
+    kept = _neck_opening(points, rim, near, face_loop, *_trunk(), forward)
+    assert set(kept.tolist()) == set(range(len(face)))
+    # the same points about a bare neck: the neckline's rule
+    np.testing.assert_array_equal(
+        _neck_opening(points, rim, near, _neckline(40, rng), *_trunk(), forward),
+        _neck_rim(points, near, *_trunk()),
+    )
+
+
+def test_neck_opening_of_a_neckline_is_its_neck_rim():
+    """A neckline's skin loop lies across the torso→head axis: the opening is `_neck_rim` of the points
+    near it (its bare patches' rims farther out go, as `_neck_rim` drops them)."""
+    rng = np.random.default_rng(1)
+    neck = _neckline(120, rng)
+    a = rng.uniform(-np.pi + 0.3, -0.3, 40)  # a bare patch behind the neck, 3-8 cm below it, 8-15 cm out
+    r, drop = rng.uniform(0.08, 0.15, 40), rng.uniform(0.03, 0.08, 40)
+    patch = np.stack([r * np.cos(a), 1.45 - 0.06 * (1.0 + np.sin(a)) - drop, r * np.sin(a)], axis=1)
+    points = np.concatenate([neck, patch])
+    near = np.arange(len(points))
+    kept = _neck_opening(points, near, near, _neckline(40, rng), *_trunk(), np.array([0.0, 0.0, 1.0]))
+    assert set(kept.tolist()) == set(range(len(neck)))

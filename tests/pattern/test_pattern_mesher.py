@@ -16,6 +16,7 @@ from torch_diffavatar.pattern import (
     mesh_report,
     pattern_from_dict,
 )
+from torch_diffavatar.pattern.mesher import name_boundary_loops
 
 CASES = [("template", n) for n in list_templates()] + [("spec", str(p)) for p in VALID_SPECS]
 
@@ -159,3 +160,32 @@ def test_bad_mesher_arguments():
         mesh_pattern(p, spacing=0)
     with pytest.raises(ValueError, match="min_angle"):
         mesh_pattern(p, min_angle=40)
+
+
+def _named_rings(rings: list[tuple[list[float], float]]) -> tuple[dict[str, float], set[str]]:
+    """Name horizontal rings of 12 vertices (centre [m], radius [m]) as a top's loops (no garment type):
+    (name -> its centroid's x [m], the names)."""
+    a = np.linspace(0.0, 2.0 * np.pi, 12, endpoint=False)
+    circle = np.stack([np.cos(a), np.zeros(12), np.sin(a)], axis=1)
+    pos = np.concatenate([np.asarray(c) + r * circle for c, r in rings])
+    loops = [np.arange(12 * k, 12 * k + 12) for k in range(len(rings))]
+    named = name_boundary_loops(loops, pos, None, set())
+    return {b.name: float(pos[b.vertices.numpy(), 0].mean()) for b in named}, {b.name for b in named}
+
+
+def test_a_top_with_two_legs_names_them_as_trouser_hems():
+    """A jumpsuit's two lowest loops lie below the crotch, each wholly on one side of the centre:
+    ``hem_left`` (x > 0) and ``hem_right``; a dress's single hem around the centre stays ``hem``."""
+    neck, cuffs = ([0.0, 1.45, 0.0], 0.08), [([0.6, 1.2, 0.0], 0.05), ([-0.6, 1.2, 0.0], 0.05)]
+    x, names = _named_rings([neck, *cuffs, ([0.1, 0.1, 0.0], 0.07), ([-0.1, 0.1, 0.0], 0.07)])
+    assert names == {"neck", "cuff_left", "cuff_right", "hem_left", "hem_right"}
+    assert x["hem_left"] > 0 > x["hem_right"] and x["cuff_left"] > 0 > x["cuff_right"]
+    _, names = _named_rings([neck, *cuffs, ([0.0, 0.4, 0.0], 0.3)])
+    assert names == {"neck", "cuff_left", "cuff_right", "hem"}
+    # a cropped top's long sleeves end below its hem (above the crotch): cuffs, and the hem is the loop
+    # around the body, not the lowest
+    x, names = _named_rings(
+        [neck, ([0.0, 1.05, 0.0], 0.2), ([0.6, 0.9, 0.0], 0.05), ([-0.6, 0.9, 0.0], 0.05)]
+    )
+    assert names == {"neck", "hem", "cuff_left", "cuff_right"}
+    assert x["cuff_left"] > 0 > x["cuff_right"] and abs(x["hem"]) < 1e-9

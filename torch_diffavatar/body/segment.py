@@ -36,6 +36,8 @@ from torch_diffavatar.errors import InputError
 # decided by offset and colour). A long sleeve's cuff lies over the wrist, whose nearest body vertices
 # belong to the hand: without the hands its last centimetres were skin and the cuffs' targets moved up
 # the sleeve (docs/BENCHMARKS.md, "Scans without labels: long sleeves' cuffs, and necklines").
+_ARMS = ("upperarm.L", "upperarm.R", "forearm.L", "forearm.R", "hand.L", "hand.R")
+_LEGS = ("thigh.L", "thigh.R", "shin.L", "shin.R", "foot.L", "foot.R")
 GARMENT_REGIONS: dict[str, tuple[str, ...]] = {
     "dress": ("torso", "hips", "thigh.L", "thigh.R", "shin.L", "shin.R", "upperarm.L", "upperarm.R"),
     "shirt": (
@@ -54,9 +56,13 @@ GARMENT_REGIONS: dict[str, tuple[str, ...]] = {
     "polo": ("torso", "hips", "upperarm.L", "upperarm.R", "forearm.L", "forearm.R", "thigh.L", "thigh.R"),
     "skirt": ("torso", "hips", "thigh.L", "thigh.R", "shin.L", "shin.R"),
     "pants": ("torso", "hips", "thigh.L", "thigh.R", "shin.L", "shin.R", "foot.L", "foot.R"),
+    # a jumpsuit: a top and trousers in one (GarmentCode's js_mean_all), with or without sleeves
+    "jumpsuit": ("torso", "hips", *_ARMS, *_LEGS),
+    "jumpsuit_sleeveless": ("torso", "hips", "upperarm.L", "upperarm.R", *_LEGS),
 }
 # Body parts each garment type hangs from or grips (tops: the shoulders and upper arms, long sleeves
-# their forearms too; a dress also its hips, never bare under it; skirts and trousers: the hips). There
+# their forearms too; a dress also its hips, never bare under it; skirts and trousers: the hips; a
+# jumpsuit from its shoulders, as a top, for its waist is sewn, not gripping the hips). There
 # the cloth lies on the skin, within the offset threshold, and the garment labels grow across them (see
 # `_grow_on_support`).
 GARMENT_SUPPORT: dict[str, tuple[str, ...]] = {
@@ -66,10 +72,12 @@ GARMENT_SUPPORT: dict[str, tuple[str, ...]] = {
     "polo": ("torso", "upperarm.L", "upperarm.R"),
     "skirt": ("hips",),
     "pants": ("hips",),
+    "jumpsuit": ("torso", "upperarm.L", "upperarm.R"),
+    "jumpsuit_sleeveless": ("torso",),
 }
 GARMENT_ALIASES = {"t-shirt": "tshirt", "tee": "tshirt", "trousers": "pants", "shirt-long": "shirt"}
 GARMENT_TYPES = tuple(GARMENT_REGIONS)
-_SLEEVED = ("shirt", "tshirt", "polo")
+_SLEEVED = ("shirt", "tshirt", "polo", "jumpsuit")
 _ARM_PARTS = ("upperarm", "forearm", "hand")
 
 
@@ -328,7 +336,7 @@ def _opening_name(extremity: str, kind: str) -> str:
         return "neck"
     if extremity.startswith("hand"):
         return ("cuff" if kind in _SLEEVED else "armhole") + side
-    return "hem"
+    return ("leg" + side) if kind.startswith("jumpsuit") else "hem"
 
 
 def _covered_body(
@@ -512,6 +520,58 @@ def _neck_rim(
     return sel[keep] if keep.sum() >= min_count else sel
 
 
+def _plane_normal(points: np.ndarray) -> np.ndarray:
+    """(3,) unit normal of the least-squares plane of ``points`` (n, 3)."""
+    return np.linalg.svd(points - points.mean(0), full_matrices=False)[2][2]
+
+
+def _neck_opening(
+    garment_points: np.ndarray,
+    rim: np.ndarray,
+    near: np.ndarray,
+    skin_loop: np.ndarray,
+    head: np.ndarray,
+    torso: np.ndarray,
+    forward: np.ndarray,
+    max_tilt_deg: float = 45.0,
+    max_back_deg: float = 120.0,
+    sectors: int = 24,
+    band: float = 0.03,
+    min_count: int = 24,
+) -> np.ndarray:
+    """Of the rim points of the opening at the head, those on it: a neckline's or a hood's face opening.
+
+    ``rim``: all the garment's rim points nearest this opening (indices into ``garment_points`` (G, 3));
+    ``near``: those of them near the bare skin's boundary (the other openings' rule). ``skin_loop``
+    (k, 3): that boundary on the body, around the neck, or around the face under a hood; ``torso``,
+    ``head``: (n, 3) body vertices of those parts; ``forward`` (3,): the direction the body faces.
+
+    When the plane of ``skin_loop`` tilts by more than ``max_tilt_deg`` from across the torso→head axis
+    (necklines 10-21°, GarmentCode's hoody 88-89°), a hood covers the head. Its face opening stands in
+    front of the face, its sides several centimetres off it, beyond ``near``'s reach (on the hoody, 48
+    mm from the true opening with ``near`` alone), and a stiff hood's top juts forward like a visor.
+    The opening's edge looks forward or across the opening; the rims of holes in the hood's sides and
+    crown that look back, more than ``max_back_deg`` from ``forward``, go. The opening is the front of
+    the rest: about the axis through the head's centre along ``forward``, in each of ``sectors``
+    angular sectors, the points within ``band`` [m] of the sector's farthest forward (on four hoody
+    scans 4-22 mm from the true opening, and it 10-20 mm from them; the neckline's rule: 20-69 and
+    44-79 mm). Otherwise the opening is a neckline: `_neck_rim` of ``near``. Falls back to ``near``
+    when fewer than ``min_count`` remain.
+    """
+    if len(rim) >= min_count and len(skin_loop) >= 3 and len(head) and len(torso):
+        up = head.mean(0) - torso.mean(0)
+        if abs(_plane_normal(skin_loop) @ up) < np.cos(np.deg2rad(max_tilt_deg)) * np.linalg.norm(up):
+            _, out_of_cloth = _edge_gaps(garment_points, rim)
+            facing = rim[out_of_cloth @ forward > np.cos(np.deg2rad(max_back_deg)) * np.linalg.norm(forward)]
+            if len(facing) >= min_count:
+                along, angle = _about_axis(garment_points[facing], head.mean(0), forward)
+                keep = _sector_envelope(along, angle, sectors, band, np.inf)
+                if keep.sum() >= min_count:
+                    return facing[keep]
+            return near
+    return _neck_rim(garment_points, near, head, torso, min_count=min_count)
+
+
 def _edge_gaps(garment_points: np.ndarray, sel: np.ndarray, k: int = 32) -> tuple[np.ndarray, np.ndarray]:
     """Widest angular gap [rad] (S,) among the ``k`` nearest garment points of each of the points ``sel``
     (indices into ``garment_points`` (G, 3)), seen in its local tangent plane (PCA of those neighbours),
@@ -576,7 +636,8 @@ def _opening_rim(
     torso sags 2.3 cm; the cone is 5 cm wide there).
 
     Returns:
-        (R,) int64, the rim points among ``sel``.
+        (G,) int64 per garment point: 0, not an opening's rim (or not in ``sel``); 1, an opening's rim;
+        2, one with skin right ahead (within ``adjacent`` [m], in a cone of ``adjacent_cone_deg``).
     """
     k = min(k, len(garment_points))
     if k < 4 or len(sel) == 0:
@@ -631,6 +692,7 @@ def _boundary_loops(
     limb_reach: float = 0.06,
     link: float = 0.03,
     min_rim: int = 24,
+    max_neck_tilt_deg: float = 45.0,
 ) -> list[BoundaryLoop]:
     """The garment's openings, found on the body (see the module docstring).
 
@@ -642,9 +704,12 @@ def _boundary_loops(
     The points of an opening are garment rim points (`_opening_rim`: on the garment's edge, not a
     hole's), of the garment's main piece (`_main_piece`, steps < ``link`` [m]), nearest to this
     opening's body loop (within ``reach`` [m]; within ``weak_reach`` when no skin lies right ahead);
-    a cuff's or an armhole's also within ``limb_reach`` [m] of its arm. Fewer than ``min_rim``: the
-    edge of the band near the loop, as before (`_edge_points`). Hems and trouser legs: `_lower_rim`
-    over the main piece, joined to the loop's band by steps < ``link`` (a hanging sleeve is not hem).
+    a cuff's or an armhole's also within ``limb_reach`` [m] of its arm, then its sleeve's far end
+    (`_distal_rim`); a neck's: its neckline, or a hood's face opening, whose body loop (around the face)
+    tilts by more than ``max_neck_tilt_deg`` from horizontal (`_neck_opening`). Fewer than ``min_rim``:
+    the edge of the band near the loop, as before (`_edge_points`); fewer than three points: the opening
+    is not found. Hems and trouser legs: `_lower_rim` over the main piece, joined to the loop's band by
+    steps < ``link`` (a hanging sleeve is not hem).
     """
     import scipy.sparse as sp
     from scipy.sparse.csgraph import dijkstra
@@ -730,14 +795,25 @@ def _boundary_loops(
                 if name.startswith("cuff"):
                     mine = _distal_rim(garment_points, mine, limb)
             elif name == "neck":
-                trunk = [body_vertices[vertex_parts == PART_NAMES.index(p)] for p in ("head", "torso")]
-                mine = _neck_rim(garment_points, mine, *trunk)
+                head, torso, arm_l, arm_r = (
+                    body_vertices[vertex_parts == PART_NAMES.index(p)]
+                    for p in ("head", "torso", "upperarm.L", "upperarm.R")
+                )
+                # the body faces along left x up (Anny's left is +x, up +y, facing +z)
+                forward = np.cross(arm_l.mean(0) - arm_r.mean(0), head.mean(0) - torso.mean(0))
+                rim = np.flatnonzero((nearest_loop == i) & (rim_kind > 0))
+                loop = body_vertices[verts]
+                mine = _neck_opening(
+                    garment_points, rim, mine, loop, head, torso, forward, max_tilt_deg=max_neck_tilt_deg
+                )
             if len(mine) >= min_rim:
                 sel = mine
             elif len(sel) == 0:
                 continue
             else:  # too few rim points (a very noisy or sparse scan): the edge of the band near the loop
                 sel = _edge_points(garment_points, sel)
+        if len(sel) < 3:  # no loop to order (a sparse scan with a hole over the opening): not found
+            continue
         p = garment_points[sel]
         centre = p.mean(0)
         _, _, vt = np.linalg.svd(p - centre, full_matrices=False)

@@ -253,13 +253,15 @@ def name_boundary_loops(
 ) -> list[BoundaryLoop]:
     """Order loops top to bottom and name them by simple rules in the world frame (Y up, facing +Z).
 
-    Tops and dresses: the highest loop is ``neck``, the lowest ``hem``; of the others, a loop lying on
-    one side of the garment's centre plane and far out (centroid beyond half the garment's half-width)
-    is ``cuff_left`` (x > centre) or ``cuff_right``. Skirts and pants: the loop holding the most
-    ``lower_interface`` vertices (else the highest) is ``waist``; a single other loop is ``hem``, else the
-    two lowest are ``hem_left`` / ``hem_right``. Anything else is ``opening_<k>`` (k = position in the list).
-    When ``garment_type`` is None the garment counts as a bottom if its highest loop holds
-    ``lower_interface`` vertices.
+    Tops and dresses: the highest loop is ``neck``; the lowest loop around the garment's centre plane
+    (not wholly on one side of it) is ``hem``; of the others, a loop wholly on one side and far out
+    (centroid beyond half the garment's half-width) is ``cuff_left`` (x > centre) or ``cuff_right``.
+    When the two lowest loops lie below the crotch of GarmentCode's body (the layout's frame), each
+    wholly on one side, on opposite sides, they are trouser legs (a jumpsuit): ``hem_left`` (x > centre)
+    and ``hem_right``. Skirts and pants: the loop holding the most ``lower_interface`` vertices (else the
+    highest) is ``waist``; a single other loop is ``hem``, else the two lowest are ``hem_left`` /
+    ``hem_right``. Anything else is ``opening_<k>`` (k = position in the list). When ``garment_type`` is
+    None the garment counts as a bottom if its highest loop holds ``lower_interface`` vertices.
 
     Args:
         loops: closed loops of sim-vertex indices.
@@ -288,16 +290,31 @@ def name_boundary_loops(
             names[left], names[right] = "hem_left", "hem_right"
     else:
         names[0] = "neck"
-        if len(loops) > 1:
-            names[-1] = "hem"
         xc = 0.5 * (sim_pos[:, 0].max() + sim_pos[:, 0].min())
         half_width = 0.5 * (sim_pos[:, 0].max() - sim_pos[:, 0].min())
+        from torch_diffavatar.sim.placement import GC_BODY  # the layout's body (lazy: sim imports pattern)
+
+        side_of = [np.sign(sim_pos[lp, 0] - xc) for lp in loops]
+        one_side = [bool(np.all(s == s[0])) for s in side_of]
+        low = [len(loops) - 2, len(loops) - 1] if len(loops) >= 3 else []
+        if (
+            low
+            and one_side[low[0]]
+            and one_side[low[1]]
+            and side_of[low[0]][0] * side_of[low[1]][0] < 0
+            and (centroids[low, 1] < GC_BODY["crotch"]).all()
+        ):
+            # trouser legs (a jumpsuit; a cropped top's long sleeves end higher, in the A-pose)
+            left, right = sorted(low, key=lambda i: -centroids[i, 0])
+            names[left], names[right] = "hem_left", "hem_right"
+        elif len(loops) > 1:
+            around = [i for i in range(1, len(loops)) if not one_side[i]]
+            names[around[-1] if around else -1] = "hem"
         for side, name in ((1.0, "cuff_left"), (-1.0, "cuff_right")):
             cands = [
                 i
-                for i in range(1, len(loops) - 1)
-                if np.all(side * (sim_pos[loops[i], 0] - xc) > 0)
-                and side * (centroids[i, 0] - xc) > 0.5 * half_width
+                for i in range(1, len(loops))
+                if names[i] is None and one_side[i] and side * (centroids[i, 0] - xc) > 0.5 * half_width
             ]
             if cands:
                 names[max(cands, key=lambda i: side * centroids[i, 0])] = name
