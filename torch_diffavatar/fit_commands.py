@@ -235,6 +235,17 @@ def infer_garment_type(pattern) -> str:
     return "dress"
 
 
+def covers_head(pattern, reach: float = 0.1) -> bool:
+    """Whether ``pattern`` covers the head (a hood): its panels, laid out around GarmentCode's mean body,
+    reach within ``reach`` [m] of the body's top (GarmentCode's hoody: 14 cm above it; a polo's collar,
+    the highest of the others: 14 cm below)."""
+    from torch_diffavatar.pattern.mesher import mesh_pattern
+    from torch_diffavatar.sim.placement import GC_BODY
+
+    garment = mesh_pattern(pattern, spacing=0.05)  # coarse: only the layout matters
+    return float(garment.vert_pos[:, 1].max()) > GC_BODY["height"] - reach
+
+
 # ---------------------------------------------------------------------------------------------------------
 
 
@@ -322,7 +333,7 @@ def prepare(
     import warnings
 
     from torch_diffavatar.body.anny_model import load_anny
-    from torch_diffavatar.body.fit import fit_body
+    from torch_diffavatar.body.fit import BodyFitConfig, fit_body
     from torch_diffavatar.body.model import BodyModel
     from torch_diffavatar.body.parts import vertex_parts
     from torch_diffavatar.fit import ScanTarget
@@ -339,8 +350,15 @@ def prepare(
     scan, _ = remove_outliers(scan)
     anny_model = load_anny(dtype=torch.float32) if anny_model is None else anny_model
     body = BodyModel(anny_model=anny_model)
+    if pattern is None:
+        from torch_diffavatar.pattern.library import resolve_pattern
+
+        pattern = resolve_pattern(config.template)
     if body_params is None:
-        body_fit_chamfer_m = fit_body(scan.points, body).chamfer_m
+        body_config = BodyFitConfig()
+        if covers_head(pattern):  # a hood: the head's scan points are cloth, not skin
+            body_config.skin_parts = tuple(p for p in body_config.skin_parts if p != "head")
+        body_fit_chamfer_m = fit_body(scan.points, body, config=body_config).chamfer_m
     else:
         try:
             body.load_parameters_dict(body_params)
@@ -352,10 +370,6 @@ def prepare(
         body_verts = body_out.vertices[0].double()
     faces = body.faces.cpu().numpy()
     parts = vertex_parts(anny_model).cpu().numpy()
-    if pattern is None:
-        from torch_diffavatar.pattern.library import resolve_pattern
-
-        pattern = resolve_pattern(config.template)
     seg_type = garment_type or SEGMENT_TYPES.get(config.template) or infer_garment_type(pattern)
     if scan.labels is not None:
         mask = scan.labels == GARMENT_LABEL
