@@ -2,9 +2,9 @@
 
 A hood's face opening stands upright in front of the face, its sides several centimetres off it: the
 neckline's rule (rim points near the bare skin, the top of each sector about the neck) kept only its top
-and bottom (`_neck_opening` says what is kept now, and what was measured). A jumpsuit has
-a neck, two cuffs and two trouser legs: typed as trousers, its neckline was named "waist" and matched to
-the garment's neck by proximity, and its legs were unnamed.
+and bottom (`_neck_opening` says what is kept now, and what was measured). A jumpsuit has a neck, two
+cuffs and two trouser legs: typed as trousers, its neckline was named "waist" and matched to the
+garment's neck by proximity, and its legs were unnamed.
 """
 
 from __future__ import annotations
@@ -31,8 +31,9 @@ def _spec(name: str) -> Path:
 
 
 def _openings(name: str, anny_model, seed: int):
-    """(scan, found): a 3 cm drape of GarmentCode's ``name`` on a random body, and the openings found on
-    its labelled scan with the true body, garment loop name -> (k, 3) target points [m]."""
+    """(scan, kind, found): a 3 cm drape of GarmentCode's ``name`` on a random body, its inferred garment
+    type, and the openings found on its labelled scan with the true body, garment loop name -> (k, 3)
+    target points [m]."""
     from torch_diffavatar.body.model import BodyModel
     from torch_diffavatar.synthetic_scans import make_draped_scan
 
@@ -45,8 +46,8 @@ def _openings(name: str, anny_model, seed: int):
 
 
 def _distances(scan, name: str, target: np.ndarray) -> tuple[float, float]:
-    """Mean distance [m] of the target to the true opening ``name`` (its edges sampled every ~2 mm), and
-    of the opening to the target."""
+    """Mean distance [m] of the target to the true opening ``name`` (each of its edges sampled at ten
+    points), and of the opening's vertices to the target."""
     loops = {lp.name: lp.vertices.numpy() for lp in scan.garment.boundary_loops}
     v = scan.cloth_x[loops[name]]
     t = np.linspace(0.0, 1.0, 10, endpoint=False)[:, None, None]
