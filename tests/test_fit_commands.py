@@ -141,11 +141,13 @@ def test_fit_set_up_on_a_given_body_does_not_fit_one(skirt_scan, anny_model, tmp
 
 def test_a_hood_covers_the_head_and_no_other_garment_does():
     from torch_diffavatar.fit_commands import covers_head
+    from torch_diffavatar.pattern import mesh_pattern
 
     hoody = sorted((GARMENTCODE / "repo_examples/hoody_mean").glob("*_specification.json"))
     if hoody:
-        assert covers_head(load_pattern(hoody[0]))
-    assert not any(covers_head(load_template(name)) for name in SEGMENT_TYPES)  # the polo's collar too
+        assert covers_head(mesh_pattern(load_pattern(hoody[0]), spacing=0.05))
+    # the polo's collar too
+    assert not any(covers_head(mesh_pattern(load_template(name), spacing=0.05)) for name in SEGMENT_TYPES)
 
 
 @pytest.mark.anny

@@ -235,14 +235,12 @@ def infer_garment_type(pattern) -> str:
     return "dress"
 
 
-def covers_head(pattern, reach: float = 0.1) -> bool:
-    """Whether ``pattern`` covers the head (a hood): its panels, laid out around GarmentCode's mean body,
-    reach within ``reach`` [m] of the body's top (GarmentCode's hoody: 14 cm above it; a polo's collar,
-    the highest of the others: 14 cm below)."""
-    from torch_diffavatar.pattern.mesher import mesh_pattern
+def covers_head(garment, reach: float = 0.1) -> bool:
+    """Whether a garment covers the head (a hood): ``garment``, a `GarmentMesh` as `mesh_pattern` lays it
+    out around GarmentCode's mean body (before placement), reaches within ``reach`` [m] of the body's top
+    (GarmentCode's hoody: 14 cm above it; a polo's collar, the highest of the others: 14 cm below)."""
     from torch_diffavatar.sim.placement import GC_BODY
 
-    garment = mesh_pattern(pattern, spacing=0.05)  # coarse: only the layout matters
     return float(garment.vert_pos[:, 1].max()) > GC_BODY["height"] - reach
 
 
@@ -354,9 +352,10 @@ def prepare(
         from torch_diffavatar.pattern.library import resolve_pattern
 
         pattern = resolve_pattern(config.template)
+    mesh = mesh_pattern(pattern, spacing=config.spacing)
     if body_params is None:
         body_config = BodyFitConfig()
-        if covers_head(pattern):  # a hood: the head's scan points are cloth, not skin
+        if covers_head(mesh):  # a hood: the head's scan points are cloth, not skin
             body_config.skin_parts = tuple(p for p in body_config.skin_parts if p != "head")
         body_fit_chamfer_m = fit_body(scan.points, body, config=body_config).chamfer_m
     else:
@@ -382,7 +381,6 @@ def prepare(
     if mask.sum() < 50:
         raise InputError(f"{scan_path}: only {int(mask.sum())} garment points; cannot fit a garment")
     loops = scan_boundaries(scan.points, mask, body_verts.numpy(), faces, parts, seg_type)
-    mesh = mesh_pattern(pattern, spacing=config.spacing)
     garment = place_garment(mesh, body_verts, body.faces, arm_joints=body.arm_joints(body_out.joints[0]))
     boundaries = match_boundaries(garment, loops)
     target = ScanTarget(
