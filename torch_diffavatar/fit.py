@@ -125,6 +125,14 @@ class FitConfig:
     Attributes:
         template: garment template to start from (`torch_diffavatar.pattern.list_templates`).
         spacing: mesh edge length [m] of the fitted garment.
+        arms_low_spacing: mesh edge length [m] used instead of ``spacing`` when the fitted body holds an
+            upper arm within ``arms_low_angle`` degrees of its torso (`BodyModel.upper_arm_angles`; None:
+            never). A lowered arm presses the cloth against it flat, and a 2.5 cm mesh there crushes
+            triangles: on four tops with arms held low, draped quality 0.07-0.24 at 2.5 cm, 0.13-0.54 at
+            2 cm (three of four above 0.3), and three of the four end closer to the scan
+            (docs/BENCHMARKS.md, "Arms held low"). Not used in the A-pose (42°), where the finer mesh
+            is no closer, and slower.
+        arms_low_angle: the threshold of ``arms_low_spacing`` [degrees].
         iterations: optimisation iterations (one drape + one backward each).
         lr_cage: Adam step of the cage handles [m].
         lr_phenotypes: Adam step of the body phenotype logits [-] (0 freezes the body shape).
@@ -205,6 +213,8 @@ class FitConfig:
 
     template: str = "dress"
     spacing: float = 0.025
+    arms_low_spacing: float | None = None
+    arms_low_angle: float = 30.0
     iterations: int = 20
     lr_cage: float = 0.004
     lr_phenotypes: float = 0.02
@@ -254,6 +264,12 @@ class FitConfig:
             raise ValueError(f"FitConfig.adjoint_hessian must be one of {HESSIANS}: {self.adjoint_hessian!r}")
         if not self.spacing > 0:
             raise ValueError(f"FitConfig.spacing must be a positive length [m], got {self.spacing}")
+        if self.arms_low_spacing is not None and not self.arms_low_spacing > 0:
+            raise ValueError(
+                f"FitConfig.arms_low_spacing must be > 0 [m] or null, got {self.arms_low_spacing}"
+            )
+        if not 0 <= self.arms_low_angle <= 180:
+            raise ValueError(f"FitConfig.arms_low_angle must be in [0, 180] [deg], got {self.arms_low_angle}")
         if not self.initial_bend_stiffness > 0:
             raise ValueError(
                 f"FitConfig.initial_bend_stiffness must be > 0 [N·m], got {self.initial_bend_stiffness}"
@@ -1388,7 +1404,7 @@ def result_warnings(
         worst = int(q.argmin())
         where = [round(float(c), 3) for c in x[sim_faces[worst]].mean(0)]
         # measured on tops fitted on arms held low: slivers pressed flat on the upper arm and held there
-        # by friction (docs/BENCHMARKS.md, "Arms held low"); at 2 cm instead of 2.5 they were gone
+        # by friction (docs/BENCHMARKS.md, "Arms held low"); at 2 cm instead of 2.5, gone on three of four
         warnings.append(
             f"{int(bad.sum())} draped triangles have quality below {DRAPED_QUALITY_FLOOR} (min "
             f"{float(q.min()):.2f}, at {where} m): crushed cloth, e.g. pressed flat on the body where a mesh "

@@ -21,6 +21,7 @@ import contextlib
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -101,7 +102,12 @@ def register(subparsers) -> None:
         "(`diffavatar fit-body --out`, an earlier fit's assets)",
     )
     p.add_argument("--iters", type=int, default=None, help="iterations (overrides the config)")
-    p.add_argument("--spacing", type=float, default=None, help="mesh spacing [m] (overrides the config)")
+    p.add_argument(
+        "--spacing",
+        type=float,
+        default=None,
+        help="mesh spacing [m] (overrides the config's, and its arms_low_spacing for arms held low)",
+    )
     p.add_argument("--resume", action="store_true", help="continue from --out's checkpoint")
     p.add_argument("--units", default="m", choices=("m", "cm", "mm"), help="length unit of the scan file")
     p.add_argument("--up", default="y", choices=("y", "-y", "z", "-z"), help="up axis of the scan file")
@@ -132,6 +138,8 @@ def fit_command(args) -> dict:
     config = load_config(
         args.config, garment=template, iterations=args.iters, spacing=args.spacing, **overrides
     )
+    if args.spacing is not None:  # the user's spacing, whatever the arms
+        config = replace(config, arms_low_spacing=None)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out} exists and is not a directory")
@@ -301,6 +309,16 @@ def match_boundaries(garment, scan_loops: dict[str, np.ndarray], max_distance: f
     return out
 
 
+def arms_spacing(config, arm_angles: dict[str, float]) -> float:
+    """The mesh spacing [m] of a fit: ``config.arms_low_spacing`` when it is set, finer than
+    ``config.spacing``, and an upper arm stands less than ``config.arms_low_angle`` from the torso
+    (``arm_angles``: `BodyModel.upper_arm_angles`, degrees); else ``config.spacing``."""
+    finer = config.arms_low_spacing
+    if finer is None or finer >= config.spacing or min(arm_angles.values()) >= config.arms_low_angle:
+        return config.spacing
+    return finer
+
+
 def prepare(
     scan_path,
     config,
@@ -321,12 +339,16 @@ def prepare(
     `BodyModel.parameters_dict`, e.g. the ``body.json`` of ``diffavatar fit-body`` or of an earlier fit, in
     the scan's world frame) is the body to start from instead of fitting one to the scan.
 
+    The pattern is meshed at ``config.spacing``, or at ``config.arms_low_spacing`` when the body holds an
+    arm low (`arms_spacing`).
+
     Returns:
         a dict with ``garment`` (placed `GarmentMesh`), ``pattern``, ``target`` (`ScanTarget`),
         ``body_params`` (`BodyModel.parameters_dict` of the initial body), ``sewing_fallback`` (the
         garment's `a_pose_route` onto it, None in the A-pose), ``body_fit_chamfer_m`` (the body fit's
         residual [m]; None with ``body_params``),
-        ``scan_points``, ``labelled`` and ``setup_seconds``.
+        ``scan_points``, ``labelled``, ``spacing`` (the mesh's [m]), ``upper_arm_angles_deg`` (of the
+        initial body, `BodyModel.upper_arm_angles`) and ``setup_seconds``.
     """
     import warnings
 
@@ -367,6 +389,16 @@ def prepare(
     with torch.no_grad():
         body_out = body()
         body_verts = body_out.vertices[0].double()
+    arm_angles = body.upper_arm_angles(body_out.joints[0])
+    spacing = arms_spacing(config, arm_angles)
+    if spacing != config.spacing:
+        print(
+            f"diffavatar fit: an upper arm hangs {min(arm_angles.values()):.0f}° from the torso (below "
+            f"{config.arms_low_angle:g}°): meshing at {spacing:g} m instead of {config.spacing:g} m, since "
+            "cloth pressed between arm and torso crushes a coarser mesh",
+            file=sys.stderr,
+        )
+        mesh = mesh_pattern(pattern, spacing=spacing)
     faces = body.faces.cpu().numpy()
     parts = vertex_parts(anny_model).cpu().numpy()
     seg_type = garment_type or SEGMENT_TYPES.get(config.template) or infer_garment_type(pattern)
@@ -398,6 +430,8 @@ def prepare(
         "scan_points": scan.point_count,
         "scan_boundaries": sorted(loops),
         "labelled": labelled,
+        "spacing": spacing,
+        "upper_arm_angles_deg": arm_angles,
         "setup_seconds": time.perf_counter() - t0,
     }
 
@@ -447,6 +481,10 @@ def fit_scan(
             body_params=body_params,
         )
         _atomic_save(setup, setup_path)
+    spacing = setup.get("spacing", config.spacing)
+    if spacing != config.spacing:  # meshed finer for arms held low: the resolved config says so
+        config = replace(config, spacing=spacing)
+        write_resolved_config(config, out)
     body = BodyModel(anny_model=anny_model)
     body.load_parameters_dict(setup["body_params"])
     garment, target = setup["garment"], setup["target"]
@@ -468,6 +506,8 @@ def fit_scan(
         scan_points=setup["scan_points"],
         scan_labelled=setup["labelled"],
         scan_boundaries=setup["scan_boundaries"],
+        spacing=spacing,
+        upper_arm_angles_deg=setup.get("upper_arm_angles_deg"),
         body_fit_chamfer_m=setup["body_fit_chamfer_m"],
         setup_seconds=round(setup["setup_seconds"], 2),
         total_seconds=round(time.perf_counter() - t0 + (0.0 if resume else 0.0), 2),

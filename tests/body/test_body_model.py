@@ -103,3 +103,27 @@ def test_bad_constructor_arguments(anny_model):
         BodyModel(anny_model=anny_model, pose_bones=("spine05", "tail"))
     with pytest.raises(ValueError, match="local_changes"):
         BodyModel(anny_model=anny_model, local_changes=True)
+
+
+def test_upper_arm_angles_read_the_arms_against_the_torso(anny_model):
+    """The A-pose's upper arms stand 42° out; lowered 0.4 rad toward the torso, 19°; a turned and bent
+    body reads the same as an upright one."""
+    import math
+
+    from torch_diffavatar.body.model import pose_from_bones
+
+    body = BodyModel(anny_model=anny_model, dtype=torch.float64)
+    a_pose = body.upper_arm_angles(body().joints[0])
+    assert a_pose["left"] == pytest.approx(41.7, abs=1.0) and a_pose["right"] == pytest.approx(a_pose["left"])
+    low = pose_from_bones({"upperarm01.L": [0, 0.4, 0], "upperarm01.R": [0, -0.4, 0]}, "test")[None]
+    with torch.no_grad():
+        body.pose.copy_(low)
+    lowered = body.upper_arm_angles(body().joints[0])
+    for side in ("left", "right"):
+        assert lowered[side] == pytest.approx(a_pose[side] - math.degrees(0.4), abs=1.0)
+    with torch.no_grad():  # the whole body turned 90° and leaning 0.3 rad forward
+        turned = body(global_orient=torch.tensor([[0.0, math.pi / 2, 0.0]], dtype=torch.float64))
+        leaning = body(global_orient=torch.tensor([[0.3, 0.0, 0.0]], dtype=torch.float64))
+    for out in (turned, leaning):
+        for side, angle in body.upper_arm_angles(out.joints[0]).items():
+            assert angle == pytest.approx(lowered[side], abs=1e-6)

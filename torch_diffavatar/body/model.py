@@ -321,6 +321,29 @@ class BodyModel(nn.Module):
             out[name] = np.stack([shoulder, elbow, wrist, 0.5 * (wrist + knuckle)])
         return out
 
+    def upper_arm_angles(self, joints: torch.Tensor) -> dict[str, float]:
+        """How far each upper arm stands out from the torso: the angle [degrees] between the shoulder
+        joint → elbow and the torso's downward axis (``neck01`` → ``spine05`` joints). Anny's A-pose: 42°;
+        0° hangs along the torso, 90° is level. The torso's axis, not world −Y, so a bent or turned body
+        reads the same.
+
+        Args:
+            joints: (J, 3) one body's `BodyOutput.joints` [m].
+
+        Returns:
+            ``{"left": degrees, "right": degrees}``.
+        """
+        labels = self.anny.bone_labels
+        j = joints.detach().cpu().double().numpy()
+        down = j[labels.index("spine05")] - j[labels.index("neck01")]
+        down = down / np.linalg.norm(down)
+        out = {}
+        for name, chain in self.arm_joints(joints).items():
+            arm = chain[1] - chain[0]  # shoulder joint -> elbow
+            cos = float(np.clip(arm @ down / np.linalg.norm(arm), -1.0, 1.0))
+            out[name] = float(np.degrees(np.arccos(cos)))
+        return out
+
     def parameters_dict(self) -> dict:
         """JSON-friendly copy of the fit variables (batch element lists)."""
         return {
