@@ -122,6 +122,8 @@ def test_eval_of_the_truth_itself_is_exact(skirt_scan, tmp_path):
     assert abs(out["body_height_error_m"]) < 1e-6 and out["body_mean_vertex_error_m"] < 1e-6
     assert 0.001 < out["chamfer_scan_m"] < 0.01  # the noise (2 mm) and the scan's point spacing
     assert out["draped_quality"]["min"] > 0.2 and out["rest_quality"]["min"] > 0.4
+    seams, true_seams = out["seam_length_mismatch"], out["seam_length_mismatch_truth"]
+    assert true_seams["per_seam_m"] == pytest.approx(seams["per_seam_m"], abs=1e-9)
     # the command prints the same as one JSON line; a missing truth folder is one error line, exit 2
     assert main(["eval", str(tmp_path / "fit"), "--gt", str(tmp_path / "gt"), "--json"]) == 0
     assert main(["eval", str(tmp_path / "fit"), "--gt", str(tmp_path / "nowhere"), "--json"]) == 2

@@ -116,7 +116,8 @@ def evaluate_assets(assets_dir, gt_dir) -> dict:
         a dict: ``units`` ("m"), ``chamfer_scan_m`` (scan garment points ↔ fitted drape, on the surface,
         `chamfer.surface_chamfer_m`, not squared), ``chamfer_truth_drape_m`` (fitted ↔ true drape,
         symmetric mean surface-to-surface distance), the pattern errors of `compare_with_truth`,
-        ``seam_length_mismatch`` (fitted pattern, `seam_length_mismatch`), ``body_height_error_m``
+        ``seam_length_mismatch`` (fitted pattern, `seam_length_mismatch`), ``seam_length_mismatch_truth``
+        (the true pattern's: the mismatch a design has on purpose, ease), ``body_height_error_m``
         (fitted − true), ``body_mean_vertex_error_m``, ``bending_stiffness_ratio``, ``rest_quality`` and
         ``draped_quality`` (min, mean), ``inverted_rest_triangles`` (from the fit's report); when the
         folder holds the fit's first drape (``draped_initial.obj``), also ``chamfer_scan_initial_m`` and
@@ -154,6 +155,8 @@ def evaluate_assets(assets_dir, gt_dir) -> dict:
         )
     out.update(compare_with_truth(folder, truth / "pattern.json", float(true_material.bend_stiffness)))
     out["seam_length_mismatch"] = seam_length_mismatch(load_pattern(folder / "pattern.json"))
+    # the design's own (ease: GarmentCode's trousers take 24 mm more back than front at the crotch)
+    out["seam_length_mismatch_truth"] = seam_length_mismatch(load_pattern(truth / "pattern.json"))
     body, true_body = read_obj(folder / "body.obj"), read_obj(truth / "body.obj")
     height = lambda v: float(v[:, 1].max() - v[:, 1].min())  # noqa: E731
     out["body_height_error_m"] = height(body.verts) - height(true_body.verts)
