@@ -395,7 +395,7 @@ def prepare(
         print(
             f"diffavatar fit: an upper arm hangs {min(arm_angles.values()):.0f}° from the torso (below "
             f"{config.arms_low_angle:g}°): meshing at {spacing:g} m instead of {config.spacing:g} m, since "
-            "cloth pressed between arm and torso crushes a coarser mesh",
+            "a coarser mesh crushes where the lowered arm presses the cloth flat",
             file=sys.stderr,
         )
         mesh = mesh_pattern(pattern, spacing=spacing)
