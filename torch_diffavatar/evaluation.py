@@ -153,10 +153,11 @@ def evaluate_assets(assets_dir, gt_dir) -> dict:
         out[f"chamfer_truth_drape{suffix}_m"] = mesh_distance_m(
             mesh.verts, mesh.faces, true_drape.verts, true_drape.faces
         )
-    out.update(compare_with_truth(folder, truth / "pattern.json", float(true_material.bend_stiffness)))
+    true_pattern = load_pattern(truth / "pattern.json")
+    out.update(compare_with_truth(folder, true_pattern, float(true_material.bend_stiffness)))
     out["seam_length_mismatch"] = seam_length_mismatch(load_pattern(folder / "pattern.json"))
     # the design's own (ease: GarmentCode's trousers take 24 mm more back than front at the crotch)
-    out["seam_length_mismatch_truth"] = seam_length_mismatch(load_pattern(truth / "pattern.json"))
+    out["seam_length_mismatch_truth"] = seam_length_mismatch(true_pattern)
     body, true_body = read_obj(folder / "body.obj"), read_obj(truth / "body.obj")
     height = lambda v: float(v[:, 1].max() - v[:, 1].min())  # noqa: E731
     out["body_height_error_m"] = height(body.verts) - height(true_body.verts)
