@@ -121,6 +121,7 @@ def test_eval_of_the_truth_itself_is_exact(skirt_scan, tmp_path):
     assert out["bending_stiffness_ratio"] == pytest.approx(1.0)
     assert abs(out["body_height_error_m"]) < 1e-6 and out["body_mean_vertex_error_m"] < 1e-6
     assert 0.001 < out["chamfer_scan_m"] < 0.01  # the noise (2 mm) and the scan's point spacing
+    assert out["chamfer_scan_truth_m"] == pytest.approx(out["chamfer_scan_m"], rel=1e-6)  # the floor
     assert out["draped_quality"]["min"] > 0.2 and out["rest_quality"]["min"] > 0.4
     seams, true_seams = out["seam_length_mismatch"], out["seam_length_mismatch_truth"]
     assert true_seams["per_seam_m"] == pytest.approx(seams["per_seam_m"], abs=1e-9)

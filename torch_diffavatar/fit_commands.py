@@ -510,7 +510,7 @@ def fit_scan(
         upper_arm_angles_deg=setup.get("upper_arm_angles_deg"),
         body_fit_chamfer_m=setup["body_fit_chamfer_m"],
         setup_seconds=round(setup["setup_seconds"], 2),
-        total_seconds=round(time.perf_counter() - t0 + (0.0 if resume else 0.0), 2),
+        total_seconds=round(time.perf_counter() - t0, 2),  # this run's (a resumed one: since the resume)
     )
     final_material = ClothMaterial(bend_stiffness=float(result.params.log_bend_stiffness.detach().exp()))
     body_params = dict(body.parameters_dict())
