@@ -189,8 +189,8 @@ def _write_results(path: Path, rows: list, ablations: list, args, started: str) 
         "Units: Chamfer distances are symmetric mean surface distances in mm, not squared "
         "(`chamfer.surface_chamfer_m`); the true drape's own Chamfer to the scan is the floor that the "
         "scan's noise and holes put under any fit's; pattern outline errors in cm after a rigid alignment "
-        "of each panel "
-        "(`metrics.outline_distance`: the worst panel's mean distance, and its largest distance).",
+        "of each panel (`metrics.outline_distance`: the worst panel's mean distance, and its largest "
+        "distance).",
         "",
         "## Table 1: initial (template) vs ours",
         "",
