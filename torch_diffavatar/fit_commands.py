@@ -408,7 +408,10 @@ def prepare(
     else:
         from torch_diffavatar.body.segment import segment_garment
 
-        seg = segment_garment(scan.points, seg_type, body_verts.numpy(), faces, parts, colors=scan.colors)
+        waist = body.waist_height(body_out.joints[0])
+        seg = segment_garment(
+            scan.points, seg_type, body_verts.numpy(), faces, parts, colors=scan.colors, support_top=waist
+        )
         mask, labelled = seg.labels, False
     if mask.sum() < 50:
         raise InputError(f"{scan_path}: only {int(mask.sum())} garment points; cannot fit a garment")

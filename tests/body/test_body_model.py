@@ -127,3 +127,19 @@ def test_upper_arm_angles_read_the_arms_against_the_torso(anny_model):
     for out in (turned, leaning):
         for side, angle in body.upper_arm_angles(out.joints[0]).items():
             assert angle == pytest.approx(lowered[side], abs=1e-6)
+
+
+def test_waist_height_lies_between_hips_and_ribs(anny_model):
+    """`waist_height` (the ``spine02`` joint) sits above the hips part and below the shoulders, and
+    moves with the body."""
+    from torch_diffavatar.body.parts import PART_NAMES, vertex_parts
+
+    body = BodyModel(anny_model=anny_model, dtype=torch.float64)
+    with torch.no_grad():
+        out = body()
+        raised = body(translation=torch.tensor([[0.0, 0.1, 0.0]], dtype=torch.float64))
+    verts, labels = out.vertices[0], anny_model.bone_labels
+    hips = verts[vertex_parts(anny_model) == PART_NAMES.index("hips"), 1]
+    waist = body.waist_height(out.joints[0])
+    assert float(hips.max()) + 0.1 < waist < float(out.joints[0, labels.index("upperarm01.L"), 1]) - 0.15
+    assert body.waist_height(raised.joints[0]) == pytest.approx(waist + 0.1, abs=1e-9)

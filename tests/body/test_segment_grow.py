@@ -32,3 +32,38 @@ def test_growth_fills_the_open_points_the_labels_touch_and_stops_at_the_rest():
     island = (x > 0.3) & (y > 0.3)
     assert not _grow_on_support(labels, island, _nbr(p))[island].any()
     assert not _grow_on_support(np.zeros(len(p), bool), np.ones(len(p), bool), _nbr(p)).any()
+
+
+def test_trousers_waistband_on_the_torso_is_garment_below_the_waist_only(anny_model):
+    """Trousers tight from the hips to a waistband on the torso (3 mm off the skin, under the 5 mm
+    offset threshold), loose on the legs: with the body's waist height (`support_top`) the labels grow
+    from the legs over the hips and up the torso to the waistband, not onto the bare torso above it;
+    without it they stop where Anny's hips part ends."""
+    import torch
+    import trimesh
+
+    from torch_diffavatar.body.model import BodyModel
+    from torch_diffavatar.body.parts import PART_NAMES, vertex_parts
+    from torch_diffavatar.body.segment import segment_garment
+
+    body = BodyModel(anny_model=anny_model)
+    with torch.no_grad():
+        out = body()
+    verts, faces = out.vertices[0].double().numpy(), body.faces.numpy()
+    waist = body.waist_height(out.joints[0])
+    mesh = trimesh.Trimesh(verts, faces, process=False)
+    points, face = trimesh.sample.sample_surface_even(mesh, 20000, seed=0)
+    parts = vertex_parts(anny_model).numpy()
+    part = parts[faces[face, 0]]
+    name = np.array(PART_NAMES)[part]
+    legs = np.isin(name, ["thigh.L", "thigh.R", "shin.L", "shin.R"])
+    band = (name == "torso") & (points[:, 1] < waist - 0.03)  # the waistband and what lies under it
+    tight = (name == "hips") | band
+    offset = np.where(legs, 0.02, np.where(tight, 0.003, 0.0))
+    points = points + offset[:, None] * mesh.face_normals[face]
+    bare_torso = (name == "torso") & (points[:, 1] > waist)
+    without = segment_garment(points, "pants", verts, faces, parts).labels
+    with_waist = segment_garment(points, "pants", verts, faces, parts, support_top=waist).labels
+    assert with_waist[legs].mean() > 0.95 and without[legs].mean() > 0.95
+    assert with_waist[band].mean() > 0.8 > 0.2 > without[band].mean()
+    assert with_waist[bare_torso].mean() < 0.02

@@ -128,22 +128,32 @@ def segment_command(args) -> dict:
     import torch
 
     from torch_diffavatar.body.anny_model import load_anny
+    from torch_diffavatar.body.model import BodyModel
     from torch_diffavatar.body.parts import vertex_parts
     from torch_diffavatar.body.segment import segment_garment
     from torch_diffavatar.scan import save_ply
 
     anny_model = load_anny(dtype=torch.float32)
-    body_verts = _body_from_dir(args.body, anny_model) if args.body else None
+    body = None  # the body's parameters, when known: its waist height helps trousers
+    if args.body:
+        body_verts = _body_from_dir(args.body, anny_model)
+        params = Path(args.body) / BODY_JSON
+        if params.is_file():
+            body = BodyModel(anny_model=anny_model)
+            body.load_parameters_dict(json.loads(params.read_text()))
     scan = _load_clean_scan(args)
-    if body_verts is None:
+    if not args.body:
         from torch_diffavatar.body.fit import fit_body
 
-        fitted = fit_body(scan.points, anny_model=anny_model).body
-        body_verts = fitted().vertices[0].detach().numpy()
+        body = fit_body(scan.points, anny_model=anny_model).body
+        body_verts = body().vertices[0].detach().numpy()
+    waist = None
+    if body is not None:
+        with torch.no_grad():
+            waist = body.waist_height(body().joints[0])
     faces = anny_model.faces.cpu().numpy()
-    seg = segment_garment(
-        scan.points, kind, body_verts, faces, vertex_parts(anny_model).cpu().numpy(), colors=scan.colors
-    )
+    parts = vertex_parts(anny_model).cpu().numpy()
+    seg = segment_garment(scan.points, kind, body_verts, faces, parts, colors=scan.colors, support_top=waist)
     loop_id = np.full(len(seg.garment_indices), -1, dtype=np.int64)
     for k, loop in enumerate(seg.loops):
         loop_id[loop.point_indices] = k

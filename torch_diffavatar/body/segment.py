@@ -5,14 +5,16 @@ limits where a garment of the requested type may be; (2) its signed distance to 
 closest point, positive outside), averaged over its scan neighbours (cloth lies outside the skin);
 (3) its colour, when present, through a two-class colour model re-estimated from the current labels.
 The result is smoothed by a neighbour majority vote. Where the garment hangs from the body (a bodice on
-the shoulders, a waistband on the hips: `GARMENT_SUPPORT`) the cloth lies within the offset threshold,
-often within a millimetre of a fitted body that swelled into it: there the labels grow over the scan's
-k-NN graph into the connected points whose offset is still positive (beyond ``grow_sigmas`` noise
-standard deviations, and 0.5 mm), which the skin beside them (neck, arms) is not. Last, "skin" that no
-opening shows (patches enclosed by the garment on the body) joins the garment. Measured without colour
-on simulated scans (`synthetic_scans.make_draped_scan`, 3 cm drape spacing; 2.5 cm for the T-shirt),
-recall without → with the growth, precision ≥ 0.99 both: dress seeds 0–4 0.91–0.94 → 0.97–0.99,
-T-shirt seeds 0–1 0.81 / 0.88 → 0.95 / 0.96, skirt 0.90 → 0.93, trousers 0.95 → 0.95.
+the shoulders, a waistband on the hips and the torso below the waist: `GARMENT_SUPPORT`, `WAIST_SUPPORT`)
+the cloth lies within the offset threshold, often within a millimetre of a fitted body that swelled into
+it: there the labels grow over the scan's k-NN graph into the connected points whose offset is still
+positive (beyond ``grow_sigmas`` noise standard deviations, and 0.5 mm), which the skin beside them
+(neck, arms) is not. Last, "skin" that no opening shows (patches enclosed by the garment on the body)
+joins the garment. Measured without colour on simulated scans (`synthetic_scans.make_draped_scan`, 3 cm
+drape spacing; 2.5 cm for the T-shirt), recall without → with the growth, precision ≥ 0.99 both: dress
+seeds 0–4 0.91–0.94 → 0.97–0.99, T-shirt seeds 0–1 0.81 / 0.88 → 0.95 / 0.96, skirt 0.90 → 0.93,
+trousers 0.95 → 0.95; trousers with the torso below the waist (2 cm scans, docs/BENCHMARKS.md
+"Unlabelled trousers and skirts"): 0.77–1.00 → 0.94–1.00.
 
 Boundaries (hem, cuffs, neck, waist) are found on the body, not in the noisy scan: every body vertex takes
 the label of its nearest scan point (so holes in the scan inherit their rim's label), the covered faces'
@@ -75,6 +77,13 @@ GARMENT_SUPPORT: dict[str, tuple[str, ...]] = {
     "jumpsuit": ("torso", "upperarm.L", "upperarm.R"),
     "jumpsuit_sleeveless": ("torso",),
 }
+# Trousers grip the hips, but on Anny's parts their waistband lies on the torso, 15-22 cm above where the
+# hips part ends: given `segment_garment`'s ``support_top`` (the body's waist height) the labels also grow
+# over the torso below it. Only below it: uncapped, on a heavy body fitted thinner than its scan, bare skin
+# stood off the body like tight cloth and the labels climbed the torso. Skirts found more of their cloth
+# this way too, but their fits ended farther from the scans (docs/BENCHMARKS.md, "Unlabelled trousers
+# and skirts").
+WAIST_SUPPORT: dict[str, tuple[str, ...]] = {"pants": ("torso",)}
 GARMENT_ALIASES = {"t-shirt": "tshirt", "tee": "tshirt", "trousers": "pants", "shirt-long": "shirt"}
 GARMENT_TYPES = tuple(GARMENT_REGIONS)
 _SLEEVED = ("shirt", "tshirt", "polo", "jumpsuit")
@@ -175,6 +184,7 @@ def segment_garment(
     offset_scale: float = 0.003,
     neighbors: int = 16,
     grow_sigmas: float = 0.67,
+    support_top: float | None = None,
 ) -> Segmentation:
     """Label the scan points of one garment using a fitted body.
 
@@ -189,6 +199,10 @@ def segment_garment(
         neighbors: scan neighbours used for smoothing.
         grow_sigmas: the garment grows over the support parts of its type (`GARMENT_SUPPORT`) into
             points whose smoothed offset exceeds this many of its noise standard deviations (0: off).
+        support_top: height [m] (world Y) of the body's waist, for trousers: their labels also grow
+            over the torso (`WAIST_SUPPORT`) on points below it. `fit_commands.prepare` passes
+            the height of the body's ``spine02`` joint (1.9-4.8 cm above a trouser or skirt waist measured
+            on eight bodies); None: only `GARMENT_SUPPORT`.
 
     Returns:
         a `Segmentation`.
@@ -221,6 +235,9 @@ def segment_garment(
         labels = region & (_smooth(labels.astype(np.float64), nbr) > 0.5)
     if labels.any() and grow_sigmas > 0:
         support = np.isin(vertex_parts[near], [PART_NAMES.index(p) for p in GARMENT_SUPPORT[kind]])
+        if support_top is not None and kind in WAIST_SUPPORT:
+            waist = np.isin(vertex_parts[near], [PART_NAMES.index(p) for p in WAIST_SUPPORT[kind]])
+            support |= waist & (points[:, 1] < support_top)
         # Noise of the smoothed offset: robust spread of the raw offsets about their local mean,
         # over the skin, divided by sqrt(k).
         skin = ~labels & (np.abs(offset) < 0.05)
