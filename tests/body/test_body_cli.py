@@ -65,6 +65,11 @@ def test_segment_cli_with_a_body_dir(capsys, tmp_path, dressed_scan, anny_model)
 
     garment = load_scan(out_ply, check=False)
     assert garment.point_count == summary["garment_points"]
+    # a body.json beside it that cannot be read: said on stderr, the vertices still serve
+    (body_dir / "body.json").write_text("{}")
+    code, out, err = _run(capsys, argv + ["--out", str(out_ply), "--json"])
+    assert code == 0 and "no waist height" in err
+    assert json.loads(out)["garment_points"] == summary["garment_points"]
 
 
 @pytest.mark.parametrize(

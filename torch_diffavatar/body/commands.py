@@ -140,7 +140,11 @@ def segment_command(args) -> dict:
         params = Path(args.body) / BODY_JSON
         if params.is_file():
             body = BodyModel(anny_model=anny_model)
-            body.load_parameters_dict(json.loads(params.read_text()))
+            try:
+                body.load_parameters_dict(json.loads(params.read_text()))
+            except (KeyError, ValueError, TypeError, RuntimeError) as exc:  # the vertices suffice
+                print(f"diffavatar segment: {params} not read ({exc}); no waist height", file=sys.stderr)
+                body = None
     scan = _load_clean_scan(args)
     if not args.body:
         from torch_diffavatar.body.fit import fit_body
