@@ -77,7 +77,7 @@ GARMENT_SUPPORT: dict[str, tuple[str, ...]] = {
     "jumpsuit": ("torso", "upperarm.L", "upperarm.R"),
     "jumpsuit_sleeveless": ("torso",),
 }
-# Trousers grip the hips, but on Anny's parts their waistband lies on the torso, 15-22 cm above where the
+# Trousers grip the hips, but on Anny's parts their waistband lies on the torso, 15-17 cm above where the
 # hips part ends: given `segment_garment`'s ``support_top`` (the body's waist height) the labels also grow
 # over the torso below it. Only below it: uncapped, on a heavy body fitted thinner than its scan, bare skin
 # stood off the body like tight cloth and the labels climbed the torso. Skirts found more of their cloth
@@ -200,9 +200,8 @@ def segment_garment(
         grow_sigmas: the garment grows over the support parts of its type (`GARMENT_SUPPORT`) into
             points whose smoothed offset exceeds this many of its noise standard deviations (0: off).
         support_top: height [m] (world Y) of the body's waist, for trousers: their labels also grow
-            over the torso (`WAIST_SUPPORT`) on points below it. `fit_commands.prepare` passes
-            the height of the body's ``spine02`` joint (1.9-4.8 cm above a trouser or skirt waist measured
-            on eight bodies); None: only `GARMENT_SUPPORT`.
+            over the torso (`WAIST_SUPPORT`) on points below it. `fit_commands.prepare` and
+            ``diffavatar segment`` pass `BodyModel.waist_height`; None: only `GARMENT_SUPPORT`.
 
     Returns:
         a `Segmentation`.
