@@ -134,7 +134,7 @@ def segment_command(args) -> dict:
     from torch_diffavatar.scan import save_ply
 
     anny_model = load_anny(dtype=torch.float32)
-    body = None  # the body's parameters, when known: its waist height helps trousers
+    body, body_verts = None, None  # body: its parameters, when known (its waist height helps trousers)
     if args.body:
         body_verts = _body_from_dir(args.body, anny_model)
         params = Path(args.body) / BODY_JSON
@@ -150,11 +150,13 @@ def segment_command(args) -> dict:
         from torch_diffavatar.body.fit import fit_body
 
         body = fit_body(scan.points, anny_model=anny_model).body
-        body_verts = body().vertices[0].detach().numpy()
     waist = None
     if body is not None:
         with torch.no_grad():
-            waist = body.waist_height(body().joints[0])
+            out = body()
+        waist = body.waist_height(out.joints[0])
+        if body_verts is None:  # the fitted body's (a --body folder's own vertices otherwise)
+            body_verts = out.vertices[0].numpy()
     faces = anny_model.faces.cpu().numpy()
     parts = vertex_parts(anny_model).cpu().numpy()
     seg = segment_garment(scan.points, kind, body_verts, faces, parts, colors=scan.colors, support_top=waist)
