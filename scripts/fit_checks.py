@@ -28,6 +28,15 @@ one (how chaotic the drape is; null when the file meshes exactly like the truth)
 
     PYTHONPATH=. python scripts/fit_checks.py spacing /tmp/suite/longsleeve --spacings 0.025 0.02
 
+``body GARMENT_DIR --offsets 0 0.001 -0.001``: how much the drape depends on the body: the scan's TRUE
+pattern at the scan's own spacing, sewn like the scan was on the true body grown along its normals by
+each offset [m] (negative: thinner), against the true drape (``sewn_mm``) and against the scan
+(``sewn_scan_mm``; the true drape's own: ``truth_scan_mm``). A fitted body is never exact (the suite's
+are 1–3 mm off the true surface); where a millimetre moves the drape by more than a fit's target allows,
+no fit of that body reaches it. Offset 0 reproduces the true drape (0.00 mm).
+
+    PYTHONPATH=. python scripts/fit_checks.py body /tmp/suite/polo --offsets 0 0.001 -0.001
+
 ``--set key=value`` overrides any `FitConfig` field (``weights.name=value`` for a loss weight); values
 are read as YAML. Prints one JSON line; lengths in mm.
 """
@@ -101,84 +110,146 @@ def oracle(args) -> dict:
     }
 
 
-def spacing(args) -> dict:
-    from torch_diffavatar.evaluation import mesh_distance_m
-    from torch_diffavatar.fit import with_fit_strain_limit
-    from torch_diffavatar.mesh_io import read_obj
-    from torch_diffavatar.pattern import load_pattern, mesh_pattern
-    from torch_diffavatar.pattern.library import resolve_pattern
-    from torch_diffavatar.sim.drape import DrapeConfig, drape_to_equilibrium, sew_and_drape
-    from torch_diffavatar.sim.material import ClothMaterial
-    from torch_diffavatar.sim.model import ClothModelBuilder
-    from torch_diffavatar.sim.placement import place_from_drape, place_garment
-    from torch_diffavatar.synthetic_scans import changed_pattern
+class _TrueDrape:
+    """The scan's truth (``GARMENT_DIR/scan/truth``): its pattern meshed exactly as the true drape, its body
+    and material, and the scan's drape settings, to sew it again under a changed condition."""
 
-    truth_dir = Path(args.garment_dir) / "scan" / "truth"
-    truth = json.loads((truth_dir / "truth.json").read_text())
-    body, draped = read_obj(truth_dir / "body.obj"), read_obj(truth_dir / "draped.obj")
-    # The true drape's own mesh: pattern.json stores centimetres, and its round trip can move a vertex by
-    # an ulp, which is enough to mesh it otherwise; the template with the design change is exact.
-    design = truth["design_change"]
-    candidates = (
-        changed_pattern(resolve_pattern(truth["template"]), design["hem_up_m"], design["hem_widen"]),
-        load_pattern(truth_dir / "pattern.json"),
-    )
-    meshes = [mesh_pattern(p, spacing=float(truth["spacing_m"])) for p in candidates]
-    exact = [k for k, m in enumerate(meshes) if torch.equal(m.sim_faces, draped.faces)]
-    if not exact:
-        raise SystemExit(f"{truth_dir}/draped.obj is not the true pattern meshed at the scan's spacing")
-    pattern, source = candidates[exact[0]], meshes[exact[0]]
-    body_verts, body_faces = body.verts.float(), body.faces
-    material = ClothMaterial(bend_stiffness=float(truth["material"]["bend_stiffness"]))
-    # the scan's drape settings (make_draped_scan), with the fit's strain limit: sewing a coarse mesh can
-    # pull a seam-corner triangle past the solver's default for a few frames
-    config = with_fit_strain_limit(DrapeConfig())
+    def __init__(self, garment_dir):
+        from torch_diffavatar.fit import with_fit_strain_limit
+        from torch_diffavatar.mesh_io import read_obj
+        from torch_diffavatar.pattern import load_pattern, mesh_pattern
+        from torch_diffavatar.pattern.library import resolve_pattern
+        from torch_diffavatar.sim.drape import DrapeConfig
+        from torch_diffavatar.sim.material import ClothMaterial
+        from torch_diffavatar.synthetic_scans import changed_pattern
 
-    def to_truth(x, faces) -> float:  # [mm]
-        return round(1e3 * mesh_distance_m(x.double(), faces, draped.verts, draped.faces), 2)
+        truth_dir = Path(garment_dir) / "scan" / "truth"
+        self.truth = json.loads((truth_dir / "truth.json").read_text())
+        body, self.draped = read_obj(truth_dir / "body.obj"), read_obj(truth_dir / "draped.obj")
+        # The true drape's own mesh: pattern.json stores centimetres, and its round trip can move a vertex
+        # by an ulp, which is enough to mesh it otherwise; the template with the design change is exact.
+        design = self.truth["design_change"]
+        candidates = (
+            changed_pattern(resolve_pattern(self.truth["template"]), design["hem_up_m"], design["hem_widen"]),
+            load_pattern(truth_dir / "pattern.json"),
+        )
+        self.meshes = [mesh_pattern(p, spacing=float(self.truth["spacing_m"])) for p in candidates]
+        self.exact = [k for k, m in enumerate(self.meshes) if torch.equal(m.sim_faces, self.draped.faces)]
+        if not self.exact:
+            raise SystemExit(f"{truth_dir}/draped.obj is not the true pattern meshed at the scan's spacing")
+        self.pattern, self.source = candidates[self.exact[0]], self.meshes[self.exact[0]]
+        self.body_verts, self.body_faces = body.verts.float(), body.faces
+        self.material = ClothMaterial(bend_stiffness=float(self.truth["material"]["bend_stiffness"]))
+        # the scan's drape settings (make_draped_scan), with the fit's strain limit: sewing a coarse mesh
+        # can pull a seam-corner triangle past the solver's default for a few frames
+        self.config = with_fit_strain_limit(DrapeConfig())
 
-    def sewn(garment):
+    def to_truth(self, x, faces) -> float:
+        """Symmetric mean surface distance of a drape to the true drape [mm]."""
+        from torch_diffavatar.evaluation import mesh_distance_m
+
+        return round(1e3 * mesh_distance_m(x.double(), faces, self.draped.verts, self.draped.faces), 2)
+
+    def sewn(self, garment, body_verts=None):
+        """``garment`` placed and sewn like the scan was, on the true body or on ``body_verts`` (V, 3) [m]."""
+        from torch_diffavatar.sim.drape import sew_and_drape
+        from torch_diffavatar.sim.placement import place_garment
+
+        body_verts = self.body_verts if body_verts is None else body_verts
         return sew_and_drape(
-            place_garment(garment, body_verts.double(), body_faces),
+            place_garment(garment, body_verts.double(), self.body_faces),
             body_verts=body_verts,
-            body_faces=body_faces,
-            material=material,
-            config=config,
+            body_faces=self.body_faces,
+            material=self.material,
+            config=self.config,
         )
 
+
+def spacing(args) -> dict:
+    from torch_diffavatar.pattern import mesh_pattern
+    from torch_diffavatar.sim.drape import drape_to_equilibrium
+    from torch_diffavatar.sim.model import ClothModelBuilder
+    from torch_diffavatar.sim.placement import place_from_drape
+
+    t = _TrueDrape(args.garment_dir)
     # the drape's own chaos: pattern.json meshed at the scan's spacing, when its ulp moved the mesh
-    file_mesh = meshes[1]
-    file_mm = None if 1 in exact else to_truth(sewn(file_mesh).x, file_mesh.sim_faces)
+    file_mesh = t.meshes[1]
+    file_mm = None if 1 in t.exact else t.to_truth(t.sewn(file_mesh).x, file_mesh.sim_faces)
 
     rows = []
     for s in args.spacings:
-        garment = mesh_pattern(pattern, spacing=s)
-        from_placement = sewn(garment)
+        garment = mesh_pattern(t.pattern, spacing=s)
+        from_placement = t.sewn(garment)
         # the model from the placed mesh, as `sew_and_drape` builds it (attachments keep placed heights)
-        placed = place_from_drape(garment, source, draped.verts)
-        model = ClothModelBuilder(material).add_garment(placed, merge_seams=True).finalize()
+        placed = place_from_drape(garment, t.source, t.draped.verts)
+        model = ClothModelBuilder(t.material).add_garment(placed, merge_seams=True).finalize()
         kept = drape_to_equilibrium(
             model,
             garment.vert_uv.float(),
-            body_verts=body_verts,
-            body_faces=body_faces,
+            body_verts=t.body_verts,
+            body_faces=t.body_faces,
             state=model.initial_state(placed.sim_positions().float()),
-            config=config,
+            config=t.config,
         )
         rows.append(
             {
                 "spacing_m": s,
                 "vertices": garment.sim_vert_count,
-                "sewn_mm": to_truth(from_placement.x, garment.sim_faces),
-                "from_truth_mm": to_truth(kept.x, garment.sim_faces),
+                "sewn_mm": t.to_truth(from_placement.x, garment.sim_faces),
+                "from_truth_mm": t.to_truth(kept.x, garment.sim_faces),
                 "converged": bool(from_placement.converged and kept.converged),
             }
         )
     return {
         "check": "spacing",
-        "garment": truth["template"],
-        "scan_spacing_m": truth["spacing_m"],
+        "garment": t.truth["template"],
+        "scan_spacing_m": t.truth["spacing_m"],
         "pattern_file_sewn_mm": file_mm,
+        "rows": rows,
+    }
+
+
+def grown(verts: torch.Tensor, faces: torch.Tensor, offset: float) -> torch.Tensor:
+    """The body surface moved by ``offset`` [m] along its area-weighted vertex normals (outward > 0).
+
+    Args:
+        verts: (V, 3) [m]; faces: (F, 3) int64. Returns (V, 3) [m], the dtype of ``verts``.
+    """
+    v = verts.double()
+    tri = v[faces]
+    face_n = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=1)
+    normals = torch.zeros_like(v).index_add_(0, faces.reshape(-1), face_n.repeat_interleave(3, dim=0))
+    normals = normals / normals.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    return (v + offset * normals).to(verts.dtype)
+
+
+def body(args) -> dict:
+    """The true pattern at the scan's own spacing, sewn on the true body grown by each offset."""
+    from torch_diffavatar.chamfer import surface_chamfer_m
+    from torch_diffavatar.scan import load_scan
+
+    t = _TrueDrape(args.garment_dir)
+    scan = load_scan(Path(args.garment_dir) / "scan" / "scan.ply")
+    garment_points = torch.as_tensor(scan.points[scan.labels == 1])  # as `diffavatar eval` measures
+
+    def to_scan(x) -> float:  # [mm]
+        return round(1e3 * surface_chamfer_m(x, t.source.sim_faces, garment_points)["symmetric"], 2)
+
+    rows = []
+    for offset in args.offsets:
+        result = t.sewn(t.source, grown(t.body_verts, t.body_faces, offset))
+        rows.append(
+            {
+                "offset_mm": round(1e3 * offset, 3),
+                "sewn_mm": t.to_truth(result.x, t.source.sim_faces),
+                "sewn_scan_mm": to_scan(result.x),
+                "converged": bool(result.converged),
+            }
+        )
+    return {
+        "check": "body",
+        "garment": t.truth["template"],
+        "truth_scan_mm": to_scan(t.draped.verts),
         "rows": rows,
     }
 
@@ -249,13 +320,18 @@ def main(argv=None) -> None:
     p = sub.add_parser("spacing", help="the true drape's own dependence on the mesh spacing")
     p.add_argument("garment_dir", help="a benchmark-suite garment folder (with scan/truth/)")
     p.add_argument("--spacings", type=float, nargs="+", default=[0.025], help="mesh spacings [m]")
+    p = sub.add_parser("body", help="the true drape's own dependence on the body's surface")
+    p.add_argument("garment_dir", help="a benchmark-suite garment folder (with scan/truth/)")
+    p.add_argument(
+        "--offsets", type=float, nargs="+", default=[0.0, 0.001, -0.001], help="normal offsets [m]"
+    )
     p = sub.add_parser("fd", help="finite-difference check of the cage gradient at the first drape")
     p.add_argument("fit_dir", help="a fit folder (setup.pt, config.yaml)")
     p.add_argument("--eps", type=float, nargs="+", default=[1e-3, 3e-3, 1e-2], help="steps [m]")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="FitConfig override")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
-    print(json.dumps({"oracle": oracle, "spacing": spacing, "fd": fd}[args.check](args)))
+    print(json.dumps({"oracle": oracle, "spacing": spacing, "body": body, "fd": fd}[args.check](args)))
 
 
 if __name__ == "__main__":

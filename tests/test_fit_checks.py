@@ -53,3 +53,37 @@ def test_spacing_check_reproduces_the_true_drape_at_the_scans_own_spacing(checks
     assert same["sewn_mm"] < 0.5 and same["from_truth_mm"] < 0.5
     assert coarse["vertices"] < same["vertices"] and coarse["sewn_mm"] > 0.0 and coarse["from_truth_mm"] > 0.0
     assert same["converged"] and coarse["converged"]
+
+
+def test_grown_moves_a_sphere_along_its_normals(checks):
+    import torch
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
+    verts = torch.tensor(sphere.vertices, dtype=torch.float32)
+    faces = torch.tensor(sphere.faces, dtype=torch.int64)
+    assert torch.equal(checks.grown(verts, faces, 0.0), verts)
+    for offset in (0.002, -0.003):
+        radius = checks.grown(verts, faces, offset).double().norm(dim=1)
+        assert torch.allclose(radius, torch.full_like(radius, 0.1 + offset), atol=1e-6)
+
+
+@pytest.mark.anny
+@pytest.mark.slow
+def test_body_check_reproduces_the_true_drape_on_the_true_body(checks, skirt_scan, tmp_path):
+    """Offset 0 sews the scan's drape again (below the float64 fixture's 9-digit rounding in body.obj);
+    a body grown by 5 mm pushes the cloth out."""
+    import argparse
+
+    from torch_diffavatar.synthetic_scans import write_scan
+
+    write_scan(skirt_scan, tmp_path / "skirt" / "scan")
+    out = checks.body(argparse.Namespace(garment_dir=str(tmp_path / "skirt"), offsets=[0.0, 0.005]))
+    same, thick = out["rows"]
+    assert out["check"] == "body" and same["offset_mm"] == 0.0 and thick["offset_mm"] == 5.0
+    assert same["sewn_mm"] < 0.5 and thick["sewn_mm"] > 1.0
+    assert (
+        abs(same["sewn_scan_mm"] - out["truth_scan_mm"]) < 0.5
+        and thick["sewn_scan_mm"] > out["truth_scan_mm"]
+    )
+    assert same["converged"] and thick["converged"]
