@@ -230,6 +230,8 @@ def body(args) -> dict:
 
     t = _TrueDrape(args.garment_dir)
     scan = load_scan(Path(args.garment_dir) / "scan" / "scan.ply")
+    if scan.labels is None:
+        raise SystemExit(f"{args.garment_dir}/scan/scan.ply has no labels: is it a make-scan output?")
     garment_points = torch.as_tensor(scan.points[scan.labels == 1])  # as `diffavatar eval` measures
 
     def to_scan(x) -> float:  # [mm]
