@@ -215,12 +215,10 @@ def grown(verts: torch.Tensor, faces: torch.Tensor, offset: float) -> torch.Tens
     Args:
         verts: (V, 3) [m]; faces: (F, 3) int64. Returns (V, 3) [m], the dtype of ``verts``.
     """
+    from torch_diffavatar.body.geometry import vertex_normals
+
     v = verts.double()
-    tri = v[faces]
-    face_n = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=1)
-    normals = torch.zeros_like(v).index_add_(0, faces.reshape(-1), face_n.repeat_interleave(3, dim=0))
-    normals = normals / normals.norm(dim=1, keepdim=True).clamp_min(1e-12)
-    return (v + offset * normals).to(verts.dtype)
+    return (v + offset * vertex_normals(v, faces)).to(verts.dtype)
 
 
 def body(args) -> dict:
