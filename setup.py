@@ -38,7 +38,14 @@ setup(
     version="0.1.0",
     description="Simulation-ready avatars from one noisy scan: differentiable XPBD cloth in PyTorch",
     packages=find_packages(include=["torch_diffavatar", "torch_diffavatar.*"]),
-    package_data={"torch_diffavatar": ["pattern/templates/*.json", "pattern/templates/LICENSE*", "data/*"]},
+    package_data={
+        "torch_diffavatar": [
+            "pattern/templates/*.json",
+            "pattern/templates/LICENSE*",
+            "data/*",
+            "configs/*.yaml",
+        ]
+    },
     python_requires=">=3.10",
     install_requires=[
         TORCH_PIN,

@@ -41,8 +41,8 @@ ABLATIONS = {
 
 
 def _fit_and_eval(scan_dir: Path, out: Path, config, anny) -> dict:
+    from torch_diffavatar.commands.fit import fit_scan
     from torch_diffavatar.evaluation import evaluate_assets
-    from torch_diffavatar.fit_commands import fit_scan
 
     t0 = time.perf_counter()
     report = fit_scan(scan_dir / "scan.ply", config, out, progress=False, anny_model=anny)

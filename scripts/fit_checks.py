@@ -70,15 +70,14 @@ def _config(path, sets):
 
 
 def oracle(args) -> dict:
+    from torch_diffavatar.commands.fit import fit_scan
     from torch_diffavatar.evaluation import evaluate_assets
-    from torch_diffavatar.fit import config_from_dict
-    from torch_diffavatar.fit_commands import fit_scan
+    from torch_diffavatar.fit import CONFIG_DIR, config_from_dict
     from torch_diffavatar.pattern import load_pattern
 
     scan_dir = Path(args.garment_dir) / "scan"
     truth = json.loads((scan_dir / "truth" / "truth.json").read_text())
-    root = Path(__file__).resolve().parents[1]
-    config = _config(root / "configs" / f"{truth['template']}.yaml", args.set)
+    config = _config(CONFIG_DIR / f"{truth['template']}.yaml", args.set)
     kb = float(truth["material"]["bend_stiffness"])
     config = config_from_dict({"initial_bend_stiffness": kb, "iterations": args.iterations}, base=config)
     out = Path(args.out)

@@ -21,7 +21,7 @@ def checks():
 
 
 def test_overrides_set_fields_and_weights_over_the_config_file(checks):
-    path = ROOT / "configs" / "tshirt.yaml"
+    path = ROOT / "torch_diffavatar" / "configs" / "tshirt.yaml"
     base = checks._config(path, [])
     config = checks._config(path, ["drape_substeps=10", "weights.boundary=2.5e3", "max_loss_rise=.inf"])
     assert config.drape_substeps == 10 and base.drape_substeps != 10
@@ -32,7 +32,7 @@ def test_overrides_set_fields_and_weights_over_the_config_file(checks):
 
 def test_unknown_override_is_an_input_error(checks):
     with pytest.raises(InputError, match="drape_substep"):
-        checks._config(ROOT / "configs" / "tshirt.yaml", ["drape_substep=10"])
+        checks._config(ROOT / "torch_diffavatar" / "configs" / "tshirt.yaml", ["drape_substep=10"])
 
 
 @pytest.mark.anny

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from torch_diffavatar.cli import main
-from torch_diffavatar.fit_commands import SEGMENT_TYPES, TYPE_CONFIGS, infer_garment_type
+from torch_diffavatar.commands.fit import SEGMENT_TYPES, TYPE_CONFIGS, infer_garment_type
 from torch_diffavatar.pattern import load_pattern
 from torch_diffavatar.pattern.library import load_template
 
@@ -55,7 +55,7 @@ def test_fit_rejects_a_garment_that_is_neither_template_nor_file(tmp_path, capsy
 def test_fit_config_follows_the_garment(tmp_path, monkeypatch):
     """`fit --garment dress_pencil` fitted with the bare `FitConfig` defaults (a quick, weak fit), and
     `--config configs/dress.yaml --garment dress_pencil` fitted the plain dress (the file's template)."""
-    import torch_diffavatar.fit_commands as commands
+    import torch_diffavatar.commands.fit as commands
     from torch_diffavatar.fit import CONFIG_DIR, load_config
 
     seen = []
@@ -73,8 +73,8 @@ def test_fit_config_follows_the_garment(tmp_path, monkeypatch):
 def test_body_parameters_are_read_from_a_file_or_a_folder(tmp_path):
     import json
 
+    from torch_diffavatar.commands.fit import read_body_params
     from torch_diffavatar.errors import InputError
-    from torch_diffavatar.fit_commands import read_body_params
 
     params = {
         "phenotypes": [[0.5] * 6],
@@ -107,8 +107,8 @@ def test_fit_set_up_on_a_given_body_does_not_fit_one(skirt_scan, anny_model, tmp
     import torch
 
     import torch_diffavatar.body.fit as body_fit
+    from torch_diffavatar.commands.fit import prepare
     from torch_diffavatar.fit import load_config
-    from torch_diffavatar.fit_commands import prepare
     from torch_diffavatar.sim.placement import body_signed_distance
     from torch_diffavatar.synthetic_scans import write_scan
 
@@ -140,7 +140,7 @@ def test_fit_set_up_on_a_given_body_does_not_fit_one(skirt_scan, anny_model, tmp
 
 
 def test_a_hood_covers_the_head_and_no_other_garment_does():
-    from torch_diffavatar.fit_commands import covers_head
+    from torch_diffavatar.commands.fit import covers_head
     from torch_diffavatar.pattern import mesh_pattern
 
     hoody = sorted((GARMENTCODE / "repo_examples/hoody_mean").glob("*_specification.json"))
@@ -158,8 +158,8 @@ def test_the_body_fit_takes_a_hoods_points_on_the_head_for_cloth(anny_model, tmp
     import trimesh
 
     import torch_diffavatar.body.fit as body_fit
+    from torch_diffavatar.commands.fit import prepare
     from torch_diffavatar.fit import load_config
-    from torch_diffavatar.fit_commands import prepare
 
     class Fitted(Exception):
         pass
@@ -188,10 +188,10 @@ def test_arms_held_low_are_fitted_on_a_finer_mesh(tmp_path, monkeypatch):
     a T-shirt and a long sleeve with the arms 0.4 and 0.3 rad below the A-pose, 0.49 and 0.54 at 2 cm)."""
     from dataclasses import replace
 
-    import torch_diffavatar.fit_commands as commands
+    import torch_diffavatar.commands.fit as commands
+    from torch_diffavatar.commands.fit import arms_spacing
     from torch_diffavatar.errors import InputError
     from torch_diffavatar.fit import config_from_dict, load_config
-    from torch_diffavatar.fit_commands import arms_spacing
 
     a_pose, one_low = {"left": 41.7, "right": 41.7}, {"left": 41.7, "right": 19.0}
     for name in ("tshirt", "polo", "longsleeve"):
@@ -220,8 +220,8 @@ def test_arms_held_low_are_fitted_on_a_finer_mesh(tmp_path, monkeypatch):
 def test_the_set_up_meshes_finer_under_arms_held_low(skirt_scan, anny_model, tmp_path):
     import torch
 
+    from torch_diffavatar.commands.fit import prepare
     from torch_diffavatar.fit import load_config
-    from torch_diffavatar.fit_commands import prepare
     from torch_diffavatar.synthetic_scans import write_scan
 
     write_scan(skirt_scan, tmp_path / "scan")

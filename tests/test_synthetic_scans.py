@@ -19,7 +19,7 @@ from torch_diffavatar.synthetic_scans import changed_pattern, make_draped_scan, 
 
 def test_changed_pattern_reproduces_the_demo_truth():
     """The demo's truth was made by raising the dress's skirt hem 8 cm and widening it 12 %."""
-    from torch_diffavatar.demo import DEMO_TRUTH_PATTERN
+    from torch_diffavatar.commands.demo import DEMO_TRUTH_PATTERN
 
     changed = changed_pattern(load_template("dress"), hem_up=0.08, hem_widen=0.12)
     truth = load_pattern(DEMO_TRUTH_PATTERN)
@@ -157,7 +157,7 @@ def test_make_scan_pose_option(tmp_path, capsys):
     """``--pose``: 'a' is no pose, 'random' is seeded (its own draws: the phenotypes stay the A-pose
     scan's), a JSON file sets the bones it names; bad files are one error line, exit 2."""
     from torch_diffavatar.body.model import POSE_BONES
-    from torch_diffavatar.synthetic_scans import _parse_pose
+    from torch_diffavatar.commands.make_scan import _parse_pose
 
     assert _parse_pose("a", 0) is None and _parse_pose("A-pose", 0) is None
     one, again, other = _parse_pose("random", 0), _parse_pose("random", 0), _parse_pose("random", 1)

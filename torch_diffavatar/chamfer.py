@@ -188,7 +188,7 @@ def surface_chamfer_m(
         ``{"points_to_mesh", "mesh_to_points", "symmetric"}`` [m], not squared; ``symmetric`` is the mean
         of the two.
     """
-    from torch_diffavatar.sim.ops import closest_point_on_mesh
+    from torch_diffavatar.geometry import closest_point_on_mesh
 
     v = verts.detach().double().cpu().contiguous()
     f = faces.detach().to(torch.int64).cpu().contiguous()

@@ -1,4 +1,4 @@
-"""The `diffavatar` command. Each area registers its own sub-commands (see `_COMMAND_MODULES`)."""
+"""The `diffavatar` command: each module of `torch_diffavatar.commands` registers its sub-commands."""
 
 from __future__ import annotations
 
@@ -10,15 +10,9 @@ import sys
 from torch_diffavatar.errors import InputError, SimulationError
 
 # Each module defines `register(subparsers)`; its sub-commands set `func(args) -> int | dict`.
-_COMMAND_MODULES = (
-    "torch_diffavatar.pattern.commands",
-    "torch_diffavatar.sim.commands",
-    "torch_diffavatar.body.commands",
-    "torch_diffavatar.fit_commands",
-    "torch_diffavatar.demo",
-    "torch_diffavatar.animate",
-    "torch_diffavatar.synthetic_scans",
-    "torch_diffavatar.evaluation",
+_COMMAND_MODULES = tuple(
+    f"torch_diffavatar.commands.{name}"
+    for name in ("mesh", "drape", "body", "fit", "demo", "animate", "make_scan", "eval")
 )
 
 

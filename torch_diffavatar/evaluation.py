@@ -91,7 +91,7 @@ def seam_length_mismatch(pattern) -> dict:
 def mesh_distance_m(a_verts, a_faces, b_verts, b_faces, samples: int = 50000) -> float:
     """Symmetric mean surface-to-surface distance [m] between two triangle meshes (seeded samples)."""
     from torch_diffavatar.chamfer import sample_surface
-    from torch_diffavatar.sim.ops import closest_point_on_mesh
+    from torch_diffavatar.geometry import closest_point_on_mesh
 
     gen = torch.Generator().manual_seed(0)
     out = []
@@ -246,34 +246,6 @@ def save_drape_comparison(assets_dir, gt_dir, path, *, size: int = 320, frame: f
     path.parent.mkdir(parents=True, exist_ok=True)
     canvas.save(path)
     return path
-
-
-def register(subparsers) -> None:
-    p = subparsers.add_parser(
-        "eval",
-        help="measure a fit's assets against a synthetic scan's ground truth",
-        description="Chamfer distances, pattern, body and material errors and mesh quality of the assets "
-        "in ASSETS_DIR (a 'diffavatar fit' output) against --gt (a 'diffavatar make-scan' output).",
-    )
-    p.add_argument("assets", help="the fit's output folder")
-    p.add_argument("--gt", required=True, help="the make-scan output folder (scan.ply, truth/)")
-    p.add_argument("--json", action="store_true", help="print the measures as one JSON line")
-    p.add_argument(
-        "--no-picture",
-        action="store_true",
-        help=f"do not write ASSETS_DIR/{DRAPE_PICTURE} (first drape, fitted and true drape, front and back)",
-    )
-    p.set_defaults(func=_eval_command)
-
-
-def _eval_command(args) -> dict:
-    out = evaluate_assets(args.assets, args.gt)
-    if not args.no_picture:
-        save_drape_comparison(args.assets, args.gt, Path(args.assets) / DRAPE_PICTURE)
-    if not args.json:
-        for key, value in out.items():
-            print(f"{key}: {value}")
-    return out
 
 
 OVERLAY_COLOURS = {"template": (150, 150, 150), "truth": (0, 150, 0), "result": (210, 30, 30)}

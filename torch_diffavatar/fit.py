@@ -70,7 +70,7 @@ from torch_diffavatar.sim.model import ClothModel, ClothModelBuilder
 from torch_diffavatar.sim.solver import XPBDConfig
 from torch_diffavatar.sim.state import ClothState
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+CONFIG_DIR = Path(__file__).resolve().parent / "configs"  # shipped in the package (wheel included)
 CHECKPOINT = "checkpoint.pt"
 SETUP = "setup.pt"
 # strain limit of every drape of a fit, the sewing's (see `Fitter.drape_config` for why it is above the

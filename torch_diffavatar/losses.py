@@ -22,6 +22,7 @@ import torch
 
 from torch_diffavatar.cage import seam_segments
 from torch_diffavatar.chamfer import REDUCTIONS, chamfer_distance, one_sided_chamfer, robust_penalty
+from torch_diffavatar.geometry import closest_point_on_mesh
 from torch_diffavatar.pattern.garment_mesh import BoundaryLoop, GarmentMesh
 
 
@@ -312,18 +313,16 @@ def _point_to_surface(
 ) -> torch.Tensor:
     """Penalized distance of every point (P, 3) to the surface of the mesh (verts (V, 3), faces (F, 3)).
 
-    The closest triangle and barycentrics come from `ops.closest_point_on_mesh` on detached copies; the
+    The closest triangle and barycentrics come from `geometry.closest_point_on_mesh` on detached copies; the
     closest point is rebuilt as Σ bᵢ·verts[fᵢ], so the gradient is the point-to-plane one inside a
     triangle and the point-to-edge/vertex one on its border (the assignment itself is not
     differentiated, as for nearest neighbours). Returns a scalar [m²], or (P,) for ``"none"``.
     """
-    from torch_diffavatar.sim import ops
-
     if faces.dim() != 2 or faces.shape[1] != 3 or faces.shape[0] == 0:
         raise ValueError(f"garment_faces must have shape (F, 3) with F >= 1, got {tuple(faces.shape)}")
     faces = faces.to(device=verts.device, dtype=torch.int64)
     with torch.no_grad():
-        tri, bary, _ = ops.closest_point_on_mesh(
+        tri, bary, _ = closest_point_on_mesh(
             points.detach().contiguous(), verts.detach().contiguous(), faces.contiguous(), float("inf")
         )
     corners = verts[faces[tri]]  # (P, 3 corners, 3)

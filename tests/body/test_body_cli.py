@@ -50,7 +50,7 @@ def test_segment_cli_with_a_body_dir(capsys, tmp_path, dressed_scan, anny_model)
     anny_faces = anny_model.faces.numpy()
     body_dir = tmp_path / "body"
     body_dir.mkdir()
-    from torch_diffavatar.body.commands import _write_obj
+    from torch_diffavatar.commands.body import _write_obj
 
     _write_obj(body_dir / "body.obj", scan.body_vertices, anny_faces)
     out_ply = tmp_path / "garment.ply"

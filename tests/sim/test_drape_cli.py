@@ -10,7 +10,7 @@ import torch
 import trimesh
 
 from torch_diffavatar.cli import main
-from torch_diffavatar.sim.commands import inverted_triangle_mask
+from torch_diffavatar.commands.drape import inverted_triangle_mask
 
 KEYS = {
     "vertices",

@@ -11,7 +11,7 @@ Two kinds of stages, both robust and *clothing-aware*:
   neighbours) lies more than ``clothing_margin`` outside the body weighs only ``cloth_weight``.
   The pelvis is kept upright (yaw only): a tilted pelvis mimics sideways legs and traps the pose.
 - Final (L-BFGS, ICP rounds): each round matches every scan point to the exact closest point of the body
-  surface (`sim.ops.closest_point_on_mesh`) and labels it clothing when its denoised offset exceeds
+  surface (`geometry.closest_point_on_mesh`) and labels it clothing when its denoised offset exceeds
   ``clothing_margin``, except on the extremities (head, hands, feet: no garment of ours covers them);
   labels are sticky (once clothing, always clothing). Then L-BFGS minimizes, with the
   matches held fixed, a Geman–McClure penalty of the denoised point-to-surface offset: symmetric on skin
@@ -50,7 +50,7 @@ from torch_diffavatar.body.parts import PART_NAMES
 from torch_diffavatar.body.priors import joint_limit_penalty, pose_prior, self_penetration_penalty
 from torch_diffavatar.chamfer import nearest_indices
 from torch_diffavatar.errors import ScanError
-from torch_diffavatar.sim.ops import closest_point_on_mesh
+from torch_diffavatar.geometry import closest_point_on_mesh
 
 
 @dataclass

@@ -140,7 +140,7 @@ def _surface_offsets(
     offset is noisier and biased on coarse triangles (measured: recall 0.94 vs 0.96 on a fitted body)."""
     import torch
 
-    from torch_diffavatar.sim.ops import closest_point_on_mesh
+    from torch_diffavatar.geometry import closest_point_on_mesh
 
     p, v, f = torch.from_numpy(points), torch.from_numpy(verts), torch.from_numpy(faces)
     tri, bary, _ = closest_point_on_mesh(p, v, f, max_dist)
@@ -200,7 +200,7 @@ def segment_garment(
         grow_sigmas: the garment grows over the support parts of its type (`GARMENT_SUPPORT`) into
             points whose smoothed offset exceeds this many of its noise standard deviations (0: off).
         support_top: height [m] (world Y) of the body's waist, for trousers: their labels also grow
-            over the torso (`WAIST_SUPPORT`) on points below it. `fit_commands.prepare` and
+            over the torso (`WAIST_SUPPORT`) on points below it. `commands.fit.prepare` and
             ``diffavatar segment`` pass `BodyModel.waist_height`; None: only `GARMENT_SUPPORT`.
 
     Returns:

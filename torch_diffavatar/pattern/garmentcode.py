@@ -26,6 +26,20 @@ from torch_diffavatar.pattern.spec import (
     absolute_to_relative,
 )
 
+# GarmentCode's mean_all body [m], from body/mean_all.yaml (floor at 0): height; crotch = hip level −
+# crotch_hip_diff; waist level = height − head_l − waist_line; neck base = height − head_l; acromion =
+# neck base − (shoulder_w/2 − neck_w/2)·tan(shoulder_incl); the arm pose angle below horizontal [deg].
+GC_BODY = {
+    "height": 1.7199,
+    "crotch": 0.7648,
+    "waist": 1.0877,
+    "shoulder": 1.4219,
+    "neck": 1.4566,
+    "shoulder_half_width": 0.1823,
+    "arm_angle_deg": 45.48,
+}
+
+
 _KNOWN_TOP_KEYS = ("pattern", "properties", "garment_type")
 _DEFAULT_PROPERTIES = {
     "curvature_coords": "relative",

@@ -23,9 +23,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 import triangle
+from scipy.cluster.hierarchy import DisjointSet
 
 from torch_diffavatar.errors import PatternError
+from torch_diffavatar.geometry import merge_pairs
 from torch_diffavatar.pattern.garment_mesh import BoundaryLoop, GarmentMesh
+from torch_diffavatar.pattern.garmentcode import GC_BODY
 from torch_diffavatar.pattern.spec import EdgeRef, Pattern, polygon_signed_area
 
 TOPS = ("dress", "tshirt", "longsleeve", "polo")
@@ -56,26 +59,21 @@ def collapsed_edges(pattern: Pattern, spacing: float) -> set[tuple[str, int]]:
     }
     if not cand:
         return cand
-    # union-find over edges through stitches: a group collapses all together or not at all
-    parent: dict[tuple[str, int], tuple[str, int]] = {}
-
-    def find(x):
-        while parent.setdefault(x, x) != x:
-            x = parent[x]
-        return x
-
+    # edges joined through stitches: a group collapses all together or not at all
+    groups = DisjointSet()
     for s in pattern.stitches:
-        ra, rb = find((s.a.panel, s.a.edge)), find((s.b.panel, s.b.edge))
-        if ra != rb:
-            parent[ra] = rb
+        a, b = (s.a.panel, s.a.edge), (s.b.panel, s.b.edge)
+        groups.add(a)
+        groups.add(b)
+        groups.merge(a, b)
     while True:
         keep = set(cand)
         for name, panel in pattern.panels.items():
             mine = {(name, k) for k in range(len(panel.edges))} & keep
             if len(panel.edges) - len(mine) < 3:
                 keep -= mine
-        bad_roots = {find(key) for key in parent if key not in keep}
-        keep = {key for key in keep if find(key) not in bad_roots}
+        bad_roots = {groups[key] for key in groups if key not in keep}
+        keep = {key for key in keep if key not in groups or groups[key] not in bad_roots}
         if keep == cand:
             return keep
         cand = keep
@@ -177,24 +175,6 @@ def _triangulate_panel(boundary: np.ndarray, spacing: float, min_angle: float, n
     return verts, tris.astype(np.int64)
 
 
-class _UnionFind:
-    def __init__(self, n: int):
-        self.parent = np.arange(n)
-
-    def find(self, i: int) -> int:
-        root = i
-        while self.parent[root] != root:
-            root = self.parent[root]
-        while self.parent[i] != root:
-            self.parent[i], i = root, self.parent[i]
-        return int(root)
-
-    def union(self, i: int, j: int) -> None:
-        ri, rj = self.find(i), self.find(j)
-        if ri != rj:
-            self.parent[max(ri, rj)] = min(ri, rj)
-
-
 def stitch_vertex_pairs(a: np.ndarray, b: np.ndarray, right_wrong: bool) -> np.ndarray:
     """(n, 2) vertex pairs joined by a stitch of two edges with equal vertex counts.
 
@@ -292,8 +272,6 @@ def name_boundary_loops(
         names[0] = "neck"
         xc = 0.5 * (sim_pos[:, 0].max() + sim_pos[:, 0].min())
         half_width = 0.5 * (sim_pos[:, 0].max() - sim_pos[:, 0].min())
-        from torch_diffavatar.sim.placement import GC_BODY  # the layout's body (lazy: sim imports pattern)
-
         side_of = [np.sign(sim_pos[lp, 0] - xc) for lp in loops]
         one_side = [bool(np.all(s == s[0])) for s in side_of]
         low = [len(loops) - 2, len(loops) - 1] if len(loops) >= 3 else []
@@ -394,16 +372,8 @@ def mesh_pattern(pattern: Pattern, spacing: float = 0.015, min_angle: float = 25
         pairs.append(p[p[:, 0] != p[:, 1]])  # a dart tip joins itself
     stitch_pairs = np.concatenate(pairs) if pairs else np.zeros((0, 2), dtype=np.int64)
 
-    uf = _UnionFind(vert_count)
-    for i, j in stitch_pairs.tolist():
-        uf.union(i, j)
-    roots = np.array([uf.find(i) for i in range(vert_count)])
-    _, first, vert_to_sim = np.unique(roots, return_index=True, return_inverse=True)
-    # renumber sim vertices in order of first appearance (panel order, then position in panel)
-    rank = np.empty(len(first), dtype=np.int64)
-    rank[np.argsort(first, kind="stable")] = np.arange(len(first))
-    vert_to_sim = rank[vert_to_sim.ravel()]
-    sim_count = len(first)
+    # sim vertices numbered in order of first appearance (panel order, then position in panel)
+    vert_to_sim, sim_count = merge_pairs(vert_count, stitch_pairs)
 
     sim_faces = vert_to_sim[tri_vertices]
     collapsed = (

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import torch
 
+from torch_diffavatar.geometry import green_strain
 from torch_diffavatar.sim.material import ClothMaterial
 
 
@@ -110,17 +111,6 @@ class RestData:
 
 
 # ------------------------------------------------------------------------------------- constraints
-
-
-def green_strain(x: torch.Tensor, tri_vertices: torch.Tensor, tri_rest_inv: torch.Tensor) -> torch.Tensor:
-    """(F, 3) constraint vector ``C = [E00, E11, E01]`` of the Green strain of ``F = D D̄⁻¹``."""
-    xt = x[tri_vertices]
-    d = torch.stack((xt[:, 0] - xt[:, 2], xt[:, 1] - xt[:, 2]), dim=-1)  # (F, 3, 2)
-    f = d @ tri_rest_inv
-    f0, f1 = f[..., 0], f[..., 1]
-    return torch.stack(
-        (0.5 * ((f0 * f0).sum(-1) - 1.0), 0.5 * ((f1 * f1).sum(-1) - 1.0), 0.5 * (f0 * f1).sum(-1)), dim=-1
-    )
 
 
 def dihedral_angles(x: torch.Tensor, edge_quads: torch.Tensor) -> torch.Tensor:

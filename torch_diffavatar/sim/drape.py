@@ -23,9 +23,9 @@ from dataclasses import dataclass, field, replace
 import torch
 
 from torch_diffavatar.errors import SimulationError
+from torch_diffavatar.geometry import green_strain
 from torch_diffavatar.pattern.garment_mesh import GarmentMesh
 from torch_diffavatar.sim import collision
-from torch_diffavatar.sim.constraints import green_strain
 from torch_diffavatar.sim.material import ClothMaterial
 from torch_diffavatar.sim.model import ClothModel, ClothModelBuilder
 from torch_diffavatar.sim.solver import XPBDConfig, XPBDSolver

@@ -57,7 +57,9 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
+from torch_diffavatar.geometry import closest_point_on_triangles, green_strain
 from torch_diffavatar.pattern.garment_mesh import GarmentMesh
+from torch_diffavatar.pattern.garmentcode import GC_BODY
 from torch_diffavatar.sim.drape import PoseRoute
 
 __all__ = [
@@ -68,19 +70,6 @@ __all__ = [
     "place_from_drape",
     "place_garment",
 ]
-
-# GarmentCode's mean_all body [m], from body/mean_all.yaml (floor at 0): height; crotch = hip level −
-# crotch_hip_diff; waist level = height − head_l − waist_line; neck base = height − head_l; acromion =
-# neck base − (shoulder_w/2 − neck_w/2)·tan(shoulder_incl); the arm pose angle below horizontal [deg].
-GC_BODY = {
-    "height": 1.7199,
-    "crotch": 0.7648,
-    "waist": 1.0877,
-    "shoulder": 1.4219,
-    "neck": 1.4566,
-    "shoulder_half_width": 0.1823,
-    "arm_angle_deg": 45.48,
-}
 
 _SLICE_STEP = 0.005  # [m] spacing of the horizontal cross-sections
 _SMOOTH_WINDOW = 0.03  # [m] each cross-section encloses the body within ± this height
@@ -459,49 +448,6 @@ def _arm_axis_along(slicer: _Slicer, chain: np.ndarray) -> tuple[np.ndarray, np.
 # signed distance to the body
 
 
-def _closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """Barycentrics (..., 3) of the closest point to p on triangles (a, b, c), all (..., 3).
-
-    Voronoi-region test of Ericson, Real-Time Collision Detection, §5.1.5.
-    """
-    ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = (ab * ap).sum(-1), (ac * ap).sum(-1)
-    bp = p - b
-    d3, d4 = (ab * bp).sum(-1), (ac * bp).sum(-1)
-    cp = p - c
-    d5, d6 = (ab * cp).sum(-1), (ac * cp).sum(-1)
-    va = d3 * d6 - d5 * d4
-    vb = d5 * d2 - d1 * d6
-    vc = d1 * d4 - d3 * d2
-    eps = 1e-30
-    denom = np.where(np.abs(va + vb + vc) < eps, eps, va + vb + vc)
-    v, w = vb / denom, vc / denom
-    bary = np.stack([1 - v - w, v, w], -1)
-    # edge regions
-    t_ab = d1 / np.where(np.abs(d1 - d3) < eps, eps, d1 - d3)
-    t_ac = d2 / np.where(np.abs(d2 - d6) < eps, eps, d2 - d6)
-    t_bc = (d4 - d3) / np.where(np.abs((d4 - d3) + (d5 - d6)) < eps, eps, (d4 - d3) + (d5 - d6))
-    z = np.zeros_like(d1)
-    cases = [
-        (vc <= 0) & (d1 >= 0) & (d3 <= 0),
-        np.stack([1 - t_ab, t_ab, z], -1),
-        (vb <= 0) & (d2 >= 0) & (d6 <= 0),
-        np.stack([1 - t_ac, z, t_ac], -1),
-        (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0),
-        np.stack([z, 1 - t_bc, t_bc], -1),
-        (d1 <= 0) & (d2 <= 0),
-        np.stack([z + 1, z, z], -1),
-        (d3 >= 0) & (d4 <= d3),
-        np.stack([z, z + 1, z], -1),
-        (d6 >= 0) & (d5 <= d6),
-        np.stack([z, z, z + 1], -1),
-    ]
-    # later cases (vertex regions) take precedence over edge regions, as in Ericson's early returns
-    for cond, val in zip(cases[0::2], cases[1::2]):
-        bary = np.where(cond[..., None], val, bary)
-    return bary
-
-
 class _BodyDistance:
     """Signed distance to a closed body mesh (> 0 outside).
 
@@ -530,7 +476,8 @@ class _BodyDistance:
         cand = cand.reshape(len(points), self.k)
         tri = self.verts[self.faces[cand]]  # (N, k, 3, 3)
         p = np.broadcast_to(points[:, None], (len(points), self.k, 3))
-        bary = _closest_on_triangles(p, tri[:, :, 0], tri[:, :, 1], tri[:, :, 2])
+        corners = (torch.from_numpy(np.ascontiguousarray(c)) for c in (p, *tri.transpose(2, 0, 1, 3)))
+        bary = closest_point_on_triangles(*corners).numpy()
         q = (bary[..., None] * tri).sum(2)  # (N, k, 3)
         d = np.linalg.norm(p - q, axis=-1)
         best = d.argmin(1)
@@ -1236,12 +1183,10 @@ def _rest_inverse(garment: GarmentMesh) -> np.ndarray:
     return np.linalg.inv(rest)
 
 
-def _green_strain(pos: np.ndarray, tris: np.ndarray, rest_inv: np.ndarray) -> np.ndarray:
+def _max_strain(pos: np.ndarray, tris: np.ndarray, rest_inv: np.ndarray) -> np.ndarray:
     """(F,) largest |Green strain| component of each triangle at ``pos`` (V, 3) against its rest shape."""
-    cur = np.stack([pos[tris[:, 0]] - pos[tris[:, 2]], pos[tris[:, 1]] - pos[tris[:, 2]]], -1)
-    f = cur @ rest_inv
-    e = 0.5 * (np.swapaxes(f, 1, 2) @ f - np.eye(2))
-    return np.abs(e).reshape(len(tris), -1).max(1)
+    strain = green_strain(*(torch.from_numpy(np.ascontiguousarray(a)) for a in (pos, tris, rest_inv)))
+    return strain.abs().amax(1).numpy()
 
 
 def _untear(
@@ -1263,13 +1208,13 @@ def _untear(
     """
     from scipy.spatial import cKDTree
 
-    s0 = _green_strain(pos, tris, rest_inv)
-    if not (_green_strain(pos + disp, tris, rest_inv) > np.maximum(_TEAR_STRAIN, s0)).any():
+    s0 = _max_strain(pos, tris, rest_inv)
+    if not (_max_strain(pos + disp, tris, rest_inv) > np.maximum(_TEAR_STRAIN, s0)).any():
         return pos + disp
     disp = disp.copy()
     tree = cKDTree(pos)
     for _ in range(rounds):
-        strained = _green_strain(pos + disp, tris, rest_inv) > np.maximum(_RELAX_STRAIN, s0)
+        strained = _max_strain(pos + disp, tris, rest_inv) > np.maximum(_RELAX_STRAIN, s0)
         if not strained.any():
             break
         src = np.unique(tris[strained])

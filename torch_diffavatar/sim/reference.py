@@ -54,6 +54,13 @@ from types import SimpleNamespace
 
 import torch
 
+# the closest-point twins live with the geometry that body and losses share; re-exported as this module's
+from torch_diffavatar.geometry import closest_point_on_mesh_torch as closest_point_on_mesh  # noqa: F401
+from torch_diffavatar.geometry import (
+    closest_point_on_triangles,  # noqa: F401
+    triangle_green_strain,
+)
+
 _BEND_EPS_LEN = 1e-12
 _BEND_EPS_N2 = 1e-24
 
@@ -318,116 +325,6 @@ def bend_project_jacobi_(
 # ------------------------------------------------------------------------------------- closest point
 
 
-def closest_point_on_triangles(p, a, b, c):
-    """Exact closest point on triangles (Ericson 5.1.5), broadcasting over leading dims.
-
-    Args:
-        p, a, b, c: (..., 3) query points and triangle corners.
-
-    Returns:
-        bary: (..., 3) barycentric coordinates of the closest point (weights of a, b, c).
-    """
-    ab = b - a
-    ac = c - a
-    ap = p - a
-    d1 = (ab * ap).sum(-1)
-    d2 = (ac * ap).sum(-1)
-    bp = p - b
-    d3 = (ab * bp).sum(-1)
-    d4 = (ac * bp).sum(-1)
-    cp = p - c
-    d5 = (ab * cp).sum(-1)
-    d6 = (ac * cp).sum(-1)
-    va = d3 * d6 - d5 * d4
-    vb = d5 * d2 - d1 * d6
-    vc = d1 * d4 - d3 * d2
-
-    def safe_div(num, den):
-        ok = den != 0
-        return torch.where(ok, num / torch.where(ok, den, torch.ones_like(den)), torch.zeros_like(num))
-
-    zero = torch.zeros_like(d1)
-    one = torch.ones_like(d1)
-    # interior (default), then regions overriding in reverse of Ericson's early-return order
-    denom = va + vb + vc
-    v = safe_div(vb, denom)
-    w = safe_div(vc, denom)
-    u = 1.0 - v - w
-    # edge BC
-    w_bc = safe_div(d4 - d3, (d4 - d3) + (d5 - d6))
-    m = (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0)
-    u, v, w = torch.where(m, zero, u), torch.where(m, 1.0 - w_bc, v), torch.where(m, w_bc, w)
-    # edge AC
-    w_ac = safe_div(d2, d2 - d6)
-    m = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-    u, v, w = torch.where(m, 1.0 - w_ac, u), torch.where(m, zero, v), torch.where(m, w_ac, w)
-    # vertex C
-    m = (d6 >= 0) & (d5 <= d6)
-    u, v, w = torch.where(m, zero, u), torch.where(m, zero, v), torch.where(m, one, w)
-    # edge AB
-    v_ab = safe_div(d1, d1 - d3)
-    m = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-    u, v, w = torch.where(m, 1.0 - v_ab, u), torch.where(m, v_ab, v), torch.where(m, zero, w)
-    # vertex B
-    m = (d3 >= 0) & (d4 <= d3)
-    u, v, w = torch.where(m, zero, u), torch.where(m, one, v), torch.where(m, zero, w)
-    # vertex A
-    m = (d1 <= 0) & (d2 <= 0)
-    u, v, w = torch.where(m, one, u), torch.where(m, zero, v), torch.where(m, zero, w)
-    return torch.stack((u, v, w), dim=-1)
-
-
-def closest_point_on_mesh(
-    points: torch.Tensor, verts: torch.Tensor, faces: torch.Tensor, max_dist: float
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Closest point on a triangle mesh for each query point (brute force in chunks; no autograd).
-
-    Args:
-        points: (N, 3) query points [m].
-        verts: (Vb, 3) mesh vertices [m].
-        faces: (Fb, 3) int64 triangles.
-        max_dist: search radius [m]; farther points get no triangle.
-
-    Returns:
-        tri: (N,) int64 closest triangle (-1 when none within ``max_dist``).
-        bary: (N, 3) barycentric coordinates of the closest point on ``tri`` (zeros when -1).
-        dist: (N,) unsigned distance [m] (inf when -1).
-    """
-    n = points.shape[0]
-    tri = torch.full((n,), -1, dtype=torch.int64, device=points.device)
-    bary = points.new_zeros(n, 3)
-    dist = points.new_full((n,), float("inf"))
-    if n == 0 or faces.shape[0] == 0:
-        return tri, bary, dist
-    with torch.no_grad():
-        a, b, c = verts[faces].unbind(1)  # (Fb, 3) each
-        lo = torch.minimum(torch.minimum(a, b), c) - max_dist
-        hi = torch.maximum(torch.maximum(a, b), c) + max_dist
-        chunk = max(1, 2_000_000 // faces.shape[0])
-        for s in range(0, n, chunk):
-            p = points[s : s + chunk]  # (P, 3)
-            near = ((p[:, None] >= lo[None]) & (p[:, None] <= hi[None])).all(-1)  # (P, Fb)
-            pi, fi = near.nonzero(as_tuple=True)
-            if pi.numel() == 0:
-                continue
-            bc = closest_point_on_triangles(p[pi], a[fi], b[fi], c[fi])  # (M, 3)
-            q = bc[:, :1] * a[fi] + bc[:, 1:2] * b[fi] + bc[:, 2:] * c[fi]
-            d = (p[pi] - q).norm(dim=-1)
-            best = p.new_full((p.shape[0],), float("inf")).scatter_reduce(0, pi, d, reduce="amin")
-            is_best = d == best[pi]
-            # one winner per point (ties: any)
-            winner = torch.full((p.shape[0],), -1, dtype=torch.int64, device=p.device)
-            cand = torch.nonzero(is_best).squeeze(1)
-            winner[pi[cand]] = cand
-            hit = (winner >= 0) & (best <= max_dist)
-            rows = torch.nonzero(hit).squeeze(1)
-            sel = winner[rows]
-            tri[s + rows] = fi[sel]
-            bary[s + rows] = bc[sel]
-            dist[s + rows] = d[sel]
-    return tri, bary, dist
-
-
 # ------------------------------------------------------------------------------- stitches, attachments
 
 
@@ -660,15 +557,8 @@ _REFERENCE_KERNELS = SimpleNamespace(
 # ------------------------------------------------------------------------ element Hessians (adjoint)
 
 
-def _green_strain_one(xt: torch.Tensor, rest_inv: torch.Tensor) -> torch.Tensor:
-    d = torch.stack((xt[0] - xt[2], xt[1] - xt[2]), dim=-1)  # (3, 2)
-    f = d @ rest_inv
-    f0, f1 = f[:, 0], f[:, 1]
-    return torch.stack((0.5 * (f0 @ f0 - 1.0), 0.5 * (f1 @ f1 - 1.0), 0.5 * (f0 @ f1)))
-
-
 def _stretch_energy_one(xt, rest_inv, area, stiffness):
-    c = _green_strain_one(xt, rest_inv)
+    c = triangle_green_strain(xt, rest_inv)
     return 0.5 * area * (c @ stiffness @ c)
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import torch
 
+from torch_diffavatar.geometry import merge_pairs
 from torch_diffavatar.pattern.garment_mesh import BoundaryLoop, GarmentMesh
 
 
@@ -30,22 +31,9 @@ def _grid(nx: int, ny: int, width: float, height: float):
 
 
 def _merge(n: int, pairs: torch.Tensor):
-    """Union-find of stitched pairs -> (vert_to_sim (n,), sim_count)."""
-    parent = list(range(n))
-
-    def find(k):
-        while parent[k] != k:
-            parent[k] = parent[parent[k]]
-            k = parent[k]
-        return k
-
-    for a, b in pairs.tolist():
-        ra, rb = find(a), find(b)
-        if ra != rb:
-            parent[max(ra, rb)] = min(ra, rb)
-    roots = torch.tensor([find(k) for k in range(n)], dtype=torch.int64)
-    uniq, inverse = torch.unique(roots, return_inverse=True)
-    return inverse, int(uniq.numel())
+    """Stitched pairs -> (vert_to_sim (n,), sim_count)."""
+    labels, count = merge_pairs(n, pairs.numpy())
+    return torch.from_numpy(labels), count
 
 
 def rectangle_garment(

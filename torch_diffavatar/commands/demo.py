@@ -3,7 +3,7 @@
 The bundled scan (``torch_diffavatar/data/demo_scan.ply``, made by ``scripts/make_demo_scan.py``) is a
 labelled point cloud of a dress with a changed design (hem raised and widened) draped by our simulator on
 an Anny body with non-default phenotypes, in a stiffer cloth; its ground truth lies beside it. The demo
-fits it from the plain ``dress`` template (`torch_diffavatar.fit_commands.fit_scan` with
+fits it from the plain ``dress`` template (`torch_diffavatar.commands.fit.fit_scan` with
 ``configs/dress.yaml``) and prints ``chamfer_initial → chamfer_final`` (plus the recovered bending
 stiffness and phenotypes next to the truth). ``--no-fit`` keeps the old quick path: mesh, preview and
 drape the template on the default body.
@@ -16,7 +16,7 @@ import os
 import time
 from pathlib import Path
 
-DATA_DIR = Path(__file__).resolve().parent / "data"
+DATA_DIR = Path(__file__).resolve().parent.parent / "data"
 DEMO_SCAN = DATA_DIR / "demo_scan.ply"
 DEMO_TRUTH = DATA_DIR / "demo_truth.json"
 DEMO_TRUTH_PATTERN = DATA_DIR / "demo_truth_pattern.json"
@@ -47,9 +47,9 @@ def run_demo(args) -> dict:
     import contextlib
     import sys
 
+    from torch_diffavatar.commands.fit import fit_scan
     from torch_diffavatar.errors import InputError
     from torch_diffavatar.fit import load_config
-    from torch_diffavatar.fit_commands import fit_scan
 
     if not DEMO_SCAN.is_file():
         raise InputError(f"the bundled scan {DEMO_SCAN} is missing (run scripts/make_demo_scan.py)")
@@ -126,7 +126,7 @@ def _preview(args) -> dict:
 def _drape(args, files: dict) -> dict:
     from types import SimpleNamespace
 
-    from torch_diffavatar.sim.commands import run_drape
+    from torch_diffavatar.commands.drape import run_drape
 
     files["drape_obj"] = os.path.join(args.out, f"{args.garment}_draped.obj")
     files["drape_png"] = os.path.join(args.out, f"{args.garment}_draped.png")

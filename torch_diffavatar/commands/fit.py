@@ -188,7 +188,7 @@ def read_body_params(path) -> dict:
     Raises:
         InputError: no such file, not JSON, or not body parameters.
     """
-    from torch_diffavatar.body.commands import BODY_JSON
+    from torch_diffavatar.commands.body import BODY_JSON
 
     path = Path(path)
     if path.is_dir():
