@@ -38,9 +38,27 @@ def emit_json(obj) -> None:
     print(json.dumps(obj, sort_keys=False))
 
 
+# options whose values may start with "-" (``--up -y``), which argparse would take for an option
+_SIGNED_VALUE_OPTIONS = ("--up",)
+
+
+def _join_signed_values(argv: list[str]) -> list[str]:
+    """``["--up", "-y"]`` -> ``["--up=-y"]`` for the `_SIGNED_VALUE_OPTIONS`."""
+    out: list[str] = []
+    k = 0
+    while k < len(argv):
+        if argv[k] in _SIGNED_VALUE_OPTIONS and k + 1 < len(argv) and argv[k + 1].startswith("-"):
+            out.append(f"{argv[k]}={argv[k + 1]}")
+            k += 2
+        else:
+            out.append(argv[k])
+            k += 1
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(_join_signed_values(sys.argv[1:] if argv is None else list(argv)))
     try:
         result = args.func(args)
     except (InputError, FileNotFoundError, IsADirectoryError, PermissionError, SimulationError) as exc:

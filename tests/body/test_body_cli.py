@@ -24,7 +24,7 @@ def dressed_scan(anny_model, tmp_path_factory):
     return scan, path
 
 
-def test_fit_body_cli_contract(capsys, tmp_path, dressed_scan, monkeypatch):
+def test_fit_body_cli_contract(capsys, tmp_path, dressed_scan, anny_model, monkeypatch):
     # The fit's accuracy is tested in test_body_fit.py; here a short schedule checks the plumbing.
     import torch_diffavatar.body.fit as fit_module
 
@@ -43,6 +43,31 @@ def test_fit_body_cli_contract(capsys, tmp_path, dressed_scan, monkeypatch):
     assert len(params["pose_axis_angle"][0]) == len(params["pose_bones"])
     obj = (tmp_path / "body.obj").read_text().splitlines()
     assert sum(line.startswith("f ") for line in obj) == 26692
+    # body.json reads back (what `fit --body` and `segment --body` do) into the body of body.obj
+    import numpy as np
+    import torch
+
+    from torch_diffavatar.body.model import BodyModel
+    from torch_diffavatar.commands.fit import read_body_params
+
+    body = BodyModel(anny_model)
+    body.load_parameters_dict(read_body_params(tmp_path))
+    assert params["phenotypes_by_name"] == summary["phenotypes"]
+    with torch.no_grad():
+        verts = body().vertices[0].double().numpy()
+    obj_verts = np.array([[float(t) for t in line.split()[1:4]] for line in obj if line.startswith("v ")])
+    assert np.abs(verts - obj_verts).max() < 1e-6
+
+
+@pytest.mark.parametrize("command", ["fit-body", "segment", "fit"])
+def test_up_takes_a_negative_axis_as_its_value(command):
+    """``--up -y`` (what the upside-down warning advises) parses like ``--up=-y``."""
+    from torch_diffavatar.cli import _join_signed_values, build_parser
+
+    extra = {"fit-body": [], "segment": ["--garment", "tshirt"], "fit": ["--garment", "tshirt"]}[command]
+    for up in ("-y", "-z", "z"):
+        argv = [command, "scan.ply", "--up", up, "--out", "o", *extra]
+        assert build_parser().parse_args(_join_signed_values(argv)).up == up
 
 
 def test_segment_cli_with_a_body_dir(capsys, tmp_path, dressed_scan, anny_model):
@@ -50,9 +75,9 @@ def test_segment_cli_with_a_body_dir(capsys, tmp_path, dressed_scan, anny_model)
     anny_faces = anny_model.faces.numpy()
     body_dir = tmp_path / "body"
     body_dir.mkdir()
-    from torch_diffavatar.commands.body import _write_obj
+    from torch_diffavatar.mesh_io import write_obj
 
-    _write_obj(body_dir / "body.obj", scan.body_vertices, anny_faces)
+    write_obj(body_dir / "body.obj", scan.body_vertices, anny_faces)
     out_ply = tmp_path / "garment.ply"
     argv = ["segment", str(path), "--units", "mm", "--garment", "T-shirt", "--body", str(body_dir)]
     code, out, _ = _run(capsys, argv + ["--out", str(out_ply), "--json"])

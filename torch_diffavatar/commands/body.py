@@ -10,6 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from torch_diffavatar.errors import InputError, ScanError
+from torch_diffavatar.mesh_io import write_obj
+from torch_diffavatar.scan import UP_AXES
 
 BODY_OBJ = "body.obj"
 BODY_JSON = "body.json"
@@ -46,7 +48,7 @@ def _stdout_to_stderr(command):
 def _scan_args(parser) -> None:
     parser.add_argument("scan", help="scan mesh or point cloud (PLY, OBJ, GLB)")
     parser.add_argument("--units", default="m", choices=("m", "cm", "mm"), help="length unit of the file")
-    parser.add_argument("--up", default="y", choices=("y", "-y", "z"), help="up axis of the file")
+    parser.add_argument("--up", default="y", choices=tuple(UP_AXES), help="up axis of the file")
     parser.add_argument("--no-clean", action="store_true", help="skip floor and outlier removal")
 
 
@@ -86,7 +88,7 @@ def fit_body_command(args) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     body = result.body
     verts = body().vertices[0].detach().cpu().numpy()
-    _write_obj(out / BODY_OBJ, verts, body.faces.cpu().numpy())
+    write_obj(out / BODY_OBJ, verts, body.faces)
     phenotypes = dict(zip(body.phenotype_labels, body.phenotypes[0].detach().tolist()))
     summary = {
         "points": scan.point_count,
@@ -95,15 +97,12 @@ def fit_body_command(args) -> dict:
         "height_m": result.height_m,
         "phenotypes": phenotypes,
     }
-    params = dict(body.parameters_dict(), scan=str(args.scan), units=args.units, up=args.up, **summary)
+    # the body parameters last: the summary's phenotypes by name must not replace their list, which
+    # `BodyModel.load_parameters_dict` (fit --body, segment --body) reads back
+    params = dict(summary, scan=str(args.scan), units=args.units, up=args.up, **body.parameters_dict())
+    params["phenotypes_by_name"] = phenotypes
     (out / BODY_JSON).write_text(json.dumps(params, indent=1))
     return summary
-
-
-def _write_obj(path: Path, verts: np.ndarray, faces: np.ndarray) -> None:
-    lines = [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in verts]
-    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
-    path.write_text("\n".join(lines) + "\n")
 
 
 def _body_from_dir(directory: str, anny_model) -> np.ndarray:
