@@ -143,3 +143,18 @@ def test_waist_height_lies_between_hips_and_ribs(anny_model):
     waist = body.waist_height(out.joints[0])
     assert float(hips.max()) + 0.1 < waist < float(out.joints[0, labels.index("upperarm01.L"), 1]) - 0.15
     assert body.waist_height(raised.joints[0]) == pytest.approx(waist + 0.1, abs=1e-9)
+
+
+def test_stand_on_floor_puts_each_body_s_feet_on_y_0(anny_model):
+    b = BodyModel(anny_model=anny_model, batch_size=2)
+    b.set_phenotypes(torch.tensor([[0.5] * 6, [0.5, 0.5, 0.5, 0.5, 0.9, 0.5]], dtype=torch.float64))
+    before = b().vertices.detach()
+    assert float(before[..., 1].min()) < -0.8  # zero translation: the pelvis at the origin
+    assert b.stand_on_floor() is b
+    after = b().vertices.detach()
+    torch.testing.assert_close(
+        after[..., 1].amin(dim=1), torch.zeros(2, dtype=torch.float64), atol=1e-12, rtol=0
+    )
+    shift = (after - before)[..., 1]  # a vertical shift of each whole body, nothing else
+    torch.testing.assert_close(shift, shift[:, :1].expand_as(shift), atol=1e-12, rtol=0)
+    torch.testing.assert_close((after - before)[..., [0, 2]], torch.zeros_like(after[..., [0, 2]]))

@@ -111,7 +111,9 @@ class BodyModel(nn.Module):
         pose: (B, K, 3) axis-angle [rad] of the `POSE_BONES`, zero = A-pose.
         global_orient: (B, 3) axis-angle [rad] of a rotation about the world origin, applied after the
             Anny→world conversion.
-        translation: (B, 3) [m] world translation (the pelvis is at the origin when it is zero).
+        translation: (B, 3) [m] world translation (the pelvis is at the origin when it is zero, so the
+            feet are about 0.87 m below the world's floor: `stand_on_floor` puts them on y = 0, the frame
+            of the placement, the scans and the assets).
         log_scale: (B,) log of a uniform scale about the world origin.
         local_changes: (B, L) Anny local changes (only when the given model was built with them and
             ``local_changes=True``; the project's shared configuration has none).
@@ -182,6 +184,15 @@ class BodyModel(nn.Module):
     def scale(self) -> torch.Tensor:
         """(B,) uniform scale."""
         return self.log_scale.exp()
+
+    @torch.no_grad()
+    def stand_on_floor(self) -> BodyModel:
+        """Shift ``translation`` vertically so each body's lowest vertex lies on y = 0 (the world frame's
+        floor, which `place_garment`, the scans and the assets assume). Returns ``self``, for
+        ``BodyModel().stand_on_floor()``. Call it again after changing shape, pose or scale."""
+        lowest = self().vertices[..., 1].amin(dim=1)  # (B,)
+        self.translation[:, 1] -= lowest
+        return self
 
     @torch.no_grad()
     def set_phenotypes(self, phenotypes: torch.Tensor | dict[str, float]) -> None:
