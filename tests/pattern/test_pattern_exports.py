@@ -146,3 +146,23 @@ def test_cli_bad_input_exits_2(tmp_path, capsys, content, message):
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1
     assert message in err[0] and "in.json" in err[0]
+
+
+def test_svg_writes_names_and_labels_as_text_never_markup():
+    """Panel names and edge labels come from user files: in the SVG they are escaped text, and the file
+    stays well-formed XML (a name with ``<script>`` and ``&`` once made it invalid, and an injection)."""
+    import xml.etree.ElementTree as ET
+
+    from torch_diffavatar.pattern import pattern_from_dict
+
+    spec = two_squares()
+    evil = '<script>alert("x")</script> & co'
+    panels = spec["pattern"]["panels"]
+    panels[evil] = panels.pop("front")
+    panels[evil]["edges"][0]["label"] = "<b>hem</b> & 'cuff'"
+    spec["pattern"]["stitches"][0][0]["panel"] = evil
+    svg = pattern_svg(pattern_from_dict(spec))
+    root = ET.fromstring(svg)
+    texts = {el.text for el in root.iter("{http://www.w3.org/2000/svg}text")}
+    assert evil in texts and "<b>hem</b> & 'cuff'" in texts
+    assert "<script>" not in svg

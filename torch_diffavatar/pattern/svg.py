@@ -12,6 +12,7 @@ import colorsys
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from xml.sax.saxutils import escape  # names and labels come from user files: text, never markup
 
 import numpy as np
 
@@ -112,7 +113,9 @@ def pattern_svg(pattern: Pattern) -> str:
     ]
     for d in drawings:
         pts = " ".join(f"{x:.3f},{y:.3f}" for x, y in d.outline)
-        out.append(f'<polygon points="{pts}" fill="#f3e3d3" stroke="none"><title>{d.name}</title></polygon>')
+        out.append(
+            f'<polygon points="{pts}" fill="#f3e3d3" stroke="none"><title>{escape(d.name)}</title></polygon>'
+        )
         panel = pattern.panels[d.name]
         labelled = _labelled_edges(panel)
         for k, p in enumerate(d.edges):
@@ -127,19 +130,19 @@ def pattern_svg(pattern: Pattern) -> str:
             )
             out.append(
                 f'<polyline points="{pts}" fill="none" stroke="{colour}" stroke-width="{width}" '
-                f'stroke-linecap="round"><title>{title}</title></polyline>'
+                f'stroke-linecap="round"><title>{escape(title)}</title></polyline>'
             )
             label = panel.edges[k].label
             if label and k in labelled:
                 x, y = _label_anchor(p, d.centre)
                 out.append(
                     f'<text x="{x:.2f}" y="{y:.2f}" font-size="2" font-family="sans-serif" fill="#333" '
-                    f'text-anchor="middle">{label}</text>'
+                    f'text-anchor="middle">{escape(label)}</text>'
                 )
         x, y = d.centre
         out.append(
             f'<text x="{x:.2f}" y="{y:.2f}" font-size="3.2" font-family="sans-serif" fill="#000" '
-            f'text-anchor="middle">{d.name}</text>'
+            f'text-anchor="middle">{escape(d.name)}</text>'
         )
     out.append("</svg>")
     return "\n".join(out) + "\n"
