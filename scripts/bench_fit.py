@@ -41,8 +41,8 @@ def main() -> None:
     from torch_diffavatar.body.anny_model import load_anny
     from torch_diffavatar.body.model import BodyModel
     from torch_diffavatar.commands.demo import DEMO_SCAN
-    from torch_diffavatar.commands.fit import match_boundaries, prepare
     from torch_diffavatar.fit import Fitter, load_config
+    from torch_diffavatar.fit_setup import match_boundaries, prepare
     from torch_diffavatar.pattern import load_template, mesh_pattern
     from torch_diffavatar.sim.material import ClothMaterial
     from torch_diffavatar.sim.placement import place_garment

@@ -3,7 +3,7 @@
 
 For each garment: `synthetic_scans.make_draped_scan` (its template with the hem raised ``--hem-up`` and
 widened ``--hem-widen``, bending stiffness 2e-5 N·m, on a random moderate Anny body, seeded), then the fit
-(`fit_commands.fit_scan` with ``configs/<garment>.yaml``) and `evaluation.evaluate_assets`; for the
+(`fit_scan.fit_scan` with ``configs/<garment>.yaml``) and `evaluation.evaluate_assets`; for the
 ``--ablation-garments`` also the fit without the cage, without the seam-length term, without the
 curvature term, and without the cage's seam ties with and without the seam-length term. Writes
 ``docs/RESULTS.md`` (tables like the paper's Tables 1 and 2, with the command and date) and pictures in
@@ -41,8 +41,8 @@ ABLATIONS = {
 
 
 def _fit_and_eval(scan_dir: Path, out: Path, config, anny) -> dict:
-    from torch_diffavatar.commands.fit import fit_scan
     from torch_diffavatar.evaluation import evaluate_assets
+    from torch_diffavatar.fit_scan import fit_scan
 
     t0 = time.perf_counter()
     report = fit_scan(scan_dir / "scan.ply", config, out, progress=False, anny_model=anny)

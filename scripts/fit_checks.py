@@ -70,9 +70,9 @@ def _config(path, sets):
 
 
 def oracle(args) -> dict:
-    from torch_diffavatar.commands.fit import fit_scan
     from torch_diffavatar.evaluation import evaluate_assets
     from torch_diffavatar.fit import CONFIG_DIR, config_from_dict
+    from torch_diffavatar.fit_scan import fit_scan
     from torch_diffavatar.pattern import load_pattern
 
     scan_dir = Path(args.garment_dir) / "scan"

@@ -17,9 +17,10 @@ from torch_diffavatar.fit import (
     ScanTarget,
     config_from_dict,
     load_config,
-    rest_area_ratio,
+    rest_prox,
     result_warnings,
 )
+from torch_diffavatar.losses import rest_area_ratio
 
 DT = torch.float64
 
@@ -302,26 +303,26 @@ def test_ablation_switches_in_the_config():
 
 
 def test_rest_prox_solves_its_proximal_problem(skirt_problem):
-    """The cage's Adam step sees the drape's terms only; `Fitter.rest_prox` then moves the handles from
+    """The cage's Adam step sees the drape's terms only; `fit.rest_prox` then moves the handles from
     Adam's result ĉ to the minimiser of R(c) + ½ Σ m (c − ĉ)², m Adam's metric (√v̂ + ε) / lr."""
     garment, state, _ = skirt_problem
     fitter = _fitter(skirt_problem, _config(iterations=1, lr_cage=0.02), tensorboard=False)
     handles = fitter.params.cage.handles
     ev = fitter._backward(fitter.evaluate(state), state)
-    rest_names = fitter.rest_terms(ev.rest_uv)
+    rest_names = fitter.objective.rest_terms(ev.rest_uv)
     # the evaluation's graph is gone after backward: the drape terms' gradient from a fresh one
     fresh = fitter.evaluate(state)
     drape_loss = sum(
         getattr(fitter.config.weights, k) * v for k, v in fresh.terms.items() if k not in rest_names
     )
     (expected,) = torch.autograd.grad(drape_loss, handles)
-    fitter._drop_rest_gradient(handles)
+    group = fitter._prox_group()
+    assert group["params"][0] is handles
     torch.testing.assert_close(handles.grad, expected, rtol=1e-9, atol=1e-12)
 
-    group = fitter._cage_group()
     fitter.optimizer.step()
     target = handles.detach().clone()
-    fitter.rest_prox(group)
+    rest_prox(fitter.optimizer, group, fitter.rest_loss, fitter.config.rest_prox_iterations)
     c = handles.detach().clone().requires_grad_(True)
     st = fitter.optimizer.state[handles]
     vhat = st["exp_avg_sq"] / (1.0 - group["betas"][1] ** float(st["step"]))

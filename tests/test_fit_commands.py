@@ -107,8 +107,8 @@ def test_fit_set_up_on_a_given_body_does_not_fit_one(skirt_scan, anny_model, tmp
     import torch
 
     import torch_diffavatar.body.fit as body_fit
-    from torch_diffavatar.commands.fit import prepare
     from torch_diffavatar.fit import load_config
+    from torch_diffavatar.fit_setup import prepare
     from torch_diffavatar.sim.placement import body_signed_distance
     from torch_diffavatar.synthetic_scans import write_scan
 
@@ -140,7 +140,7 @@ def test_fit_set_up_on_a_given_body_does_not_fit_one(skirt_scan, anny_model, tmp
 
 
 def test_a_hood_covers_the_head_and_no_other_garment_does():
-    from torch_diffavatar.commands.fit import covers_head
+    from torch_diffavatar.fit_setup import covers_head
     from torch_diffavatar.pattern import mesh_pattern
 
     hoody = sorted((GARMENTCODE / "repo_examples/hoody_mean").glob("*_specification.json"))
@@ -158,8 +158,8 @@ def test_the_body_fit_takes_a_hoods_points_on_the_head_for_cloth(anny_model, tmp
     import trimesh
 
     import torch_diffavatar.body.fit as body_fit
-    from torch_diffavatar.commands.fit import prepare
     from torch_diffavatar.fit import load_config
+    from torch_diffavatar.fit_setup import prepare
 
     class Fitted(Exception):
         pass
@@ -189,9 +189,9 @@ def test_arms_held_low_are_fitted_on_a_finer_mesh(tmp_path, monkeypatch):
     from dataclasses import replace
 
     import torch_diffavatar.commands.fit as commands
-    from torch_diffavatar.commands.fit import arms_spacing
     from torch_diffavatar.errors import InputError
     from torch_diffavatar.fit import config_from_dict, load_config
+    from torch_diffavatar.fit_setup import arms_spacing
 
     a_pose, one_low = {"left": 41.7, "right": 41.7}, {"left": 41.7, "right": 19.0}
     for name in ("tshirt", "polo", "longsleeve"):
@@ -220,8 +220,8 @@ def test_arms_held_low_are_fitted_on_a_finer_mesh(tmp_path, monkeypatch):
 def test_the_set_up_meshes_finer_under_arms_held_low(skirt_scan, anny_model, tmp_path):
     import torch
 
-    from torch_diffavatar.commands.fit import prepare
     from torch_diffavatar.fit import load_config
+    from torch_diffavatar.fit_setup import prepare
     from torch_diffavatar.synthetic_scans import write_scan
 
     write_scan(skirt_scan, tmp_path / "scan")

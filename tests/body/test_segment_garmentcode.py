@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from torch_diffavatar.commands.fit import LOOP_NAMES, infer_garment_type, scan_boundaries
+from torch_diffavatar.fit_setup import LOOP_NAMES, infer_garment_type, scan_boundaries
 from torch_diffavatar.pattern import load_pattern
 
 pytestmark = [pytest.mark.anny, pytest.mark.slow]

@@ -3,7 +3,7 @@
 The bundled scan (``torch_diffavatar/data/demo_scan.ply``, made by ``scripts/make_demo_scan.py``) is a
 labelled point cloud of a dress with a changed design (hem raised and widened) draped by our simulator on
 an Anny body with non-default phenotypes, in a stiffer cloth; its ground truth lies beside it. The demo
-fits it from the plain ``dress`` template (`torch_diffavatar.commands.fit.fit_scan` with
+fits it from the plain ``dress`` template (`torch_diffavatar.fit_scan.fit_scan` with
 ``configs/dress.yaml``) and prints ``chamfer_initial → chamfer_final`` (plus the recovered bending
 stiffness and phenotypes next to the truth). ``--no-fit`` keeps the old quick path: mesh, preview and
 drape the template on the default body.
@@ -47,9 +47,9 @@ def run_demo(args) -> dict:
     import contextlib
     import sys
 
-    from torch_diffavatar.commands.fit import fit_scan
     from torch_diffavatar.errors import InputError
     from torch_diffavatar.fit import load_config
+    from torch_diffavatar.fit_scan import fit_scan
 
     if not DEMO_SCAN.is_file():
         raise InputError(f"the bundled scan {DEMO_SCAN} is missing (run scripts/make_demo_scan.py)")

@@ -1,0 +1,142 @@
+"""What a fit reports: the summary of one evaluation, the report of a run and the warnings about its result.
+
+Units: metres. The report's Chamfer distance is measured on the draped *surface* (`chamfer.surface_chamfer_m`,
+[m], not squared: the symmetric average of scan → surface and surface samples → scan), so it does not depend
+on the mesh's resolution; the boundary Chamfers are vertex-based mean nearest-neighbour distances [m]
+(`chamfer_m`).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from torch_diffavatar.chamfer import nearest_indices, surface_chamfer_m
+from torch_diffavatar.losses import rest_area_ratio
+from torch_diffavatar.metrics import triangle_quality
+from torch_diffavatar.objective import FitObjective, ObjectiveOutput
+
+# a draped triangle below this quality (`metrics.triangle_quality`) is flagged in the fit's report: the
+# evaluation's target for a simulation-ready drape (docs/RESULTS.md)
+DRAPED_QUALITY_FLOOR = 0.3
+
+CHAMFER_DEFINITION = (
+    "symmetric mean surface distance, not squared: (mean distance of the scan "
+    "garment points to the draped surface + mean distance of 50k area samples of the draped surface "
+    "to the nearest scan garment point) / 2; boundary chamfers: mean nearest-neighbour distance "
+    "between loop vertices and scan loop points, (a->b + b->a) / 2 (a neck under a folded collar: "
+    "its fold, losses.folded_collar_loop)"
+)
+
+
+def chamfer_m(x: torch.Tensor, y: torch.Tensor) -> float:
+    """Symmetric mean nearest-neighbour distance [m] ``(mean_x d(x, Y) + mean_y d(y, X)) / 2``."""
+    x, y = x.detach().double().cpu(), y.detach().double().cpu()
+    dxy = (x - y[torch.from_numpy(nearest_indices(x, y))]).norm(dim=1).mean()
+    dyx = (y - x[torch.from_numpy(nearest_indices(y, x))]).norm(dim=1).mean()
+    return float(0.5 * (dxy + dyx))
+
+
+def summarize(out: ObjectiveOutput, objective: FitObjective, garment_points: torch.Tensor, body=None) -> dict:
+    """Numbers and tensors of one evaluation kept for the report and the before/after picture.
+
+    Args:
+        out: the evaluation; objective: its objective (faces, scan openings); garment_points: (P, 3)
+            all the scan's garment points [m] (the surface Chamfer's); body: the fitted `BodyModel` or None.
+    """
+    return {
+        "x": out.x.detach().clone(),
+        "body_verts": None if out.body_verts is None else out.body_verts.detach().clone(),
+        "loss": float(out.loss.detach()),
+        "terms": {k: float(v.detach()) for k, v in out.terms.items()},
+        "chamfer_m": surface_chamfer_m(out.x, objective.garment.sim_faces, garment_points)["symmetric"],
+        "boundary_chamfer_m": {
+            lp.name: chamfer_m(out.x[lp.vertices], objective.scan_boundaries[lp.name]) for lp in out.openings
+        },
+        "bend_stiffness": float(out.bend_stiffness.detach()),
+        "phenotypes": None
+        if body is None
+        else dict(zip(body.phenotype_labels, body.phenotypes[0].detach().tolist())),
+        "rest_uv": out.rest_uv.detach().clone(),
+    }
+
+
+def fit_report(first: dict, final: dict, objective: FitObjective, run: dict) -> dict:
+    """The metrics of a fit: initial vs final Chamfer [m], loss terms, material, body, quality.
+
+    Args:
+        first, final: `summarize` of the first and of the resulting evaluation.
+        objective: the fit's objective (garment, template, config, matched openings).
+        run: the driver's counts: ``iterations``, ``result_iteration``, ``seconds``, ``rejected_steps``,
+            ``rejection_reasons``, ``nan_gradients``, ``adjoint_failures``, ``first_drape_candidates``.
+    """
+    garment, config = objective.garment, objective.config
+    with torch.no_grad():
+        q_rest = triangle_quality(final["rest_uv"], garment.tri_vertices)
+        q_drape = triangle_quality(final["x"], garment.sim_faces)
+        ratio = rest_area_ratio(final["rest_uv"], objective.template_uv, garment.tri_vertices)
+    return {
+        "units": "m",
+        "chamfer_definition": CHAMFER_DEFINITION,
+        "template": config.template,
+        "chamfer_initial": first["chamfer_m"],
+        "chamfer_final": final["chamfer_m"],
+        "boundary_chamfer_initial": first["boundary_chamfer_m"],
+        "boundary_chamfer_final": final["boundary_chamfer_m"],
+        "iterations": run["iterations"],
+        "result_iteration": run["result_iteration"],
+        "seconds": round(run["seconds"], 2),
+        "loss_initial": first["loss"],
+        "loss_final": final["loss"],
+        "loss_terms_initial": first["terms"],
+        "loss_terms_final": final["terms"],
+        "material": {
+            "bend_stiffness_initial": first["bend_stiffness"],
+            "bend_stiffness_final": final["bend_stiffness"],
+            "unit": "N*m",
+        },
+        "body_phenotypes_initial": first["phenotypes"],
+        "body_phenotypes_final": final["phenotypes"],
+        "rest_quality": {"min": float(q_rest.min()), "mean": float(q_rest.mean())},
+        "draped_quality": {"min": float(q_drape.min()), "mean": float(q_drape.mean())},
+        "inverted_rest_triangles": int((ratio <= 0).sum()),
+        "min_rest_area_ratio": float(ratio.min()),
+        "rejected_steps": run["rejected_steps"],
+        "rejection_reasons": dict(run["rejection_reasons"]),
+        "nan_gradients": run["nan_gradients"],
+        "adjoint_failures": run["adjoint_failures"],
+        "adjoint": config.adjoint,
+        "vertices": garment.sim_vert_count,
+        "faces": garment.tri_count,
+        "matched_boundaries": [lp.name for lp in objective.loops],
+        "first_drape_candidates": list(run["first_drape_candidates"]),
+        "warnings": result_warnings(final["x"], garment.sim_faces, ratio, config.spacing),
+    }
+
+
+def result_warnings(
+    x: torch.Tensor, sim_faces: torch.Tensor, area_ratio: torch.Tensor, spacing: float
+) -> list[str]:
+    """What a user should know about a fit's result before simulating it (empty when nothing).
+
+    Args:
+        x: (Vs, 3) draped positions [m]; sim_faces: (F, 3) int64; area_ratio: (F,) rest areas over the
+            template's (`losses.rest_area_ratio`); spacing: the mesh spacing [m].
+    """
+    warnings = []
+    q = triangle_quality(x, sim_faces)
+    bad = q < DRAPED_QUALITY_FLOOR
+    if bool(bad.any()):
+        worst = int(q.argmin())
+        where = [round(float(c), 3) for c in x[sim_faces[worst]].mean(0)]
+        # measured on tops fitted on arms held low: slivers pressed flat on the upper arm and held there
+        # by friction (docs/BENCHMARKS.md, "Arms held low"); at 2 cm instead of 2.5, gone on three of four
+        warnings.append(
+            f"{int(bad.sum())} draped triangles have quality below {DRAPED_QUALITY_FLOOR} (min "
+            f"{float(q.min()):.2f}, at {where} m): crushed cloth, e.g. pressed flat on the body where a mesh "
+            f"this coarse does not fold; a finer spacing than {spacing:g} m (e.g. --spacing "
+            f"{0.8 * spacing:.3g}) usually removes them"
+        )
+    inverted = int((area_ratio <= 0).sum())
+    if inverted:
+        warnings.append(f"{inverted} rest triangles are inverted: the pattern cannot be cut as it is")
+    return warnings

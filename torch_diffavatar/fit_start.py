@@ -1,0 +1,163 @@
+"""Where a fit starts: the first drape, and the race between several first sewings.
+
+Cloth that hangs loose on a body rests in more than one fold state, and which one a sewing reaches depends
+on its path: the template is sewn and draped once per ``FitConfig.first_bend_scales`` (the bending
+stiffness scaled), each settled at the fit's own stiffness (`first_states`); the first drape's loss, or a
+race of ``first_race_iterations`` fit iterations from each (`race`), picks the one the fit continues.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Callable
+from dataclasses import replace
+
+import torch
+
+from torch_diffavatar.errors import SimulationError
+from torch_diffavatar.fit_config import drape_config, first_drape_config
+from torch_diffavatar.objective import FitObjective, FitVariables, ObjectiveOutput
+from torch_diffavatar.sim.material import ClothMaterial
+from torch_diffavatar.sim.state import ClothState
+
+# (loss, start state, its entry of the candidates) of one first drape
+Start = tuple[float, ClothState, dict]
+
+
+def settled(
+    objective: FitObjective,
+    state: ClothState,
+    rest_uv: torch.Tensor,
+    body_verts: torch.Tensor | None,
+    material: ClothMaterial,
+) -> ClothState:
+    """``state`` draped to rest with the fit's own substeps (at least 10 frames, ``first_max_steps`` at
+    most), its velocities zeroed. ``rest_uv``: (V, 2) [m]; ``body_verts``: (Vb, 3) [m] or None."""
+    from torch_diffavatar.sim.drape import drape_to_equilibrium
+
+    config = objective.config
+    res = drape_to_equilibrium(
+        objective.cloth_model,
+        rest_uv,
+        body_verts=body_verts,
+        body_faces=None if body_verts is None else objective.body_faces,
+        material=material,
+        state=state,
+        config=replace(drape_config(config), min_steps=10, max_steps=config.first_max_steps),
+    )
+    return ClothState(res.x, torch.zeros_like(res.x))
+
+
+@torch.no_grad()
+def first_states(
+    objective: FitObjective,
+    variables: FitVariables,
+    evaluate: Callable[[ClothState], ObjectiveOutput],
+    candidates: list[dict],
+    *,
+    start_state: ClothState | None = None,
+    sewing_fallback=None,
+) -> list[Start]:
+    """The first warm starts, each settled with the fit's own substeps and stiffness (`settled`), as
+    (loss, state, its entry of ``candidates``), lowest loss first: ``start_state`` alone, or the template
+    sewn and draped once per ``first_bend_scales`` (the bending stiffness scaled by it). With one start the
+    loss is NaN (not evaluated). Each sewing's scale and loss (or error) are appended to ``candidates``.
+
+    Args:
+        objective: the fit's objective (garment, config, material, body faces, the fixed body).
+        variables: the fit variables to sew and drape at (`FitParameters` output).
+        evaluate: the fit's evaluation at its variables, from a start state (its loss ranks the starts).
+        candidates: where each sewing's entry goes.
+        start_state: the first warm start (e.g. a `sew_and_drape` result's state), or None to sew.
+        sewing_fallback: `sew_and_drape`'s ``fallback`` (`sim.placement.a_pose_route` for a posed body).
+
+    Raises:
+        SimulationError: the sewing or the drape blew up (of every candidate, when there are several).
+    """
+    from torch_diffavatar.sim.drape import sew_and_drape
+
+    rest_uv, bend_stiffness = variables.rest_uv, variables.bend_stiffness
+    body_verts = objective.body_or_fixed(variables.body_verts)
+    material = replace(objective.material, bend_stiffness=float(bend_stiffness))
+    dtype = objective.template_uv.dtype
+    if start_state is not None:
+        start = ClothState(start_state.x.to(dtype), start_state.v.to(dtype))
+        return [(math.nan, settled(objective, start, rest_uv, body_verts, material), {})]
+    scales = objective.config.first_bend_scales
+    states = []
+    for scale in scales:
+        candidate = {"bend_scale": scale}
+        candidates.append(candidate)
+        try:
+            res = sew_and_drape(
+                objective.garment,
+                rest_uv=rest_uv,
+                body_verts=body_verts,
+                body_faces=None if body_verts is None else objective.body_faces,
+                fallback=sewing_fallback,
+                material=replace(material, bend_stiffness=float(bend_stiffness) * scale),
+                config=first_drape_config(objective.config),
+                dtype=dtype,
+            )
+            if "fallback_after" in res.diagnostics:
+                candidate["sewn_in_a_pose"] = True
+            state = settled(objective, res.state, rest_uv, body_verts, material)
+            if len(scales) == 1:  # nothing to choose; the fit evaluates it anyway
+                return [(math.nan, state, candidate)]
+            loss = candidate["loss"] = float(evaluate(state).loss)
+        except SimulationError as exc:
+            if len(scales) == 1:
+                raise
+            candidate["error"] = str(exc)
+            continue
+        if math.isfinite(loss):
+            states.append((loss, state, candidate))
+    if not states:
+        raise SimulationError(f"every first sewing of the template failed: {candidates}")
+    return sorted(states, key=lambda ls: ls[0])
+
+
+def first_drape(
+    objective: FitObjective, variables: FitVariables, *, sewing_fallback=None, start_state=None
+) -> ClothState:
+    """The start of a fit's first drape at ``variables``: the template sewn onto the body and settled, the
+    sewing of the lowest loss with several ``first_bend_scales`` (no race); see `first_states`."""
+
+    def evaluate(state: ClothState) -> ObjectiveOutput:
+        return objective(variables, state)
+
+    kw = dict(start_state=start_state, sewing_fallback=sewing_fallback)
+    return first_states(objective, variables, evaluate, [], **kw)[0][1]
+
+
+def race(fitter, starts: list[Start], iterations: int, bar=None) -> ClothState:
+    """Fit ``iterations`` iterations from each start of ``starts`` (`first_states`), from the same
+    parameters and optimizer, then take on the whole state of the one whose lowest loss is the lowest;
+    returns its drape start. Each start's lowest loss goes to its candidate entry (``race_loss``).
+
+    ``fitter``: the `torch_diffavatar.fit.Fitter` that runs the iterations (its ``state_dict`` /
+    ``load_state_dict`` snapshot and restore everything a candidate changes).
+    """
+    candidates = fitter.first_candidates  # `load_state_dict` replaces the list by a snapshot's copy
+    initial = copy.deepcopy(fitter.state_dict(starts[0][1]))
+    best = None
+    for _, state, candidate in starts:
+        fitter.load_state_dict(copy.deepcopy(initial))
+        ev = fitter._checked_evaluate(state)
+        if ev is None:
+            candidate["race_loss"] = None
+            continue
+        fitter.first = fitter._summary(ev)
+        fitter._note_best(ev, state)
+        ev, start = fitter._iterate(ev, state, iterations, bar=bar)
+        candidate["race_loss"] = fitter.best["loss"]
+        if best is None or fitter.best["loss"] < best[0]:
+            best = (fitter.best["loss"], copy.deepcopy(fitter.state_dict(start)))
+    if best is None:
+        raise SimulationError("the first drape of every candidate failed (blow-up or non-finite values)")
+    start = fitter.load_state_dict(best[1])
+    fitter.first_candidates = candidates  # with every race loss, not the winner's copy
+    fitter.seconds = 0.0  # `run` counts the race's time
+    fitter.save_checkpoint(start)
+    return start

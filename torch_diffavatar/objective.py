@@ -1,0 +1,445 @@
+"""The fit's objective as a PyTorch module (paper §4.2.5), and the fit variables it is evaluated at.
+
+`FitParameters` holds the fit variables (a `ControlCage`, an optional `BodyModel`, the log bending stiffness)
+and returns them as `FitVariables`. `FitObjective` holds the scan target and the loss weights (buffers, so
+``.to()`` and ``state_dict()`` carry them) and, called at the variables and a start `ClothState`, drapes the
+garment with `torch_diffavatar.sim.differentiable.drape` and returns the loss as `ObjectiveOutput`:
+
+    loss = ρ·boundary + σ·interior + α·seam_length + β·curvature  (+ rest area / shape, skin, body prior)
+
+A whole fit is then a plain ``torch.optim`` loop (``scripts/fit_loop.py``); `torch_diffavatar.fit.Fitter`
+drives the same objective with guards, a proximal rest step, logging and checkpoints.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields, replace
+
+import torch
+from torch import nn
+
+from torch_diffavatar.cage import ControlCage, FreeVertices, seam_segments
+from torch_diffavatar.fit_config import FitConfig, LossWeights, adjoint_options, drape_config
+from torch_diffavatar.losses import (
+    boundary_loss,
+    curvature_loss,
+    folded_collar_loop,
+    interior_loss,
+    rest_area_loss,
+    rest_distortion_loss,
+    seam_length_loss,
+    signed_rest_areas,
+    skin_loss,
+    template_edge_inverse,
+)
+from torch_diffavatar.pattern.garment_mesh import BoundaryLoop, GarmentMesh
+from torch_diffavatar.sim.material import ClothMaterial
+from torch_diffavatar.sim.model import ClothModel, ClothModelBuilder
+from torch_diffavatar.sim.state import ClothState
+
+# the loss terms, in the order of `LossWeights`; each has a weight buffer ``weight_<term>``
+TERM_NAMES = tuple(f.name for f in fields(LossWeights))
+
+
+@dataclass
+class ScanTarget:
+    """What the garment is fitted to (world frame, metres).
+
+    Attributes:
+        garment_points: (P, 3) scan points of the garment.
+        boundaries: garment opening name (``GarmentMesh.boundary_loops`` names) -> (k, 3) scan points.
+        body_points: (Q, 3) the other scan points (skin), may be empty.
+    """
+
+    garment_points: torch.Tensor
+    boundaries: dict[str, torch.Tensor] = field(default_factory=dict)
+    body_points: torch.Tensor | None = None
+
+    def __post_init__(self):
+        g = self.garment_points
+        if not isinstance(g, torch.Tensor) or g.dim() != 2 or g.shape[1] != 3 or g.shape[0] < 1:
+            raise ValueError("ScanTarget.garment_points must be a (P, 3) tensor with P >= 1")
+        if not torch.isfinite(g).all():
+            raise ValueError("ScanTarget.garment_points hold NaN or infinite values")
+
+
+@dataclass
+class FitVariables:
+    """The fit variables as the objective takes them (`FitParameters.forward`).
+
+    Attributes:
+        rest_uv: (V, 2) panel-vertex rest coordinates [m].
+        body_verts: (Vb, 3) body vertices [m], or None (a fixed body, or none).
+        bend_stiffness: () bending stiffness k_b [N·m].
+        phenotypes: (1, P) the body's phenotypes [-] while they are fitted (their logits require grad),
+            else None: the objective's phenotype prior holds fitted phenotypes only.
+    """
+
+    rest_uv: torch.Tensor
+    body_verts: torch.Tensor | None
+    bend_stiffness: torch.Tensor
+    phenotypes: torch.Tensor | None = None
+
+
+class FitParameters(nn.Module):
+    """The fit variables: a `ControlCage` (pattern), an optional `BodyModel`, the log bending stiffness.
+
+    Args:
+        cage: the pattern's control cage, or `FreeVertices` (its ``handles`` parameter is optimised).
+        body: a `BodyModel` (batch 1) whose vertices are the drape's body, or None for a fixed body.
+        log_bend_stiffness: initial log k_b (k_b in [N·m]).
+
+    ``forward()`` returns `FitVariables`.
+    """
+
+    def __init__(self, cage: ControlCage, body: nn.Module | None, log_bend_stiffness: float):
+        super().__init__()
+        self.cage = cage
+        self.body = body
+        dtype = cage.handles.dtype
+        self.log_bend_stiffness = nn.Parameter(torch.tensor(float(log_bend_stiffness), dtype=dtype))
+
+    @classmethod
+    def from_config(
+        cls,
+        garment: GarmentMesh,
+        config: FitConfig,
+        body: nn.Module | None = None,
+        dtype: torch.dtype = torch.float32,
+    ) -> FitParameters:
+        """The variables of a fit of ``garment``: its `ControlCage` with ``config``'s tying options (or
+        `FreeVertices` when ``config.cage`` is False), ``body``, k_b = ``config.initial_bend_stiffness``."""
+        if config.cage:
+            cage = ControlCage(
+                garment,
+                tie_mirrored=config.tie_mirrored,
+                tie_seams=config.tie_seams,
+                tie_close=config.tie_close,
+            )
+        else:
+            cage = FreeVertices(garment)
+        return cls(cage.to(dtype), body, math.log(config.initial_bend_stiffness))
+
+    def forward(self) -> FitVariables:
+        rest_uv = self.cage()
+        body_verts = None if self.body is None else self.body().vertices[0]
+        bend_stiffness = self.log_bend_stiffness.exp()
+        fitted = self.body is not None and self.body.phenotype_logits.requires_grad
+        return FitVariables(rest_uv, body_verts, bend_stiffness, self.body.phenotypes if fitted else None)
+
+
+@dataclass
+class ObjectiveOutput:
+    """One drape and its loss (`FitObjective.forward`); the graph is kept for ``loss.backward()``.
+
+    Attributes:
+        loss: () the weighted sum of ``terms``.
+        terms: term name (`TERM_NAMES`) -> () unweighted loss term, in the order they are summed.
+        x: (Vs, 3) the drape [m].
+        rest_uv: (V, 2) [m]; body_verts: (Vb, 3) [m] or None; bend_stiffness: () [N·m]: the variables.
+        stats: the drape's diagnostics (`sim.differentiable.drape` ``stats``; the backward adds to it).
+        openings: the garment's openings matched to the scan's, on ``x`` (`FitObjective.openings`).
+    """
+
+    loss: torch.Tensor
+    terms: dict[str, torch.Tensor]
+    x: torch.Tensor
+    rest_uv: torch.Tensor
+    body_verts: torch.Tensor | None
+    bend_stiffness: torch.Tensor
+    stats: dict
+    openings: list[BoundaryLoop]
+
+
+class FitObjective(nn.Module):
+    """The fit loss of a garment against a scan target, through the differentiable drape (paper §4.2.5).
+
+    Buffers (follow ``.to()``, in ``state_dict()``): ``scan_points`` (P, 3) [m], a fixed random subset of
+    ``config.max_scan_points`` of the target's garment points (seeded by ``config.seed``); ``skin_points``
+    (Q, 3) [m] likewise of its body points, only when the body is a fit variable (``body_faces`` given
+    without ``fixed_body_verts``) and the target has some, else None; ``scan_boundary_<k>`` (n, 3) [m]
+    per scan opening (its name, which may hold dots: ``boundary_names[k]``); ``weight_<term>`` () per
+    loss term (`TERM_NAMES`, from ``config.weights``: the buffers are the weights used);
+    ``initial_phenotypes`` (1, P) [-] (the prior's centre) or None. Non-persistent: the template's
+    ``template_uv`` (V, 2) [m] and its rest areas and edge inverses, ``fixed_body_verts`` (Vb, 3) [m] or
+    None, ``body_faces`` (Fb, 3) int64 or None.
+
+    Attributes (not moved by ``.to()``): ``garment`` (`GarmentMesh`), ``config`` (`FitConfig`: robust
+    kernels, samples, drape and adjoint options), ``material`` (`ClothMaterial`; k_b is the variable's),
+    ``cloth_model`` (the `ClothModel`, rebuilt for the buffers' dtype and device when they move).
+
+    Args:
+        garment: the meshed and placed template.
+        target: the scan target.
+        config: the fit configuration (default `FitConfig()`).
+        material: the base cloth material (default `ClothMaterial()`).
+        body_faces: (Fb, 3) int64 body triangles, with a body.
+        fixed_body_verts: (Vb, 3) [m] the body when it is not a fit variable.
+        initial_phenotypes: (1, P) phenotypes of the phenotype prior's centre (with a fitted body).
+        dtype: of the buffers and the cloth model (float32 for fits, float64 for tiny tests).
+
+    Limitations: one garment and one body (no batch).
+    """
+
+    def __init__(
+        self,
+        garment: GarmentMesh,
+        target: ScanTarget,
+        config: FitConfig | None = None,
+        *,
+        material: ClothMaterial | None = None,
+        body_faces: torch.Tensor | None = None,
+        fixed_body_verts: torch.Tensor | None = None,
+        initial_phenotypes: torch.Tensor | None = None,
+        dtype: torch.dtype = torch.float32,
+    ):
+        super().__init__()
+        self.config = FitConfig() if config is None else config
+        self.garment = garment
+        self.material = material if material is not None else ClothMaterial()
+        self._register_template(garment, dtype)
+        self._register_target(
+            target, fit_body=body_faces is not None and fixed_body_verts is None, dtype=dtype
+        )
+        for name in TERM_NAMES:
+            self.register_buffer(
+                f"weight_{name}", torch.tensor(getattr(self.config.weights, name), dtype=dtype)
+            )
+        fixed = None if fixed_body_verts is None else fixed_body_verts.to(dtype)
+        self.register_buffer("fixed_body_verts", fixed, persistent=False)
+        faces = None if body_faces is None else body_faces.to(torch.int64)
+        self.register_buffer("body_faces", faces, persistent=False)
+        self.register_buffer("initial_phenotypes", initial_phenotypes)
+        self.seam_segments = seam_segments(garment)
+        self.loops = [lp for lp in garment.boundary_loops if lp.name in self.boundary_names]
+        self._model: ClothModel = ClothModelBuilder(self.material).add_garment(garment).finalize(dtype=dtype)
+
+    @classmethod
+    def from_parameters(
+        cls,
+        params: FitParameters,
+        garment: GarmentMesh,
+        target: ScanTarget,
+        config: FitConfig | None = None,
+        *,
+        body_mesh: tuple[torch.Tensor, torch.Tensor] | None = None,
+        material: ClothMaterial | None = None,
+    ) -> FitObjective:
+        """The objective of a fit of ``params``, in their dtype: with their body (a fit variable: its faces,
+        the skin term, the prior about its current phenotypes), else on the fixed ``body_mesh``
+        (verts (Vb, 3) [m], faces (Fb, 3)) or on no body."""
+        body = params.body
+        fixed = body_mesh if body is None else None
+        return cls(
+            garment,
+            target,
+            config,
+            material=material,
+            body_faces=body.faces if body is not None else None if fixed is None else fixed[1],
+            fixed_body_verts=None if fixed is None else fixed[0],
+            initial_phenotypes=None if body is None else body.phenotypes.detach().clone(),
+            dtype=params.cage.handles.dtype,
+        )
+
+    def _register_template(self, garment: GarmentMesh, dtype: torch.dtype) -> None:
+        template_uv = garment.vert_uv.to(dtype)
+        self.register_buffer("template_uv", template_uv, persistent=False)
+        # template constants of the rest-shape terms, evaluated ~60 times per step by a proximal rest step
+        tri = garment.tri_vertices
+        self.register_buffer("template_area", signed_rest_areas(template_uv, tri), persistent=False)
+        self.register_buffer("template_inverse", template_edge_inverse(template_uv, tri), persistent=False)
+
+    def _register_target(self, target: ScanTarget, fit_body: bool, dtype: torch.dtype) -> None:
+        gen = torch.Generator().manual_seed(self.config.seed)
+        limit = self.config.max_scan_points
+
+        def subset(points: torch.Tensor) -> torch.Tensor:  # a fixed random subset of max_scan_points
+            points = points.to(dtype)
+            if points.shape[0] > limit:
+                points = points[torch.randperm(points.shape[0], generator=gen)[:limit]]
+            return points
+
+        self.register_buffer("scan_points", subset(target.garment_points))
+        skin = target.body_points
+        use_skin = fit_body and skin is not None and skin.shape[0] > 0
+        self.register_buffer("skin_points", subset(skin) if use_skin else None)
+        self.boundary_names = list(target.boundaries)
+        for k, points in enumerate(target.boundaries.values()):
+            self.register_buffer(f"scan_boundary_{k}", points.to(dtype))
+
+    # -- the pieces ----------------------------------------------------------------------------------------
+
+    @property
+    def scan_boundaries(self) -> dict[str, torch.Tensor]:
+        """Scan opening name -> (k, 3) scan points [m] (the ``scan_boundary_*`` buffers)."""
+        return {name: getattr(self, f"scan_boundary_{k}") for k, name in enumerate(self.boundary_names)}
+
+    @property
+    def weights(self) -> LossWeights:
+        """The loss weights of the ``weight_*`` buffers."""
+        return LossWeights(**{name: float(self.weight(name)) for name in TERM_NAMES})
+
+    def weight(self, term: str) -> torch.Tensor:
+        """() the weight buffer of loss term ``term``."""
+        return getattr(self, f"weight_{term}")
+
+    def weighted_sum(self, terms: dict[str, torch.Tensor]) -> torch.Tensor:
+        """() Σ weight · term over ``terms`` (term name -> () value)."""
+        return sum(self.weight(k) * v for k, v in terms.items())
+
+    @property
+    def cloth_model(self) -> ClothModel:
+        """The garment's `ClothModel` in the buffers' dtype and device."""
+        uv = self.template_uv
+        if self._model.dtype != uv.dtype or self._model.device != uv.device:
+            builder = ClothModelBuilder(self.material).add_garment(self.garment)
+            self._model = builder.finalize(device=uv.device, dtype=uv.dtype)
+        return self._model
+
+    def body_or_fixed(self, body_verts: torch.Tensor | None) -> torch.Tensor | None:
+        """``body_verts``, or the fixed body (None when there is none) when it is None."""
+        return self.fixed_body_verts if body_verts is None else body_verts
+
+    def openings(self, x: torch.Tensor) -> list[BoundaryLoop]:
+        """The garment's openings matched to the scan's, on the drape ``x`` (Vs, 3): the loops, but a neck
+        that a folded collar covers is its fold (`folded_collar_loop`), the top edge the scan shows."""
+        return [folded_collar_loop(x, lp) if lp.name == "neck" else lp for lp in self.loops]
+
+    def rest_terms(self, rest_uv: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The loss terms of the rest pattern alone, unweighted: seam length, curvature, and rest area and
+        rest shape when their weights are positive. ``rest_uv``: (V, 2) [m]."""
+        terms = {
+            "seam_length": seam_length_loss(rest_uv, self.garment, segments=self.seam_segments),
+            "curvature": curvature_loss(rest_uv, self.template_uv, self.garment),
+        }
+        tri = self.garment.tri_vertices
+        if self.weight_rest_area > 0:
+            terms["rest_area"] = rest_area_loss(
+                rest_uv, self.template_uv, tri, template_area=self.template_area
+            )
+        if self.weight_rest_shape > 0:
+            terms["rest_shape"] = rest_distortion_loss(
+                rest_uv, self.template_uv, tri, template_inverse=self.template_inverse
+            )
+        return terms
+
+    def rest_loss(self, rest_uv: torch.Tensor) -> torch.Tensor:
+        """() the weighted sum of `rest_terms` at ``rest_uv`` (V, 2) [m]."""
+        return self.weighted_sum(self.rest_terms(rest_uv))
+
+    def drape(
+        self,
+        rest_uv: torch.Tensor,
+        body_verts: torch.Tensor | None,
+        bend_stiffness: torch.Tensor,
+        start: ClothState,
+        *,
+        adjoint: str | None = None,
+        drape_steps: int | None = None,
+        stats: dict | None = None,
+    ) -> torch.Tensor:
+        """(Vs, 3) the differentiable drape [m] from ``start`` (`sim.differentiable.drape`), with
+        ``config``'s adjoint and frames, or ``adjoint`` / ``drape_steps`` instead."""
+        from torch_diffavatar.sim.differentiable import drape
+
+        adjoint = self.config.adjoint if adjoint is None else adjoint
+        return drape(
+            rest_uv,
+            self.cloth_model,
+            body_verts,
+            replace(self.material, bend_stiffness=bend_stiffness),
+            body_faces=None if body_verts is None else self.body_faces,
+            state=start,
+            config=drape_config(self.config, drape_steps, adjoint),
+            adjoint=adjoint,
+            options=adjoint_options(self.config, adjoint),
+            stats=stats,
+        )
+
+    # -- the loss ------------------------------------------------------------------------------------------
+
+    def forward(
+        self,
+        variables: FitVariables | torch.Tensor,
+        start: ClothState,
+        *,
+        body_verts: torch.Tensor | None = None,
+        bend_stiffness: torch.Tensor | None = None,
+        phenotypes: torch.Tensor | None = None,
+        adjoint: str | None = None,
+        drape_steps: int | None = None,
+    ) -> ObjectiveOutput:
+        """Drape from ``start`` at the fit variables and compute the loss (graph kept for backward).
+
+        Args:
+            variables: `FitVariables` (`FitParameters` output), or the rest coordinates (V, 2) [m] with the
+                other variables as keywords.
+            start: the drape's start (warm start: the previous drape, velocities zeroed).
+            body_verts: (Vb, 3) [m] (default: the fixed body); bend_stiffness: () [N·m] (required with
+                a tensor ``variables``); phenotypes: (1, P) fitted phenotypes (the prior), or None.
+            adjoint, drape_steps: override ``config.adjoint`` / ``config.drape_steps`` for this drape
+                (e.g. a short trajectory replay when the equilibrium adjoint fails).
+
+        Raises:
+            SimulationError: the drape blew up.
+        """
+        if isinstance(variables, FitVariables):
+            rest_uv, body_verts = variables.rest_uv, variables.body_verts
+            bend_stiffness, phenotypes = variables.bend_stiffness, variables.phenotypes
+        else:
+            rest_uv = variables
+            if bend_stiffness is None:
+                raise ValueError("FitObjective: pass bend_stiffness () [N·m] with a rest_uv tensor")
+        body_verts = self.body_or_fixed(body_verts)
+        stats: dict = {}
+        x = self.drape(
+            rest_uv, body_verts, bend_stiffness, start, adjoint=adjoint, drape_steps=drape_steps, stats=stats
+        )
+        openings = self.openings(x)
+        terms = self.drape_terms(x, openings)
+        terms.update(self.rest_terms(rest_uv))
+        terms.update(self.body_terms(body_verts, phenotypes))
+        loss = self.weighted_sum(terms)
+        return ObjectiveOutput(loss, terms, x, rest_uv, body_verts, bend_stiffness, stats, openings)
+
+    def drape_terms(self, x: torch.Tensor, openings: list[BoundaryLoop]) -> dict[str, torch.Tensor]:
+        """The unweighted terms of the drape ``x`` (Vs, 3) [m]: ``interior``, and ``boundary`` over the
+        matched ``openings`` (`openings`) when there are any."""
+        cfg = self.config
+        faces = self.garment.sim_faces if cfg.interior_to_surface else None
+        terms = {
+            "interior": interior_loss(
+                x, self.scan_points, garment_faces=faces, robust=cfg.interior_robust, scale=cfg.robust_scale
+            )
+        }
+        if openings:
+            terms["boundary"] = boundary_loss(
+                x,
+                openings,
+                self.scan_boundaries,
+                samples_per_edge=cfg.boundary_samples,
+                robust=cfg.boundary_robust,
+                scale=cfg.robust_scale,
+                trim=cfg.boundary_trim,
+            )
+        return terms
+
+    def body_terms(
+        self, body_verts: torch.Tensor | None, phenotypes: torch.Tensor | None
+    ) -> dict[str, torch.Tensor]:
+        """The unweighted terms of the body: ``phenotype_prior`` (squared distance of the fitted
+        ``phenotypes`` (1, P) from ``initial_phenotypes``) and ``skin`` (`skin_loss` of ``body_verts``
+        (Vb, 3) [m] to ``skin_points``, when its weight is positive); each only when its data is there."""
+        terms = {}
+        if self.initial_phenotypes is not None and phenotypes is not None:
+            terms["phenotype_prior"] = ((phenotypes - self.initial_phenotypes) ** 2).sum()
+        if self.skin_points is not None and self.weight_skin > 0:
+            terms["skin"] = skin_loss(
+                body_verts,
+                self.body_faces,
+                self.skin_points,
+                robust=self.config.interior_robust,
+                scale=self.config.robust_scale,
+            )
+        return terms
