@@ -52,11 +52,14 @@ _EXPORTS = {
     "load_scan": "torch_diffavatar.scan",
     # the fit
     "ControlCage": "torch_diffavatar.cage",
-    "FitConfig": "torch_diffavatar.fit",
-    "FitParameters": "torch_diffavatar.fit",
+    "FitConfig": "torch_diffavatar.fit_config",
+    "FitObjective": "torch_diffavatar.objective",
+    "FitParameters": "torch_diffavatar.objective",
     "Fitter": "torch_diffavatar.fit",
-    "LossWeights": "torch_diffavatar.fit",
-    "load_config": "torch_diffavatar.fit",
+    "LossWeights": "torch_diffavatar.fit_config",
+    "ObjectiveOutput": "torch_diffavatar.objective",
+    "ScanTarget": "torch_diffavatar.objective",
+    "load_config": "torch_diffavatar.fit_config",
     # assets
     "load_assets": "torch_diffavatar.assets",
     "write_assets": "torch_diffavatar.assets",
