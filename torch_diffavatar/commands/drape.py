@@ -103,6 +103,7 @@ def _rest_area(garment) -> torch.Tensor:
 
 
 def _check_args(args) -> None:
+    """InputError for a ``--spacing`` that is not a positive length or a frame limit below 1."""
     if not args.spacing > 0:
         raise InputError(f"--spacing must be a positive length in metres, got {args.spacing}")
     for flag in ("max_steps", "sew_steps"):
