@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from torch_diffavatar.cli import main
-from torch_diffavatar.commands.fit import SEGMENT_TYPES, TYPE_CONFIGS, infer_garment_type
+from torch_diffavatar.fit_setup import SEGMENT_TYPES, TYPE_CONFIGS, infer_garment_type
 from torch_diffavatar.pattern import load_pattern
 from torch_diffavatar.pattern.library import load_template
 

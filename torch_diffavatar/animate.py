@@ -21,6 +21,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -131,9 +132,43 @@ def animate(
     Raises:
         SimulationError: the simulation blew up.
     """
-    from torch_diffavatar.sim.drape import penetration_diagnostics
-    from torch_diffavatar.sim.model import ClothModelBuilder
+    per_out, n_out, n_sim = _frame_counts(motion, fps, sim_fps, duration)
+    dt = 1.0 / sim_fps
+    t0 = time.perf_counter()
+    times = torch.arange(n_sim + 1, dtype=torch.float64) * dt
+    bodies = body_sequence(assets, motion, times, anny_model=anny_model)  # (n_sim + 1, Vb, 3)
+    faces = assets.body_faces.to(torch.int64)
+    solver, rest, state = _cloth_solver(assets, config)
+    out = Path(out_dir) if out_dir is not None else None
+    writer = _FrameWriter(out, assets.garment, faces, write_body=write_body, gif=gif, gif_size=gif_size)
+    run = _simulate(
+        solver, rest, state, bodies, faces, dt, velocity_scale, per_out, writer, progress=progress
+    )
+    summary = {
+        "garment": assets.garment.garment_type,
+        "vertices": solver.model.vert_count,
+        "motion": type(motion).__name__,
+        "duration_s": n_sim * dt,
+        "fps": fps,
+        "sim_fps": sim_fps,
+        "substeps": solver.config.substeps,
+        "output_frames": n_out + 1,
+        "sim_frames": n_sim,
+        **run.stats(),
+        "wall_s": round(time.perf_counter() - t0, 2),
+        "per_frame": {"penetration_fraction": run.penetration, "max_speed_m_s": run.speed},
+    }
+    if out is not None:
+        summary["frames_dir"] = str(writer.frames_dir)
+        if gif and writer.images:
+            summary["gif"] = str(writer.save_gif(out / "animation.gif", fps))
+        (out / "animation.json").write_text(json.dumps(summary, indent=1))
+    return summary
 
+
+def _frame_counts(motion, fps: float, sim_fps: float, duration: float | None) -> tuple[int, int, int]:
+    """(simulated frames per output frame, output frames after the first, simulated frames) of
+    `animate`; InputError for rates that do not divide or a duration [s] that is not positive."""
     ratio = sim_fps / fps
     if fps <= 0 or abs(ratio - round(ratio)) > 1e-9 or round(ratio) < 1:
         raise InputError(f"sim_fps ({sim_fps}) must be a positive multiple of fps ({fps})")
@@ -142,73 +177,145 @@ def animate(
     if duration <= 0:
         raise InputError(f"the motion lasts {duration} s; give a positive duration")
     n_out = int(math.floor(duration * fps + 1e-9))
-    n_sim = n_out * per_out
-    dt = 1.0 / sim_fps
-    t0 = time.perf_counter()
-    times = torch.arange(n_sim + 1, dtype=torch.float64) * dt
-    bodies = body_sequence(assets, motion, times, anny_model=anny_model)  # (n_sim + 1, Vb, 3)
-    faces = assets.body_faces.to(torch.int64)
-    garment = assets.garment
+    return per_out, n_out, n_out * per_out
+
+
+def _cloth_solver(assets, config: XPBDConfig | None):
+    """The asset's garment on its seam-merged mesh (float32): (`XPBDSolver`, rest data, state at the
+    asset's drape)."""
+    from torch_diffavatar.sim.model import ClothModelBuilder
+
     model = (
         ClothModelBuilder(assets.material)
-        .add_garment(garment, merge_seams=True)
+        .add_garment(assets.garment, merge_seams=True)
         .finalize(dtype=torch.float32)
     )
     rest = model.rest_data(assets.rest_uv.to(torch.float32))
     solver = XPBDSolver(model, config)
-    state = model.initial_state(assets.draped_x.to(torch.float32))
-    tri_sim = garment.sim_faces
-    out = Path(out_dir) if out_dir is not None else None
-    frames_dir = None
-    if out is not None:
-        frames_dir = out / "frames"
-        frames_dir.mkdir(parents=True, exist_ok=True)
-    images, pen, speed = [], [], []
-    camera_bounds = None
-    from torch_diffavatar.mesh_io import write_obj
+    return solver, rest, model.initial_state(assets.draped_x.to(torch.float32))
 
-    def emit(k: int, x: torch.Tensor, bv: torch.Tensor) -> None:
-        nonlocal camera_bounds
-        if frames_dir is None:
+
+class _FrameWriter:
+    """Writes the output frames of `animate` under ``out/frames`` (nothing when ``out`` is None) and
+    keeps the GIF's pictures (front and side, one camera for the whole clip)."""
+
+    def __init__(
+        self,
+        out: Path | None,
+        garment,
+        body_faces: torch.Tensor,
+        *,
+        write_body: bool,
+        gif: bool,
+        gif_size: int,
+    ):
+        self.frames_dir = None if out is None else out / "frames"
+        if self.frames_dir is not None:
+            self.frames_dir.mkdir(parents=True, exist_ok=True)
+        self.garment, self.tri_sim, self.body_faces = garment, garment.sim_faces, body_faces
+        self.write_body, self.gif, self.gif_size = write_body, gif, gif_size
+        self.images: list[np.ndarray] = []  # (H, 2W, 3) uint8 per output frame
+        self.cameras = None
+
+    def __call__(self, k: int, x: torch.Tensor, bv: torch.Tensor) -> None:
+        """Output frame ``k``: cloth ``x`` (Vs, 3) [m] on the body ``bv`` (Vb, 3) [m]."""
+        from torch_diffavatar.mesh_io import write_obj
+
+        if self.frames_dir is None:
             return
+        garment = self.garment
         write_obj(
-            frames_dir / f"garment_{k:04d}.obj",
+            self.frames_dir / f"garment_{k:04d}.obj",
             x.double(),
-            tri_sim,
+            self.tri_sim,
             uv=garment.vert_uv,
             uv_faces=garment.tri_vertices,
         )
-        if write_body:
-            _write_ply(frames_dir / f"body_{k:04d}.ply", bv.numpy(), faces.numpy())
-        if gif:
-            from torch_diffavatar.render import (
-                CLOTH_COLOR,
-                CLOTH_DEPTH_BIAS,
-                RenderMesh,
-                look_at_camera,
-                render,
-            )
+        if self.write_body:
+            _write_ply(self.frames_dir / f"body_{k:04d}.ply", bv.numpy(), self.body_faces.numpy())
+        if self.gif:
+            self.images.append(self._picture(x, bv))
 
-            if camera_bounds is None:  # one camera for the whole clip (from the first frame, padded)
-                lo = bv.min(0).values.double().numpy() - 0.1
-                hi = bv.max(0).values.double().numpy() + 0.1
-                camera_bounds = [
-                    look_at_camera(lo, hi, view, width=gif_size, height=gif_size * 5 // 4, perspective=False)
-                    for view in ("front", 60.0)
-                ]
-            meshes = [
-                RenderMesh(bv.numpy(), faces.numpy()),
-                RenderMesh(x.numpy(), tri_sim.numpy(), CLOTH_COLOR, CLOTH_DEPTH_BIAS),
+    def _picture(self, x: torch.Tensor, bv: torch.Tensor) -> np.ndarray:
+        """(5/4 W, 2 W, 3) uint8 front and side views of cloth ``x`` on body ``bv``, W = ``gif_size``."""
+        from torch_diffavatar.render import CLOTH_COLOR, CLOTH_DEPTH_BIAS, RenderMesh, look_at_camera, render
+
+        size, height = self.gif_size, self.gif_size * 5 // 4
+        if self.cameras is None:  # one camera for the whole clip (from the first frame, padded)
+            lo = bv.min(0).values.double().numpy() - 0.1
+            hi = bv.max(0).values.double().numpy() + 0.1
+            self.cameras = [
+                look_at_camera(lo, hi, view, width=size, height=height, perspective=False)
+                for view in ("front", 60.0)
             ]
-            images.append(
-                np.concatenate(
-                    [
-                        render(meshes, camera=c, width=gif_size, height=gif_size * 5 // 4)
-                        for c in camera_bounds
-                    ],
-                    axis=1,
-                )
-            )
+        meshes = [
+            RenderMesh(bv.numpy(), self.body_faces.numpy()),
+            RenderMesh(x.numpy(), self.tri_sim.numpy(), CLOTH_COLOR, CLOTH_DEPTH_BIAS),
+        ]
+        return np.concatenate(
+            [render(meshes, camera=c, width=size, height=height) for c in self.cameras], axis=1
+        )
+
+    def save_gif(self, path: Path, fps: float) -> Path:
+        """Write the pictures kept so far as a looping GIF at ``fps`` [1/s]; returns ``path``."""
+        from PIL import Image
+
+        pil = [Image.fromarray(im) for im in self.images]
+        pil[0].save(path, save_all=True, append_images=pil[1:], duration=int(round(1000 / fps)), loop=0)
+        return path
+
+
+@dataclass
+class _Rollout:
+    """What `_simulate` measured.
+
+    Attributes:
+        state: the final `ClothState`.
+        penetration0: penetration fraction of the initial state (vertices behind the body surface / all).
+        penetration, speed: per simulated frame, the penetration fraction and the max speed [m/s].
+        worst, worst_frame: the largest penetration fraction (the initial one included) and its frame.
+        max_strain: the final max |Green strain| [-].
+    """
+
+    state: object
+    penetration0: float
+    penetration: list[float]
+    speed: list[float]
+    worst: float
+    worst_frame: int
+    max_strain: float
+
+    def stats(self) -> dict:
+        """The summary's entries of `animate` from ``finite`` to ``final_max_strain``."""
+        return {
+            "finite": bool(torch.isfinite(self.state.x).all()),
+            "initial_penetration_fraction": self.penetration0,
+            "max_penetration_fraction": self.worst,
+            "max_penetration_sim_frame": self.worst_frame,
+            "max_speed_m_s": max(self.speed) if self.speed else 0.0,
+            "final_max_strain": self.max_strain,
+        }
+
+
+def _simulate(
+    solver: XPBDSolver,
+    rest,
+    state,
+    bodies: torch.Tensor,
+    faces: torch.Tensor,
+    dt: float,
+    velocity_scale: float,
+    per_out: int,
+    emit,
+    *,
+    progress: bool = False,
+) -> _Rollout:
+    """Step the cloth from ``state`` through the body frames ``bodies`` (T + 1, Vb, 3) [m] (faces
+    (Fb, 3)), ``dt`` [s] per frame, calling ``emit(k, x, body)`` on every ``per_out``-th frame (and the
+    first, as k = 0)."""
+    from torch_diffavatar.sim.drape import penetration_diagnostics
+
+    model = solver.model
 
     def penetration(x, bv) -> float:
         d = penetration_diagnostics(x, bv, faces)
@@ -216,8 +323,8 @@ def animate(
 
     pen0 = penetration(state.x, bodies[0])
     emit(0, state.x, bodies[0])
-    worst, worst_frame, max_strain = pen0, 0, 0.0
-    iterator = range(n_sim)
+    pen, speed, worst, worst_frame = [], [], pen0, 0
+    iterator = range(len(bodies) - 1)
     if progress:
         from tqdm import tqdm
 
@@ -240,38 +347,7 @@ def animate(
         if (i + 1) % per_out == 0:
             emit((i + 1) // per_out, state.x, bodies[i + 1])
     max_strain = float(ops.max_abs_green_strain(state.x, model.tri_vertices, rest.tri_rest_inv))
-    summary = {
-        "garment": garment.garment_type,
-        "vertices": model.vert_count,
-        "motion": type(motion).__name__,
-        "duration_s": n_sim * dt,
-        "fps": fps,
-        "sim_fps": sim_fps,
-        "substeps": solver.config.substeps,
-        "output_frames": n_out + 1,
-        "sim_frames": n_sim,
-        "finite": bool(torch.isfinite(state.x).all()),
-        "initial_penetration_fraction": pen0,
-        "max_penetration_fraction": worst,
-        "max_penetration_sim_frame": worst_frame,
-        "max_speed_m_s": max(speed) if speed else 0.0,
-        "final_max_strain": max_strain,
-        "wall_s": round(time.perf_counter() - t0, 2),
-        "per_frame": {"penetration_fraction": pen, "max_speed_m_s": speed},
-    }
-    if out is not None:
-        summary["frames_dir"] = str(frames_dir)
-        if gif and images:
-            from PIL import Image
-
-            gif_path = out / "animation.gif"
-            pil = [Image.fromarray(im) for im in images]
-            pil[0].save(
-                gif_path, save_all=True, append_images=pil[1:], duration=int(round(1000 / fps)), loop=0
-            )
-            summary["gif"] = str(gif_path)
-        (out / "animation.json").write_text(json.dumps(summary, indent=1))
-    return summary
+    return _Rollout(state, pen0, pen, speed, worst, worst_frame, max_strain)
 
 
 def template_assets(

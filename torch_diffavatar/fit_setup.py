@@ -30,18 +30,6 @@ SEGMENT_TYPES = {
     "pants": "pants",
     "shorts": "pants",
 }
-# Segmentation loop name -> `GarmentMesh` loop name.
-LOOP_NAMES = {
-    "neck": "neck",
-    "waist": "waist",
-    "hem": "hem",
-    "cuff.L": "cuff_left",
-    "cuff.R": "cuff_right",
-    "armhole.L": "cuff_left",
-    "armhole.R": "cuff_right",
-    "leg.L": "hem_left",
-    "leg.R": "hem_right",
-}
 # Garment (segmentation) type -> the bundled config a GarmentCode file of that type is fitted with.
 TYPE_CONFIGS = {
     "dress": "dress",
@@ -114,10 +102,10 @@ def scan_boundaries(
     vertex_parts: np.ndarray,
     segment_type: str,
 ) -> dict[str, np.ndarray]:
-    """The scan garment's openings, named as the segmentation names them (``neck``, ``cuff.L`` …).
+    """The scan garment's openings, named as the garment mesh names its own (``neck``, ``cuff_left`` …).
 
     Uses the body package's boundary finder (loops of the covered body region, named by the body part
-    just outside): segmentation name -> (k, 3) scan points [m] in loop order.
+    just outside): opening name -> (k, 3) scan points [m] in loop order.
     """
     from scipy.spatial import cKDTree
 
@@ -133,8 +121,9 @@ def scan_boundaries(
 def match_boundaries(garment, scan_loops: dict[str, np.ndarray], max_distance: float = 0.2) -> dict:
     """Map scan openings to the garment's loop names.
 
-    Names are translated with `LOOP_NAMES`; the scan openings left over are matched to the garment's
-    unmatched loops (``opening_k`` …) by nearest centroid (placed garment, within ``max_distance`` [m]).
+    A scan opening goes to the garment loop of its name (the segmentation names openings as the garment
+    mesh does); the scan openings left over are matched to the garment's unmatched loops (``opening_k``
+    …) by nearest centroid (placed garment, within ``max_distance`` [m]).
 
     Returns:
         garment loop name -> (k, 3) float64 tensor of scan points [m].
@@ -142,9 +131,8 @@ def match_boundaries(garment, scan_loops: dict[str, np.ndarray], max_distance: f
     garment_names = [lp.name for lp in garment.boundary_loops]
     out, left = {}, {}
     for name, pts in scan_loops.items():
-        mapped = LOOP_NAMES.get(name)
-        if mapped in garment_names and mapped not in out:
-            out[mapped] = torch.as_tensor(pts, dtype=torch.float64)
+        if name in garment_names:
+            out[name] = torch.as_tensor(pts, dtype=torch.float64)
         else:
             left[name] = pts
     pos = garment.sim_positions().double()

@@ -265,6 +265,64 @@ def _rasterize(pix: np.ndarray, key: np.ndarray, tris: np.ndarray, width: int, h
     return tri_id, bary
 
 
+def _combine_meshes(meshes: list[RenderMesh], camera: Camera) -> tuple[np.ndarray, ...]:
+    """One vertex/triangle list of all ``meshes`` as seen by ``camera``.
+
+    Returns:
+        pix (V, 2) pixel coordinates, key (V,) depth key (smaller is nearer; each mesh's depth bias
+        applied), tris (F, 3) int triangles (with a perspective camera, none touching the space behind
+        the eye), vn (V, 3) unit vertex normals, colors (F, 3) float64 RGB per triangle.
+    """
+    pix_list, key_list, tri_list, vn_list, tri_color, offset = [], [], [], [], [], 0
+    for m in meshes:
+        pix, depth = camera.project(m.verts)
+        depth = depth - m.depth_bias
+        key = -1.0 / np.maximum(depth, 1e-9) if camera.perspective else depth
+        faces = m.faces
+        if camera.perspective:  # drop triangles touching the space behind the eye
+            faces = faces[(depth[faces] > 1e-6).all(1)]
+        vn, _ = _vertex_normals(m.verts, m.faces)
+        pix_list.append(pix)
+        key_list.append(key)
+        vn_list.append(vn)
+        tri_list.append(faces + offset)
+        tri_color.append(np.broadcast_to(np.asarray(m.color, dtype=np.float64), (len(faces), 3)))
+        offset += len(m.verts)
+    pix, key, tris = np.concatenate(pix_list), np.concatenate(key_list), np.concatenate(tri_list)
+    return pix, key, tris, np.concatenate(vn_list), np.concatenate(tri_color)
+
+
+def _view_directions(camera: Camera, pixel: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(H, 3) direction from the eye through each hit pixel (flat indices ``pixel`` (H,) into the
+    supersampled image), world frame; ``shape`` (H, 3). Orthographic: the camera's forward."""
+    if not camera.perspective:
+        return np.broadcast_to(camera.forward, shape)
+    sw = camera.width
+    ray = np.stack(
+        [
+            (pixel % sw + 0.5 - camera.center[0]) / camera.scale,
+            -(pixel // sw + 0.5 - camera.center[1]) / camera.scale,
+            np.ones(len(pixel)),
+        ],
+        axis=1,
+    )
+    return ray @ np.stack([camera.right, camera.up, camera.forward])
+
+
+def _shade(n: np.ndarray, view_dir: np.ndarray, camera: Camera, ambient: float) -> np.ndarray:
+    """(H,) brightness in [0, 1] of surface points with unit normals ``n`` (H, 3) seen along
+    ``view_dir`` (H, 3): ambient plus two-sided Lambert from a key and a fill light."""
+    # two-sided: normals facing away from the eye are flipped toward it
+    n = np.where(((n * view_dir).sum(1) > 0)[:, None], -n, n)
+    # key light from above-left of the camera, a weaker fill from the right
+    key_light = -camera.forward + 0.5 * camera.up + 0.3 * (-camera.right)
+    fill_light = -camera.forward - 0.2 * camera.up + 0.6 * camera.right
+    key_light /= np.linalg.norm(key_light)
+    fill_light /= np.linalg.norm(fill_light)
+    diffuse = 0.8 * np.clip(n @ key_light, 0, None) + 0.25 * np.clip(n @ fill_light, 0, None)
+    return ambient + (1.0 - ambient) * np.clip(diffuse, 0.0, 1.0)
+
+
 def render(
     meshes: RenderMesh | Iterable[RenderMesh | tuple],
     *,
@@ -307,25 +365,7 @@ def render(
         )
     elif (camera.width, camera.height) != (sw, sh):
         raise ValueError(f"camera is {camera.width}x{camera.height}, expected {sw}x{sh}")
-
-    # one combined vertex/triangle list, with per-mesh colour and depth bias
-    pix_list, key_list, tri_list, vn_list, tri_color, offset = [], [], [], [], [], 0
-    for m in meshes:
-        pix, depth = camera.project(m.verts)
-        depth = depth - m.depth_bias
-        key = -1.0 / np.maximum(depth, 1e-9) if camera.perspective else depth
-        faces = m.faces
-        if camera.perspective:  # drop triangles touching the space behind the eye
-            faces = faces[(depth[faces] > 1e-6).all(1)]
-        vn, _ = _vertex_normals(m.verts, m.faces)
-        pix_list.append(pix)
-        key_list.append(key)
-        vn_list.append(vn)
-        tri_list.append(faces + offset)
-        tri_color.append(np.broadcast_to(np.asarray(m.color, dtype=np.float64), (len(faces), 3)))
-        offset += len(m.verts)
-    pix, key, tris = np.concatenate(pix_list), np.concatenate(key_list), np.concatenate(tri_list)
-    vn, colors = np.concatenate(vn_list), np.concatenate(tri_color)
+    pix, key, tris, vn, colors = _combine_meshes(meshes, camera)
     tri_id, bary = _rasterize(pix, key, tris, sw, sh)
 
     image = np.empty((sh * sw, 3))
@@ -334,28 +374,7 @@ def render(
     t = tri_id[hit]
     n = (bary[hit][:, :, None] * vn[tris[t]]).sum(1)
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-20)
-    # two-sided: normals facing away from the eye are flipped toward it
-    if camera.perspective:
-        hit_rows = np.nonzero(hit)[0]
-        ray = np.stack(
-            [
-                (hit_rows % sw + 0.5 - camera.center[0]) / camera.scale,
-                -(hit_rows // sw + 0.5 - camera.center[1]) / camera.scale,
-                np.ones(len(hit_rows)),
-            ],
-            axis=1,
-        )
-        view_dir = ray @ np.stack([camera.right, camera.up, camera.forward])
-    else:
-        view_dir = np.broadcast_to(camera.forward, n.shape)
-    n = np.where(((n * view_dir).sum(1) > 0)[:, None], -n, n)
-    # key light from above-left of the camera, a weaker fill from the right
-    key_light = -camera.forward + 0.5 * camera.up + 0.3 * (-camera.right)
-    fill_light = -camera.forward - 0.2 * camera.up + 0.6 * camera.right
-    key_light /= np.linalg.norm(key_light)
-    fill_light /= np.linalg.norm(fill_light)
-    diffuse = 0.8 * np.clip(n @ key_light, 0, None) + 0.25 * np.clip(n @ fill_light, 0, None)
-    shade = ambient + (1.0 - ambient) * np.clip(diffuse, 0.0, 1.0)
+    shade = _shade(n, _view_directions(camera, np.nonzero(hit)[0], n.shape), camera, ambient)
     image[hit] = colors[t] * shade[:, None]
     image = image.reshape(sh, sw, 3)
     if supersample > 1:

@@ -164,94 +164,27 @@ def make_draped_scan(
         SimulationError: the drape failed (the message says why).
     """
     from torch_diffavatar.body.anny_model import load_anny
-    from torch_diffavatar.body.geometry import vertex_normals
-    from torch_diffavatar.body.model import BodyModel
-    from torch_diffavatar.body.synthetic import hole_mask, sample_surface
-    from torch_diffavatar.pattern import mesh_pattern
     from torch_diffavatar.pattern.library import resolve_pattern
-    from torch_diffavatar.sim.drape import sew_and_drape
-    from torch_diffavatar.sim.material import ClothMaterial
-    from torch_diffavatar.sim.placement import a_pose_route, place_garment
 
     for name, value in (("spacing", spacing), ("bend_stiffness", bend_stiffness)):
         if not value > 0:
             raise InputError(f"{name} must be > 0, got {value}")
-    if not 0.0 <= hole_fraction < 1.0 or noise < 0 or missing_bottom < 0:
-        raise InputError("need 0 <= hole_fraction < 1, noise >= 0 and missing_bottom >= 0")
-    for name, value in (("garment_points", garment_points), ("body_points", body_points)):
-        if not (isinstance(value, int) and value >= 100):
-            raise InputError(f"{name} must be an integer >= 100, got {value!r}")
+    capture = _Capture(garment_points, body_points, noise, hole_fraction, underarm_holes, missing_bottom)
+    capture.check()
     t0 = time.perf_counter()
     rng = np.random.default_rng(seed)
     gen = torch.Generator().manual_seed(seed)
     anny_model = load_anny(dtype=torch.float32) if anny_model is None else anny_model
-    body = BodyModel(anny_model=anny_model)
-    if phenotypes is None:
-        lo, hi = DEFAULT_PHENOTYPE_RANGE
-        phenotypes = (lo + (hi - lo) * torch.rand(1, 6, generator=gen)).float()
-    body.set_phenotypes(phenotypes)
-    with torch.no_grad():
-        if pose is not None:
-            body.pose.copy_(pose.to(body.pose))
-        verts = body().vertices[0]
-        body.translation[0, 1] -= verts[:, 1].min()  # feet on the floor
-        out = body()
-        verts = out.vertices[0]
-        normals = vertex_normals(verts, body.faces)
-        height = float(body.standing_height()[0])
+    body, out, normals, height = _posed_body(anny_model, phenotypes, pose, gen)
     pattern = changed_pattern(resolve_pattern(template), hem_up, hem_widen)
-    mesh = mesh_pattern(pattern, spacing=spacing)
-    garment = place_garment(mesh, verts.double(), body.faces, arm_joints=body.arm_joints(out.joints[0]))
-    material = ClothMaterial(bend_stiffness=bend_stiffness)
-    route = a_pose_route(mesh, body)
-    result = sew_and_drape(
-        garment, body_verts=verts, body_faces=body.faces, fallback=route, material=material
+    garment, result = _drape_on_body(pattern, body, out, spacing, bend_stiffness)
+    cloth, cloth_faces = result.x.double().numpy(), garment.sim_faces.numpy()
+    bv, bf, bn = out.vertices[0].double().numpy(), body.faces.numpy(), normals.double().numpy()
+    armpits = _armpits(out.joints[0].double().numpy(), anny_model.bone_labels)
+    points, labels = capture.scan(cloth, cloth_faces, bv, bf, bn, armpits, rng)
+    info = _truth_info(
+        template, seed, hem_up, hem_widen, bend_stiffness, spacing, capture, body, height, labels, result, t0
     )
-    cloth = result.x.double().numpy()
-    g_pts, _, _ = sample_surface(cloth, garment.sim_faces.numpy(), garment_points, rng)
-    bv, bf = verts.double().numpy(), body.faces.numpy()
-    b_pts, b_face, _ = sample_surface(bv, bf, 2 * body_points, rng)
-    b_n = normals.double().numpy()[bf[b_face]].mean(1)
-    b_n /= np.linalg.norm(b_n, axis=1, keepdims=True)
-    b_pts = b_pts[~covered_by(b_pts, b_n, cloth)][:body_points]
-    points = np.concatenate([g_pts, b_pts])
-    labels = np.concatenate([np.ones(len(g_pts), np.int64), np.zeros(len(b_pts), np.int64)])
-    keep = hole_mask(points, hole_fraction, rng) if hole_fraction > 0 else np.ones(len(points), bool)
-    if underarm_holes:
-        joints = out.joints[0].double().numpy()
-        for side in ("L", "R"):
-            shoulder = joints[anny_model.bone_labels.index(f"upperarm01.{side}")]
-            armpit = shoulder + np.array([-0.03 * np.sign(shoulder[0]), -0.08, 0.0])
-            keep &= np.linalg.norm(points - armpit, axis=1) > 0.07
-    if missing_bottom > 0:
-        keep &= points[:, 1] > missing_bottom
-    points, labels = points[keep], labels[keep]
-    points = points + rng.normal(0.0, noise, points.shape)
-    info = {
-        "template": template,
-        "seed": seed,
-        "design_change": {"hem_up_m": hem_up, "hem_widen": hem_widen},
-        "phenotypes": dict(zip(body.phenotype_labels, body.phenotypes[0].tolist())),
-        # The bones off the A-pose, axis-angle [rad] (`BodyModel`'s pose convention).
-        "pose_rad": {b: r for b, r in zip(body.pose_bones, body.pose[0].tolist()) if any(r)},
-        "height_m": height,
-        "material": {"bend_stiffness": bend_stiffness, "unit": "N*m"},
-        "spacing_m": spacing,
-        "noise_sigma_m": noise,
-        "hole_fraction": hole_fraction,
-        "underarm_holes": underarm_holes,
-        "missing_bottom_m": missing_bottom,
-        "points": {"garment": int(labels.sum()), "body": int((labels == 0).sum())},
-        "drape": {
-            "frames": int(result.steps + result.diagnostics.get("sew_steps", 0)),
-            "converged": bool(result.converged),
-            "max_stitch_gap_m": float(result.diagnostics.get("max_stitch_gap_m", 0.0)),
-            "penetrating_count": int(result.diagnostics.get("penetrating_count", 0)),
-            # sewn on the body's A-pose and carried to its pose, after sewing on the pose failed
-            "sewn_in_a_pose": "fallback_after" in result.diagnostics,
-        },
-        "seconds": round(time.perf_counter() - t0, 2),
-    }
     return DrapedScan(
         points=points,
         labels=labels,
@@ -265,6 +198,206 @@ def make_draped_scan(
         bend_stiffness=bend_stiffness,
         info=info,
     )
+
+
+@dataclass(frozen=True)
+class _Capture:
+    """How the synthetic scanner samples and degrades the draped scene (see `make_draped_scan`).
+
+    Attributes:
+        garment_points, body_points: samples on the cloth and on the uncovered skin, before holes.
+        noise: Gaussian noise sigma [m].
+        hole_fraction: fraction of the points cut away in round holes, in [0, 1).
+        underarm_holes: also cut a 7 cm hole under each arm.
+        missing_bottom: drop points below this height [m] (0: keep all).
+    """
+
+    garment_points: int
+    body_points: int
+    noise: float
+    hole_fraction: float
+    underarm_holes: bool
+    missing_bottom: float
+
+    def check(self) -> None:
+        """InputError for a setting out of its range."""
+        if not 0.0 <= self.hole_fraction < 1.0 or self.noise < 0 or self.missing_bottom < 0:
+            raise InputError("need 0 <= hole_fraction < 1, noise >= 0 and missing_bottom >= 0")
+        for name, value in (("garment_points", self.garment_points), ("body_points", self.body_points)):
+            if not (isinstance(value, int) and value >= 100):
+                raise InputError(f"{name} must be an integer >= 100, got {value!r}")
+
+    def scan(
+        self,
+        cloth: np.ndarray,
+        cloth_faces: np.ndarray,
+        body_vertices: np.ndarray,
+        body_faces: np.ndarray,
+        body_normals: np.ndarray,
+        armpits: np.ndarray,
+        rng: np.random.Generator,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Sample the cloth (C, 3) [m] (faces (Fc, 3)) and the skin it does not cover (body (Vb, 3) [m],
+        faces (Fb, 3), unit vertex normals (Vb, 3)), cut the holes (the underarm ones about ``armpits``
+        (2, 3) [m]) and add the noise; every draw from ``rng``.
+
+        Returns:
+            (N, 3) float64 points [m]; (N,) int64 labels, 1 = garment, 0 = skin.
+        """
+        from torch_diffavatar.body.synthetic import hole_mask
+
+        points, labels = _sample_surfaces(
+            cloth,
+            cloth_faces,
+            body_vertices,
+            body_faces,
+            body_normals,
+            self.garment_points,
+            self.body_points,
+            rng,
+        )
+        keep = (
+            hole_mask(points, self.hole_fraction, rng)
+            if self.hole_fraction > 0
+            else np.ones(len(points), bool)
+        )
+        if self.underarm_holes:
+            for armpit in armpits:
+                keep &= np.linalg.norm(points - armpit, axis=1) > 0.07
+        if self.missing_bottom > 0:
+            keep &= points[:, 1] > self.missing_bottom
+        points, labels = points[keep], labels[keep]
+        return points + rng.normal(0.0, self.noise, points.shape), labels
+
+    def info(self) -> dict:
+        """The settings recorded in ``truth.json`` (after the spacing, before the point counts)."""
+        return {
+            "noise_sigma_m": self.noise,
+            "hole_fraction": self.hole_fraction,
+            "underarm_holes": self.underarm_holes,
+            "missing_bottom_m": self.missing_bottom,
+        }
+
+
+def _posed_body(anny_model, phenotypes, pose: torch.Tensor | None, gen: torch.Generator):
+    """The true body (``phenotypes`` and ``pose`` as in `make_draped_scan`; random phenotypes drawn
+    from ``gen``), feet on the floor.
+
+    Returns:
+        the `BodyModel`, its output (vertices (1, Vb, 3) [m], joints), (Vb, 3) unit vertex normals and
+        its standing height [m].
+    """
+    from torch_diffavatar.body.geometry import vertex_normals
+    from torch_diffavatar.body.model import BodyModel
+
+    body = BodyModel(anny_model=anny_model)
+    if phenotypes is None:
+        lo, hi = DEFAULT_PHENOTYPE_RANGE
+        phenotypes = (lo + (hi - lo) * torch.rand(1, 6, generator=gen)).float()
+    body.set_phenotypes(phenotypes)
+    with torch.no_grad():
+        if pose is not None:
+            body.pose.copy_(pose.to(body.pose))
+        verts = body().vertices[0]
+        body.translation[0, 1] -= verts[:, 1].min()  # feet on the floor
+        out = body()
+        normals = vertex_normals(out.vertices[0], body.faces)
+        height = float(body.standing_height()[0])
+    return body, out, normals, height
+
+
+def _drape_on_body(pattern, body, out, spacing: float, bend_stiffness: float):
+    """Mesh ``pattern`` at ``spacing`` [m], place it on the posed ``body`` (``out``: its output), sew and
+    drape it with ``bend_stiffness`` [N·m]. Returns (the placed `GarmentMesh`, the drape's result)."""
+    from torch_diffavatar.pattern import mesh_pattern
+    from torch_diffavatar.sim.drape import sew_and_drape
+    from torch_diffavatar.sim.material import ClothMaterial
+    from torch_diffavatar.sim.placement import a_pose_route, place_garment
+
+    verts = out.vertices[0]
+    mesh = mesh_pattern(pattern, spacing=spacing)
+    garment = place_garment(mesh, verts.double(), body.faces, arm_joints=body.arm_joints(out.joints[0]))
+    material = ClothMaterial(bend_stiffness=bend_stiffness)
+    route = a_pose_route(mesh, body)
+    result = sew_and_drape(
+        garment, body_verts=verts, body_faces=body.faces, fallback=route, material=material
+    )
+    return garment, result
+
+
+def _sample_surfaces(
+    cloth: np.ndarray,
+    cloth_faces: np.ndarray,
+    body_vertices: np.ndarray,
+    body_faces: np.ndarray,
+    body_normals: np.ndarray,
+    garment_points: int,
+    body_points: int,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Area-uniform samples of the cloth and of the skin it does not cover (`covered_by`); see
+    `_Capture.scan` for the arguments. Returns (N, 3) points [m], cloth first, and (N,) int64 labels."""
+    from torch_diffavatar.body.synthetic import sample_surface
+
+    g_pts, _, _ = sample_surface(cloth, cloth_faces, garment_points, rng)
+    b_pts, b_face, _ = sample_surface(body_vertices, body_faces, 2 * body_points, rng)
+    b_n = body_normals[body_faces[b_face]].mean(1)
+    b_n /= np.linalg.norm(b_n, axis=1, keepdims=True)
+    b_pts = b_pts[~covered_by(b_pts, b_n, cloth)][:body_points]
+    points = np.concatenate([g_pts, b_pts])
+    labels = np.concatenate([np.ones(len(g_pts), np.int64), np.zeros(len(b_pts), np.int64)])
+    return points, labels
+
+
+def _armpits(joints: np.ndarray, bone_labels: list[str]) -> np.ndarray:
+    """(2, 3) [m] the centres of the holes under the left and the right arm, below and behind the
+    shoulders (``joints`` (J, 3) [m], named by ``bone_labels``)."""
+    out = []
+    for side in ("L", "R"):
+        shoulder = joints[bone_labels.index(f"upperarm01.{side}")]
+        out.append(shoulder + np.array([-0.03 * np.sign(shoulder[0]), -0.08, 0.0]))
+    return np.stack(out)
+
+
+def _truth_info(
+    template: str,
+    seed: int,
+    hem_up: float,
+    hem_widen: float,
+    bend_stiffness: float,
+    spacing: float,
+    capture: _Capture,
+    body,
+    height: float,
+    labels: np.ndarray,
+    result,
+    t0: float,
+) -> dict:
+    """The settings and the drape's diagnostics of `make_draped_scan` (``truth.json``): its arguments,
+    the true `BodyModel` ``body`` and its ``height`` [m], the scan's (N,) ``labels``, the drape's
+    ``result`` and ``t0``, the `time.perf_counter` at its start."""
+    return {
+        "template": template,
+        "seed": seed,
+        "design_change": {"hem_up_m": hem_up, "hem_widen": hem_widen},
+        "phenotypes": dict(zip(body.phenotype_labels, body.phenotypes[0].tolist())),
+        # The bones off the A-pose, axis-angle [rad] (`BodyModel`'s pose convention).
+        "pose_rad": {b: r for b, r in zip(body.pose_bones, body.pose[0].tolist()) if any(r)},
+        "height_m": height,
+        "material": {"bend_stiffness": bend_stiffness, "unit": "N*m"},
+        "spacing_m": spacing,
+        **capture.info(),
+        "points": {"garment": int(labels.sum()), "body": int((labels == 0).sum())},
+        "drape": {
+            "frames": int(result.steps + result.diagnostics.get("sew_steps", 0)),
+            "converged": bool(result.converged),
+            "max_stitch_gap_m": float(result.diagnostics.get("max_stitch_gap_m", 0.0)),
+            "penetrating_count": int(result.diagnostics.get("penetrating_count", 0)),
+            # sewn on the body's A-pose and carried to its pose, after sewing on the pose failed
+            "sewn_in_a_pose": "fallback_after" in result.diagnostics,
+        },
+        "seconds": round(time.perf_counter() - t0, 2),
+    }
 
 
 def write_scan(scan: DrapedScan, out_dir) -> dict[str, str]:

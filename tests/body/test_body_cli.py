@@ -85,7 +85,7 @@ def test_segment_cli_with_a_body_dir(capsys, tmp_path, dressed_scan, anny_model)
     summary = json.loads(out)
     assert list(summary) == ["points", "garment_points", "boundary_loops"]
     assert abs(summary["garment_points"] - int(scan.labels.sum())) < 0.1 * scan.labels.sum()
-    assert {loop["name"] for loop in summary["boundary_loops"]} >= {"neck", "cuff.L", "cuff.R"}
+    assert {loop["name"] for loop in summary["boundary_loops"]} >= {"neck", "cuff_left", "cuff_right"}
     from torch_diffavatar.scan import load_scan
 
     garment = load_scan(out_ply, check=False)

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from torch_diffavatar.fit_setup import LOOP_NAMES, infer_garment_type, scan_boundaries
+from torch_diffavatar.fit_setup import infer_garment_type, scan_boundaries
 from torch_diffavatar.pattern import load_pattern
 
 pytestmark = [pytest.mark.anny, pytest.mark.slow]
@@ -42,7 +42,7 @@ def _openings(name: str, anny_model, seed: int):
     parts = BodyModel(anny_model=anny_model).vertex_parts.numpy()
     kind = infer_garment_type(load_pattern(path))
     loops = scan_boundaries(scan.points, scan.labels == 1, scan.body_vertices, scan.body_faces, parts, kind)
-    return scan, kind, {LOOP_NAMES[name]: points for name, points in loops.items()}
+    return scan, kind, loops
 
 
 def _distances(scan, name: str, target: np.ndarray) -> tuple[float, float]:

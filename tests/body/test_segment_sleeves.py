@@ -40,6 +40,6 @@ def test_a_long_sleeves_cuff_over_the_wrist_is_garment(longsleeve_scan, anny_mod
     assert near_cuff.sum() > 100
     recall = (seg.labels & near_cuff).sum() / near_cuff.sum()
     assert recall >= 0.95, recall
-    (cuff,) = [lp for lp in seg.loops if lp.name == "cuff.L"]
+    (cuff,) = [lp for lp in seg.loops if lp.name == "cuff_left"]
     target = scan.points[seg.garment_indices[cuff.point_indices]]
     assert float(np.mean(cKDTree(rim).query(target)[0])) < 0.02

@@ -99,12 +99,13 @@ def garment_type(name: str) -> str:
 
 
 @dataclass
-class BoundaryLoop:
-    """An open boundary of the garment.
+class ScanOpening:
+    """An open boundary of the garment in a scan, named as the garment mesh names its openings
+    (`pattern.garment_mesh.BoundaryLoop`), so that the two match by name.
 
     Attributes:
-        name: "neck", "waist", "hem", "cuff.L"/"cuff.R" (sleeve ends), "armhole.L"/"armhole.R"
-            (sleeveless), "leg.L"/"leg.R" (trouser legs).
+        name: "neck", "waist", "hem" (a top's or a skirt's), "cuff_left"/"cuff_right" (sleeve ends, and a
+            sleeveless top's armholes), "hem_left"/"hem_right" (trouser legs); left is the body's left (+x).
         point_indices: (M,) int64 indices into the garment points, ordered around the loop.
         body_vertices: (K,) int64 body vertices along the loop, in order (one cycle of boundary edges).
     """
@@ -127,7 +128,7 @@ class Segmentation:
 
     labels: np.ndarray
     garment_indices: np.ndarray
-    loops: list[BoundaryLoop]
+    loops: list[ScanOpening]
     offsets: np.ndarray
 
 
@@ -200,7 +201,7 @@ def segment_garment(
         grow_sigmas: the garment grows over the support parts of its type (`GARMENT_SUPPORT`) into
             points whose smoothed offset exceeds this many of its noise standard deviations (0: off).
         support_top: height [m] (world Y) of the body's waist, for trousers: their labels also grow
-            over the torso (`WAIST_SUPPORT`) on points below it. `commands.fit.prepare` and
+            over the torso (`WAIST_SUPPORT`) on points below it. `fit_setup.prepare` and
             ``diffavatar segment`` pass `BodyModel.waist_height`; None: only `GARMENT_SUPPORT`.
 
     Returns:
@@ -213,38 +214,16 @@ def segment_garment(
     vertex_parts = np.asarray(vertex_parts, dtype=np.int64)
     _, near = cKDTree(body_vertices).query(points)  # (N,) nearest body vertex
     offset = _surface_offsets(points, body_vertices, body_faces)  # (N,) signed [m]
-    region_parts = [PART_NAMES.index(p) for p in GARMENT_REGIONS[kind]]
-    region = np.isin(vertex_parts[near], region_parts)
+    region = np.isin(vertex_parts[near], [PART_NAMES.index(p) for p in GARMENT_REGIONS[kind]])
     k = min(neighbors, len(points))
     _, nbr = cKDTree(points).query(points, k=k)
     nbr = nbr.reshape(len(points), -1)
     offset_s = _smooth(offset, nbr)
     evidence = (offset_s - offset_threshold) / offset_scale
-    labels = region & (evidence > 0)
-    colour_s = None  # smoothed colour evidence, when the colours tell garment from skin
-    if colors is not None:
-        for _ in range(2):  # re-estimate the colour model from the current labels
-            colour = _colour_evidence(np.asarray(colors), labels, region)
-            if colour is None:
-                break
-            colour_s = _smooth(colour, nbr[:, : max(k // 2, 1)])
-            total = np.clip(evidence, -6.0, 6.0) + 2.0 * colour_s
-            labels = region & (total > 0)
-    for _ in range(2):  # neighbour majority vote
-        labels = region & (_smooth(labels.astype(np.float64), nbr) > 0.5)
+    labels, colour_s = _evidence_labels(evidence, region, nbr, colors)
     if labels.any() and grow_sigmas > 0:
-        support = np.isin(vertex_parts[near], [PART_NAMES.index(p) for p in GARMENT_SUPPORT[kind]])
-        if support_top is not None and kind in WAIST_SUPPORT:
-            waist = np.isin(vertex_parts[near], [PART_NAMES.index(p) for p in WAIST_SUPPORT[kind]])
-            support |= waist & (points[:, 1] < support_top)
-        # Noise of the smoothed offset: robust spread of the raw offsets about their local mean,
-        # over the skin, divided by sqrt(k).
-        skin = ~labels & (np.abs(offset) < 0.05)
-        resid = (offset - offset_s)[skin] if skin.sum() >= 20 else offset - offset_s
-        sigma = 1.4826 * float(np.median(np.abs(resid - np.median(resid)))) / np.sqrt(k)
-        # At least 0.5 mm: on a noise-free scan the fitted body's own error sets the floor.
-        threshold = max(grow_sigmas * sigma, 0.0005)
-        open_points = support & (offset_s > threshold)
+        open_points = _support_points(kind, vertex_parts[near], points, support_top)
+        open_points &= offset_s > _growth_threshold(offset, offset_s, labels, k, grow_sigmas)
         if colour_s is not None:  # and never against the colour
             open_points &= colour_s >= 0
         labels = _grow_on_support(labels, open_points, nbr)
@@ -255,6 +234,59 @@ def segment_garment(
         labels = labels | (region & covered[near])
     loops = _boundary_loops(points, labels, near, body_vertices, body_faces, vertex_parts, kind)
     return Segmentation(labels=labels, garment_indices=np.flatnonzero(labels), loops=loops, offsets=offset_s)
+
+
+def _evidence_labels(
+    evidence: np.ndarray, region: np.ndarray, nbr: np.ndarray, colors: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """First garment labels (N,) bool: the offset ``evidence`` (N,) within the garment's ``region`` (N,)
+    bool, with the colour's evidence when ``colors`` (N, 3) tell garment from skin, then smoothed by a
+    majority vote over the scan neighbours ``nbr`` (N, k).
+
+    Returns:
+        the labels and the (N,) smoothed colour evidence (None without colour evidence).
+    """
+    labels = region & (evidence > 0)
+    colour_s = None  # smoothed colour evidence, when the colours tell garment from skin
+    if colors is not None:
+        for _ in range(2):  # re-estimate the colour model from the current labels
+            colour = _colour_evidence(np.asarray(colors), labels, region)
+            if colour is None:
+                break
+            colour_s = _smooth(colour, nbr[:, : max(nbr.shape[1] // 2, 1)])
+            total = np.clip(evidence, -6.0, 6.0) + 2.0 * colour_s
+            labels = region & (total > 0)
+    for _ in range(2):  # neighbour majority vote
+        labels = region & (_smooth(labels.astype(np.float64), nbr) > 0.5)
+    return labels, colour_s
+
+
+def _support_points(
+    kind: str, near_parts: np.ndarray, points: np.ndarray, support_top: float | None
+) -> np.ndarray:
+    """(N,) bool: the scan points (N, 3) [m] over the parts garment type ``kind`` hangs from
+    (`GARMENT_SUPPORT`; ``near_parts`` (N,): the part of each point's nearest body vertex), and over
+    `WAIST_SUPPORT` below ``support_top`` [m] when it is given."""
+    support = np.isin(near_parts, [PART_NAMES.index(p) for p in GARMENT_SUPPORT[kind]])
+    if support_top is not None and kind in WAIST_SUPPORT:
+        waist = np.isin(near_parts, [PART_NAMES.index(p) for p in WAIST_SUPPORT[kind]])
+        support |= waist & (points[:, 1] < support_top)
+    return support
+
+
+def _growth_threshold(
+    offset: np.ndarray, offset_s: np.ndarray, labels: np.ndarray, k: int, grow_sigmas: float
+) -> float:
+    """Smoothed offset [m] above which a support point is open to the garment's growth: ``grow_sigmas``
+    noise standard deviations of the smoothed offset ``offset_s`` (N,) (``k`` neighbours), at least 0.5 mm.
+    """
+    # Noise of the smoothed offset: robust spread of the raw offsets about their local mean,
+    # over the skin, divided by sqrt(k).
+    skin = ~labels & (np.abs(offset) < 0.05)
+    resid = (offset - offset_s)[skin] if skin.sum() >= 20 else offset - offset_s
+    sigma = 1.4826 * float(np.median(np.abs(resid - np.median(resid)))) / np.sqrt(k)
+    # At least 0.5 mm: on a noise-free scan the fitted body's own error sets the floor.
+    return max(grow_sigmas * sigma, 0.0005)
 
 
 def _grow_on_support(labels: np.ndarray, open_points: np.ndarray, nbr: np.ndarray, k: int = 8) -> np.ndarray:
@@ -341,18 +373,31 @@ def _limb_extremity(part: str) -> str:
     return ("hand" if part.startswith(("upperarm", "forearm", "hand")) else "foot") + part[-2:]
 
 
+# Opening-name suffix of each body side (`PART_NAMES`' ".L" is the body's left, +x), as the garment mesh
+# names its openings (`pattern.mesher.name_boundary_loops`: "cuff_left", "hem_right" …).
+_SIDE_NAMES = {".L": "_left", ".R": "_right"}
+
+
 def _opening_name(extremity: str, kind: str) -> str:
-    """Name of the opening through which uncovered skin leads to ``extremity`` (see `BoundaryLoop`)."""
-    side = extremity[-2:] if extremity.endswith((".L", ".R")) else ""
+    """Name of the opening through which uncovered skin leads to ``extremity`` (see `ScanOpening`)."""
+    side = _SIDE_NAMES.get(extremity[-2:], "")
     if kind in ("pants", "skirt"):
         if extremity == "head" or extremity.startswith("hand"):
             return "waist"
-        return ("leg" + side) if kind == "pants" else "hem"
+        return ("hem" + side) if kind == "pants" else "hem"
     if extremity == "head":
         return "neck"
-    if extremity.startswith("hand"):
-        return ("cuff" if kind in _SLEEVED else "armhole") + side
-    return ("leg" + side) if kind.startswith("jumpsuit") else "hem"
+    if extremity.startswith("hand"):  # a sleeve's end, or a sleeveless top's armhole
+        return "cuff" + side
+    return ("hem" + side) if kind.startswith("jumpsuit") else "hem"
+
+
+def _part_side(opening: str) -> str:
+    """The `PART_NAMES` suffix (".L", ".R") of the body side an opening's name ends with; "" for none."""
+    for side, suffix in _SIDE_NAMES.items():
+        if opening.endswith(suffix):
+            return side
+    return ""
 
 
 def _covered_body(
@@ -694,6 +739,19 @@ def _opening_rim(
     return kind
 
 
+@dataclass(frozen=True)
+class _OpeningRules:
+    """The knobs of `_boundary_loops` (see its docstring): lengths [m], counts, an angle [deg]."""
+
+    min_edges: int = 12
+    reach: float = 0.1
+    weak_reach: float = 0.05
+    limb_reach: float = 0.06
+    link: float = 0.03
+    min_rim: int = 24
+    max_neck_tilt_deg: float = 45.0
+
+
 def _boundary_loops(
     points: np.ndarray,
     labels: np.ndarray,
@@ -709,7 +767,7 @@ def _boundary_loops(
     link: float = 0.03,
     min_rim: int = 24,
     max_neck_tilt_deg: float = 45.0,
-) -> list[BoundaryLoop]:
+) -> list[ScanOpening]:
     """The garment's openings, found on the body (see the module docstring).
 
     Every boundary vertex of the covered region is named by the limb (head and neck, an arm, a leg)
@@ -720,47 +778,75 @@ def _boundary_loops(
     The points of an opening are garment rim points (`_opening_rim`: on the garment's edge, not a
     hole's), of the garment's main piece (`_main_piece`, steps < ``link`` [m]), nearest to this
     opening's body loop (within ``reach`` [m]; within ``weak_reach`` when no skin lies right ahead);
-    a cuff's or an armhole's also within ``limb_reach`` [m] of its arm, then its sleeve's far end
-    (`_distal_rim`); a neck's: its neckline, or a hood's face opening, whose body loop (around the face)
-    tilts by more than ``max_neck_tilt_deg`` from horizontal (`_neck_opening`). Fewer than ``min_rim``:
-    the edge of the band near the loop, as before (`_edge_points`); fewer than three points: the opening
-    is not found. Hems and trouser legs: `_lower_rim` over the main piece, joined to the loop's band by
-    steps < ``link`` (a hanging sleeve is not hem).
-    """
-    import scipy.sparse as sp
-    from scipy.sparse.csgraph import dijkstra
+    a cuff's (or a sleeveless armhole's) also within ``limb_reach`` [m] of its arm, then its sleeve's
+    far end (`_distal_rim`, sleeves only); a neck's: its neckline, or a hood's face opening, whose body
+    loop (around the face) tilts by more than ``max_neck_tilt_deg`` from horizontal (`_neck_opening`).
+    Fewer than ``min_rim``: the edge of the band near the loop, as before (`_edge_points`); fewer than
+    three points: the opening is not found. Hems and trouser legs: `_lower_rim` over the main piece,
+    joined to the loop's band by steps < ``link`` (a hanging sleeve is not hem).
 
+    Args:
+        points: (N, 3) scan points [m]; labels: (N,) bool garment labels; near: (N,) nearest body vertex.
+        body_vertices: (Vb, 3) [m]; body_faces: (Fb, 3); vertex_parts: (Vb,) index into `PART_NAMES`.
+        kind: the garment type (`GARMENT_TYPES`).
+        min_edges: boundary vertices an opening needs on the body (fewer: a hole in the labels).
+
+    Returns:
+        the openings found, sorted by name.
+    """
+    rules = _OpeningRules(min_edges, reach, weak_reach, limb_reach, link, min_rim, max_neck_tilt_deg)
     if labels.sum() == 0:
         return []
     covered = _covered_body(points, labels, body_vertices, body_faces, vertex_parts)
     face_in = covered[body_faces].all(1)
+    grouped = _opening_vertices(
+        covered, face_in, body_vertices, body_faces, vertex_parts, kind, rules.min_edges
+    )
+    if not grouped:
+        return []
+    finder = _RimFinder.build(
+        points, labels, near, body_vertices, body_faces, vertex_parts, face_in, grouped, rules
+    )
+    loops = []
+    for i, (name, verts) in enumerate(grouped.items()):
+        sel = finder.band(verts)
+        if name.startswith("hem"):  # "hem", or a trouser leg's "hem_left" / "hem_right"
+            sel = finder.lower_rim(sel, _part_side(name)) if len(sel) else sel
+        else:
+            sel = finder.rim(i, name, verts, sel, sleeved=kind in _SLEEVED)
+        if len(sel) < 3:  # no loop to order (a sparse scan with a hole over the opening): not found
+            continue
+        order = _loop_order(finder.garment_points[sel])
+        loops.append(ScanOpening(name=name, point_indices=sel[order], body_vertices=np.asarray(verts)))
+    return sorted(loops, key=lambda loop: loop.name)
+
+
+def _opening_vertices(
+    covered: np.ndarray,
+    face_in: np.ndarray,
+    body_vertices: np.ndarray,
+    body_faces: np.ndarray,
+    vertex_parts: np.ndarray,
+    kind: str,
+    min_edges: int,
+) -> dict[str, list[int]]:
+    """Opening name -> the body vertices on the covered region's boundary named after it, in the order
+    of their boundary cycles; openings with fewer than ``min_edges`` vertices are left out.
+
+    Args:
+        covered: (Vb,) bool covered body vertices; face_in: (Fb,) bool faces with three covered corners.
+        body_vertices, body_faces, vertex_parts, kind: as in `_boundary_loops`.
+    """
     fin = body_faces[face_in]
     edges = np.sort(np.concatenate([fin[:, [0, 1]], fin[:, [1, 2]], fin[:, [2, 0]]]), axis=1)
     uniq, counts = np.unique(edges, axis=0, return_counts=True)
     boundary = uniq[counts == 1]
     if len(boundary) == 0:
-        return []
-    # Geodesic distance over uncovered skin (and into the boundary vertices) from each extremity.
-    e = np.concatenate([body_faces[:, [0, 1]], body_faces[:, [1, 2]], body_faces[:, [2, 0]]])
-    on_boundary = np.zeros(len(body_vertices), dtype=bool)
-    on_boundary[boundary.reshape(-1)] = True
-    e = e[(~covered[e[:, 0]] | ~covered[e[:, 1]]) & (~covered | on_boundary)[e].all(1)]
-    n = len(body_vertices)
-    length = np.linalg.norm(body_vertices[e[:, 0]] - body_vertices[e[:, 1]], axis=1) + 1e-12
-    graph = sp.coo_matrix((length, (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
-    # Sources: uncovered limb and head skin, named by the extremity at the end of its limb (the trunk,
-    # torso and hips, belongs to no opening by itself).
-    limb = ~covered & ~np.isin(vertex_parts, [PART_NAMES.index("torso"), PART_NAMES.index("hips")])
-    sources = np.flatnonzero(limb)
-    if len(sources) == 0:  # the garment covers every limb: no opening can be told apart
-        return []
-    source_names = [_limb_extremity(PART_NAMES[p]) for p in vertex_parts[sources]]
-    dist, _, origin = dijkstra(
-        graph, directed=False, indices=sources, min_only=True, return_predecessors=True
-    )
-    origin_name = {int(s): nm for s, nm in zip(sources, source_names)}
-    garment_idx = np.flatnonzero(labels)
-    g_near = near[garment_idx]  # nearest body vertex of each garment point
+        return {}
+    nearest = _nearest_extremity(covered, boundary, body_vertices, body_faces, vertex_parts)
+    if nearest is None:  # the garment covers every limb: no opening can be told apart
+        return {}
+    dist, origin, origin_name = nearest
     grouped: dict[str, list[int]] = {}
     for cycle in _edge_cycles(boundary):
         if len(cycle) < min_edges:
@@ -768,72 +854,173 @@ def _boundary_loops(
         for v in cycle:
             if np.isfinite(dist[v]):
                 grouped.setdefault(_opening_name(origin_name[int(origin[v])], kind), []).append(v)
-    grouped = {name: verts for name, verts in grouped.items() if len(verts) >= min_edges}
-    if not grouped:
-        return []
-    garment_points = points[garment_idx]
-    other_points = points[~labels]
-    # Only the garment itself: its points joined by steps shorter than ``link`` to its largest piece
-    # (stray garment labels on a hand or a leg have rims too, beside the openings).
-    main = _main_piece(garment_points, link)
-    # Each garment point's nearest opening, by its distance to the openings' body loops: a point of a
-    # sleeve hanging by the hips has its nearest body vertex on the hips, yet lies by its cuff's loop.
-    names = list(grouped)
-    loop_vertices = np.concatenate([np.asarray(grouped[nm]) for nm in names])
-    owner = np.repeat(np.arange(len(names)), [len(grouped[nm]) for nm in names])
-    loop_dist, j = cKDTree(body_vertices[loop_vertices]).query(garment_points)
-    nearest_loop = np.where(main, owner[j], -1)
-    rim_kind = _opening_rim(garment_points, other_points, np.flatnonzero(main & (loop_dist < reach)))
-    loops = []
-    for i, (name, verts) in enumerate(grouped.items()):
+    return {name: verts for name, verts in grouped.items() if len(verts) >= min_edges}
+
+
+def _nearest_extremity(
+    covered: np.ndarray,
+    boundary: np.ndarray,
+    body_vertices: np.ndarray,
+    body_faces: np.ndarray,
+    vertex_parts: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, dict[int, str]] | None:
+    """Geodesic distance over uncovered skin (and into the ``boundary`` (E, 2) edges' vertices) from the
+    uncovered limb and head skin, named by the extremity at the end of its limb (the trunk, torso and
+    hips, belongs to no opening by itself).
+
+    Returns:
+        (Vb,) distance [m] (inf: unreached), (Vb,) its nearest source vertex, source vertex -> extremity
+        (`_EXTREMITIES`); None when no limb skin is uncovered.
+    """
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import dijkstra
+
+    e = np.concatenate([body_faces[:, [0, 1]], body_faces[:, [1, 2]], body_faces[:, [2, 0]]])
+    on_boundary = np.zeros(len(body_vertices), dtype=bool)
+    on_boundary[boundary.reshape(-1)] = True
+    e = e[(~covered[e[:, 0]] | ~covered[e[:, 1]]) & (~covered | on_boundary)[e].all(1)]
+    n = len(body_vertices)
+    length = np.linalg.norm(body_vertices[e[:, 0]] - body_vertices[e[:, 1]], axis=1) + 1e-12
+    graph = sp.coo_matrix((length, (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
+    limb = ~covered & ~np.isin(vertex_parts, [PART_NAMES.index("torso"), PART_NAMES.index("hips")])
+    sources = np.flatnonzero(limb)
+    if len(sources) == 0:
+        return None
+    source_names = [_limb_extremity(PART_NAMES[p]) for p in vertex_parts[sources]]
+    dist, _, origin = dijkstra(
+        graph, directed=False, indices=sources, min_only=True, return_predecessors=True
+    )
+    return dist, origin, {int(s): nm for s, nm in zip(sources, source_names)}
+
+
+def _loop_order(p: np.ndarray) -> np.ndarray:
+    """(M,) order of the points ``p`` (M, 3) by their angle about their centre in their best-fit plane."""
+    centre = p.mean(0)
+    _, _, vt = np.linalg.svd(p - centre, full_matrices=False)
+    uv = (p - centre) @ vt[:2].T
+    return np.argsort(np.arctan2(uv[:, 1], uv[:, 0]))
+
+
+@dataclass
+class _RimFinder:
+    """The garment's points and the body, shared by `_boundary_loops` while it picks each opening's points.
+
+    Attributes:
+        garment_points: (G, 3) the garment's scan points [m]; garment_near: (G,) their nearest body vertex.
+        main: (G,) bool, on the garment's main piece (`_main_piece`).
+        nearest_loop: (G,) index (into the openings) of the body loop nearest each main point; −1 elsewhere.
+        loop_dist: (G,) distance [m] to the nearest body loop.
+        rim_kind: (G,) `_opening_rim` of the main points within ``rules.reach`` of a loop.
+        body_vertices, body_faces, vertex_parts: the body; face_in: (Fb,) bool covered faces.
+        rules: the knobs.
+    """
+
+    garment_points: np.ndarray
+    garment_near: np.ndarray
+    main: np.ndarray
+    nearest_loop: np.ndarray
+    loop_dist: np.ndarray
+    rim_kind: np.ndarray
+    body_vertices: np.ndarray
+    body_faces: np.ndarray
+    vertex_parts: np.ndarray
+    face_in: np.ndarray
+    rules: _OpeningRules
+
+    @classmethod
+    def build(
+        cls, points, labels, near, body_vertices, body_faces, vertex_parts, face_in, grouped, rules
+    ) -> _RimFinder:
+        """From the scan (as `_boundary_loops`) and the openings' body vertices ``grouped`` (name -> list)."""
+        garment_idx = np.flatnonzero(labels)
+        garment_points = points[garment_idx]
+        # Only the garment itself: its points joined by steps shorter than ``link`` to its largest piece
+        # (stray garment labels on a hand or a leg have rims too, beside the openings).
+        main = _main_piece(garment_points, rules.link)
+        # Each garment point's nearest opening, by its distance to the openings' body loops: a point of a
+        # sleeve hanging by the hips has its nearest body vertex on the hips, yet lies by its cuff's loop.
+        names = list(grouped)
+        loop_vertices = np.concatenate([np.asarray(grouped[nm]) for nm in names])
+        owner = np.repeat(np.arange(len(names)), [len(grouped[nm]) for nm in names])
+        loop_dist, j = cKDTree(body_vertices[loop_vertices]).query(garment_points)
+        rim_kind = _opening_rim(
+            garment_points, points[~labels], np.flatnonzero(main & (loop_dist < rules.reach))
+        )
+        return cls(
+            garment_points=garment_points,
+            garment_near=near[garment_idx],
+            main=main,
+            nearest_loop=np.where(main, owner[j], -1),
+            loop_dist=loop_dist,
+            rim_kind=rim_kind,
+            body_vertices=body_vertices,
+            body_faces=body_faces,
+            vertex_parts=vertex_parts,
+            face_in=face_in,
+            rules=rules,
+        )
+
+    def band(self, verts: list[int]) -> np.ndarray:
+        """(S,) the main garment points whose nearest body vertex lies on the loop ``verts`` or within
+        two rings of it on the covered side (so that points near the edge are caught)."""
         ring = set(verts)
-        # grow the loop by two rings on the covered side so that points near the edge are caught
         for _ in range(2):
-            grow = body_faces[np.isin(body_faces, list(ring)).any(1) & face_in]
+            grow = self.body_faces[np.isin(self.body_faces, list(ring)).any(1) & self.face_in]
             ring |= set(grow.reshape(-1).tolist())
-        sel = np.flatnonzero(np.isin(g_near, list(ring)) & main)
-        if name == "hem" or name.startswith("leg"):
-            if len(sel) == 0:
-                continue
-            side = name[-2:] if name.startswith("leg") else ""
-            in_main = np.flatnonzero(main)  # sel is within main
-            rim_main = _lower_rim(garment_points[main], np.searchsorted(in_main, sel), side=side, link=link)
-            sel = in_main[rim_main]
-        else:
-            mine = np.flatnonzero((nearest_loop == i) & (rim_kind > 0))
-            mine = mine[(rim_kind[mine] == 2) | (loop_dist[mine] < weak_reach)]
-            if name.startswith(("cuff", "armhole")):
-                # a sleeve's or an armhole's rim lies by its arm (a garment labelled short of a
-                # shoulder leaves a bare "arm" patch there that the body names after the arm)
-                limb = [body_vertices[vertex_parts == PART_NAMES.index(p + name[-2:])] for p in _ARM_PARTS]
-                limb_dist, _ = cKDTree(np.concatenate(limb)).query(garment_points[mine])
-                mine = mine[limb_dist < limb_reach]
-                if name.startswith("cuff"):
-                    mine = _distal_rim(garment_points, mine, limb)
-            elif name == "neck":
-                head, torso, arm_l, arm_r = (
-                    body_vertices[vertex_parts == PART_NAMES.index(p)]
-                    for p in ("head", "torso", "upperarm.L", "upperarm.R")
-                )
-                # the body faces along left x up (Anny's left is +x, up +y, facing +z)
-                forward = np.cross(arm_l.mean(0) - arm_r.mean(0), head.mean(0) - torso.mean(0))
-                rim = np.flatnonzero((nearest_loop == i) & (rim_kind > 0))
-                loop = body_vertices[verts]
-                mine = _neck_opening(
-                    garment_points, rim, mine, loop, head, torso, forward, max_tilt_deg=max_neck_tilt_deg
-                )
-            if len(mine) >= min_rim:
-                sel = mine
-            elif len(sel) == 0:
-                continue
-            else:  # too few rim points (a very noisy or sparse scan): the edge of the band near the loop
-                sel = _edge_points(garment_points, sel)
-        if len(sel) < 3:  # no loop to order (a sparse scan with a hole over the opening): not found
-            continue
-        p = garment_points[sel]
-        centre = p.mean(0)
-        _, _, vt = np.linalg.svd(p - centre, full_matrices=False)
-        uv = (p - centre) @ vt[:2].T
-        order = np.argsort(np.arctan2(uv[:, 1], uv[:, 0]))
-        loops.append(BoundaryLoop(name=name, point_indices=sel[order], body_vertices=np.asarray(verts)))
-    return sorted(loops, key=lambda loop: loop.name)
+        return np.flatnonzero(np.isin(self.garment_near, list(ring)) & self.main)
+
+    def lower_rim(self, sel: np.ndarray, side: str) -> np.ndarray:
+        """A hem's or a trouser leg's points (`_lower_rim` over the main piece; ``side`` ".L", ".R" or "")
+        from its band ``sel`` (indices into the garment points, all on the main piece)."""
+        in_main = np.flatnonzero(self.main)  # sel is within main
+        pos = np.searchsorted(in_main, sel)
+        return in_main[_lower_rim(self.garment_points[self.main], pos, side=side, link=self.rules.link)]
+
+    def rim(self, i: int, name: str, verts: list[int], sel: np.ndarray, *, sleeved: bool) -> np.ndarray:
+        """The points of opening ``i`` (``name``, body loop ``verts``) other than a hem: its rim points,
+        else the edge of its band ``sel`` (see `_boundary_loops`); empty when neither is found."""
+        rules = self.rules
+        mine = np.flatnonzero((self.nearest_loop == i) & (self.rim_kind > 0))
+        mine = mine[(self.rim_kind[mine] == 2) | (self.loop_dist[mine] < rules.weak_reach)]
+        if name.startswith("cuff"):
+            mine = self._arm_rim(mine, _part_side(name), distal=sleeved)
+        elif name == "neck":
+            mine = self._neck_rim(i, mine, verts)
+        if len(mine) >= rules.min_rim:
+            return mine
+        if len(sel) == 0:
+            return sel
+        # too few rim points (a very noisy or sparse scan): the edge of the band near the loop
+        return _edge_points(self.garment_points, sel)
+
+    def _arm_rim(self, mine: np.ndarray, side: str, *, distal: bool) -> np.ndarray:
+        """Of the rim points ``mine``, those by the arm on ``side`` (".L" / ".R"): a garment labelled
+        short of a shoulder leaves a bare "arm" patch there that the body names after the arm; with
+        ``distal`` (a sleeve, not an armhole) only the sleeve's far end (`_distal_rim`)."""
+        parts = self.vertex_parts
+        limb = [self.body_vertices[parts == PART_NAMES.index(p + side)] for p in _ARM_PARTS]
+        limb_dist, _ = cKDTree(np.concatenate(limb)).query(self.garment_points[mine])
+        mine = mine[limb_dist < self.rules.limb_reach]
+        return _distal_rim(self.garment_points, mine, limb) if distal else mine
+
+    def _neck_rim(self, i: int, mine: np.ndarray, verts: list[int]) -> np.ndarray:
+        """Of the rim points ``mine`` of opening ``i`` at the head (body loop ``verts``), the neckline's
+        or a hood's face opening's (`_neck_opening`)."""
+        head, torso, arm_l, arm_r = (
+            self.body_vertices[self.vertex_parts == PART_NAMES.index(p)]
+            for p in ("head", "torso", "upperarm.L", "upperarm.R")
+        )
+        # the body faces along left x up (Anny's left is +x, up +y, facing +z)
+        forward = np.cross(arm_l.mean(0) - arm_r.mean(0), head.mean(0) - torso.mean(0))
+        rim = np.flatnonzero((self.nearest_loop == i) & (self.rim_kind > 0))
+        loop = self.body_vertices[verts]
+        return _neck_opening(
+            self.garment_points,
+            rim,
+            mine,
+            loop,
+            head,
+            torso,
+            forward,
+            max_tilt_deg=self.rules.max_neck_tilt_deg,
+        )

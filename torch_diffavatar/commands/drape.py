@@ -102,23 +102,20 @@ def _rest_area(garment) -> torch.Tensor:
     return 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).abs()
 
 
-def run_drape(args) -> dict:
-    from torch_diffavatar.metrics import triangle_quality
-    from torch_diffavatar.pattern.library import resolve_pattern
-    from torch_diffavatar.pattern.mesher import mesh_pattern
-    from torch_diffavatar.sim.drape import DrapeConfig, sew_and_drape
-    from torch_diffavatar.sim.placement import body_signed_distance, place_garment
-
+def _check_args(args) -> None:
+    """InputError for a ``--spacing`` that is not a positive length or a frame limit below 1."""
     if not args.spacing > 0:
         raise InputError(f"--spacing must be a positive length in metres, got {args.spacing}")
     for flag in ("max_steps", "sew_steps"):
         value = getattr(args, flag)
         if value is not None and value < 1:
             raise InputError(f"--{flag.replace('_', '-')} must be >= 1, got {value}")
-    pattern = resolve_pattern(args.pattern)
-    body_verts, body_faces = load_body(args.body)
-    garment = mesh_pattern(pattern, spacing=args.spacing)
-    garment = place_garment(garment, body_verts, body_faces)
+
+
+def _drape_config(args):
+    """The `DrapeConfig` with ``--max-steps`` / ``--sew-steps`` applied (the sewing ramp no longer than
+    the sewing phase)."""
+    from torch_diffavatar.sim.drape import DrapeConfig
 
     overrides = {}
     if args.max_steps is not None:
@@ -126,7 +123,13 @@ def run_drape(args) -> dict:
     if args.sew_steps is not None:
         overrides["sew_max_steps"] = args.sew_steps
         overrides["sew_ramp_steps"] = min(DrapeConfig().sew_ramp_steps, args.sew_steps)
-    config = DrapeConfig(**overrides)
+    return DrapeConfig(**overrides)
+
+
+def _sew_and_drape(garment, body_verts: torch.Tensor, body_faces: torch.Tensor, config):
+    """`sew_and_drape` on the body (float32), with a progress bar on stderr when it reports frames."""
+    from torch_diffavatar.sim.drape import sew_and_drape
+
     kwargs = {}
     bar = None
     if "progress" in inspect.signature(sew_and_drape).parameters:  # per-frame callback, when offered
@@ -137,7 +140,7 @@ def run_drape(args) -> dict:
     else:
         print(f"diffavatar drape: sewing and draping {garment.tri_count} triangles…", file=sys.stderr)
     try:
-        result = sew_and_drape(
+        return sew_and_drape(
             garment,
             body_verts=body_verts.to(torch.float32),
             body_faces=body_faces,
@@ -147,6 +150,35 @@ def run_drape(args) -> dict:
     finally:
         if bar is not None:
             bar.close()
+
+
+def _write_png(path, x: torch.Tensor, faces: torch.Tensor, body_verts, body_faces) -> None:
+    """Front and back views of the cloth ``x`` (Vs, 3) [m] (faces (F, 3)) on the body, as a PNG."""
+    from torch_diffavatar.render import CLOTH_COLOR, CLOTH_DEPTH_BIAS, RenderMesh, render_views, save_png
+
+    image = render_views(
+        [RenderMesh(body_verts, body_faces), RenderMesh(x, faces, CLOTH_COLOR, CLOTH_DEPTH_BIAS)],
+        views=("front", "back"),
+        width=512,
+        height=640,
+        supersample=2,
+    )
+    save_png(image, path)
+
+
+def run_drape(args) -> dict:
+    from torch_diffavatar.mesh_io import write_garment_obj
+    from torch_diffavatar.metrics import triangle_quality
+    from torch_diffavatar.pattern.library import resolve_pattern
+    from torch_diffavatar.pattern.mesher import mesh_pattern
+    from torch_diffavatar.sim.placement import body_signed_distance, place_garment
+
+    _check_args(args)
+    pattern = resolve_pattern(args.pattern)
+    body_verts, body_faces = load_body(args.body)
+    garment = mesh_pattern(pattern, spacing=args.spacing)
+    garment = place_garment(garment, body_verts, body_faces)
+    result = _sew_and_drape(garment, body_verts, body_faces, _drape_config(args))
     x = result.x.detach().to(torch.float64).cpu()
     faces = garment.sim_faces
     sd = body_signed_distance(x, body_verts, body_faces)
@@ -154,21 +186,10 @@ def run_drape(args) -> dict:
     inverted = inverted_triangle_mask(x, faces, _rest_area(garment))
     diagnostics = result.diagnostics
 
-    from torch_diffavatar.mesh_io import write_garment_obj
-
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     write_garment_obj(args.out, garment, sim_positions=x)
     if args.png:
-        from torch_diffavatar.render import CLOTH_COLOR, CLOTH_DEPTH_BIAS, RenderMesh, render_views, save_png
-
-        image = render_views(
-            [RenderMesh(body_verts, body_faces), RenderMesh(x, faces, CLOTH_COLOR, CLOTH_DEPTH_BIAS)],
-            views=("front", "back"),
-            width=512,
-            height=640,
-            supersample=2,
-        )
-        save_png(image, args.png)
+        _write_png(args.png, x, faces, body_verts, body_faces)
     out = {
         "vertices": garment.sim_vert_count,
         "faces": garment.tri_count,

@@ -186,13 +186,8 @@ def _parse_ref(raw, panels: dict[str, Panel], source, where) -> EdgeRef:
     return EdgeRef(name, int(k))
 
 
-def pattern_from_dict(data: dict, source: str | None = None) -> Pattern:
-    """Build a `Pattern` from the parsed GarmentCode JSON; see `load_pattern`."""
-    if not isinstance(data, dict) or not isinstance(data.get("pattern"), dict):
-        _fail(source, "not a GarmentCode pattern: missing the top-level 'pattern' object")
-    props = data.get("properties", {}) or {}
-    if not isinstance(props, dict):
-        _fail(source, "'properties' must be an object")
+def _parse_units(props, source) -> tuple[float, bool]:
+    """(file units per metre, True for absolute curvature coordinates) from the 'properties' object."""
     units = props.get("units_in_meter", 100)
     units = _number(units, source, "properties.units_in_meter")
     if units <= 0:
@@ -200,44 +195,42 @@ def pattern_from_dict(data: dict, source: str | None = None) -> Pattern:
     coords = props.get("curvature_coords", "relative")
     if coords not in ("relative", "absolute"):
         _fail(source, f"properties.curvature_coords must be 'relative' or 'absolute', got {coords!r}")
-    absolute = coords == "absolute"
-    raw_panels = data["pattern"].get("panels")
-    if not isinstance(raw_panels, dict) or not raw_panels:
-        _fail(source, "pattern.panels must be a non-empty object of named panels")
+    return units, coords == "absolute"
 
-    panels: dict[str, Panel] = {}
-    for name, raw in raw_panels.items():
-        where = f"panel {name!r}"
-        if not isinstance(raw, dict):
-            _fail(source, f"{where}: must be an object")
-        for key in ("vertices", "edges"):
-            if not isinstance(raw.get(key), list) or not raw[key]:
-                _fail(source, f"{where}: missing or empty '{key}' list")
-        verts_file = np.stack(
-            [_point(v, source, f"{where}: vertex {i}") for i, v in enumerate(raw["vertices"])]
-        )
-        edges = [
-            _parse_edge(e, verts_file, units, absolute, source, f"{where}, edge {k}")
-            for k, e in enumerate(raw["edges"])
-        ]
-        _check_loop(name, edges, source)
-        label = raw.get("label")
-        if label is not None and not isinstance(label, str):
-            _fail(source, f"{where}: label must be a string")
-        panels[name] = Panel(
-            name=name,
-            vertices=verts_file / units,
-            edges=edges,
-            translation=_point(raw.get("translation", [0, 0, 0]), source, f"{where}: translation", 3) / units,
-            rotation=_point(raw.get("rotation", [0, 0, 0]), source, f"{where}: rotation", 3),
-            label=label,
-        )
 
-    stitches: list[Stitch] = []
-    used: dict[EdgeRef, int] = {}
-    raw_stitches = data["pattern"].get("stitches", [])
+def _parse_panel(name: str, raw, units: float, absolute: bool, source) -> Panel:
+    """One panel from its GarmentCode object (file units; ``units`` per metre), in metres."""
+    where = f"panel {name!r}"
+    if not isinstance(raw, dict):
+        _fail(source, f"{where}: must be an object")
+    for key in ("vertices", "edges"):
+        if not isinstance(raw.get(key), list) or not raw[key]:
+            _fail(source, f"{where}: missing or empty '{key}' list")
+    verts_file = np.stack([_point(v, source, f"{where}: vertex {i}") for i, v in enumerate(raw["vertices"])])
+    edges = [
+        _parse_edge(e, verts_file, units, absolute, source, f"{where}, edge {k}")
+        for k, e in enumerate(raw["edges"])
+    ]
+    _check_loop(name, edges, source)
+    label = raw.get("label")
+    if label is not None and not isinstance(label, str):
+        _fail(source, f"{where}: label must be a string")
+    return Panel(
+        name=name,
+        vertices=verts_file / units,
+        edges=edges,
+        translation=_point(raw.get("translation", [0, 0, 0]), source, f"{where}: translation", 3) / units,
+        rotation=_point(raw.get("rotation", [0, 0, 0]), source, f"{where}: rotation", 3),
+        label=label,
+    )
+
+
+def _parse_stitches(raw_stitches, panels: dict[str, Panel], source) -> list[Stitch]:
+    """The stitches from 'pattern.stitches'; each panel edge may take part in one stitch only."""
     if not isinstance(raw_stitches, list):
         _fail(source, "pattern.stitches must be a list")
+    stitches: list[Stitch] = []
+    used: dict[EdgeRef, int] = {}
     for i, raw in enumerate(raw_stitches):
         where = f"stitch {i}"
         if not isinstance(raw, list) or len(raw) not in (2, 3):
@@ -262,6 +255,22 @@ def pattern_from_dict(data: dict, source: str | None = None) -> Pattern:
                 )
             used[ref] = i
         stitches.append(Stitch(a, b, right_wrong))
+    return stitches
+
+
+def pattern_from_dict(data: dict, source: str | None = None) -> Pattern:
+    """Build a `Pattern` from the parsed GarmentCode JSON; see `load_pattern`."""
+    if not isinstance(data, dict) or not isinstance(data.get("pattern"), dict):
+        _fail(source, "not a GarmentCode pattern: missing the top-level 'pattern' object")
+    props = data.get("properties", {}) or {}
+    if not isinstance(props, dict):
+        _fail(source, "'properties' must be an object")
+    units, absolute = _parse_units(props, source)
+    raw_panels = data["pattern"].get("panels")
+    if not isinstance(raw_panels, dict) or not raw_panels:
+        _fail(source, "pattern.panels must be a non-empty object of named panels")
+    panels = {name: _parse_panel(name, raw, units, absolute, source) for name, raw in raw_panels.items()}
+    stitches = _parse_stitches(data["pattern"].get("stitches", []), panels, source)
 
     garment_type = data.get("garment_type")
     if garment_type is not None and garment_type not in GARMENT_TYPES:

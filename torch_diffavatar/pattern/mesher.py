@@ -302,6 +302,144 @@ def name_boundary_loops(
     ]
 
 
+@dataclass
+class _PanelMeshes:
+    """The panels triangulated side by side, before the seams are merged (see `mesh_pattern`).
+
+    Attributes:
+        vert_uv: (Vp, 2) float64 rest coordinates [m] of every panel vertex.
+        vert_pos: (Vp, 3) float64 placed world positions [m].
+        vert_panel: (Vp,) int64 panel index of each vertex.
+        tri_vertices: (F, 3) int64 triangles, oriented like their panel's edge loop.
+        panel_boundary: per panel, (Lp,) int64 its outline's vertices in loop order.
+        edge_vertices: (panel, edge) -> (n,) int64 the edge's vertices from its start to its end.
+    """
+
+    vert_uv: np.ndarray
+    vert_pos: np.ndarray
+    vert_panel: np.ndarray
+    tri_vertices: np.ndarray
+    panel_boundary: list[torch.Tensor]
+    edge_vertices: dict[tuple[str, int], torch.Tensor]
+
+
+def _check_mesh_args(spacing, min_angle) -> None:
+    if not (isinstance(spacing, int | float) and math.isfinite(spacing) and spacing > 0):
+        raise ValueError(f"spacing must be a positive length in metres, got {spacing!r}")
+    if not (0 < min_angle <= 34):
+        raise ValueError(
+            f"min_angle must be in (0, 34] degrees (Triangle's guaranteed range), got {min_angle!r}"
+        )
+
+
+def _orient_like_loop(verts: np.ndarray, tris: np.ndarray, boundary: np.ndarray) -> None:
+    """Flip in place the triangles (f, 3) of ``verts`` (n, 2) that turn against the outline (Lp, 2)."""
+    loop_sign = np.sign(polygon_signed_area(boundary))
+    a, b, c = verts[tris[:, 0]], verts[tris[:, 1]], verts[tris[:, 2]]
+    tri_sign = np.sign((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0]))
+    flip = tri_sign != loop_sign
+    tris[flip] = tris[flip][:, [0, 2, 1]]
+
+
+def _mesh_panels(
+    pattern: Pattern, fractions: dict[tuple[str, int], np.ndarray], spacing: float, min_angle: float
+) -> _PanelMeshes:
+    """Resample every panel's outline at ``fractions`` and triangulate it, panels numbered in order."""
+    uv_parts, pos_parts, panel_ids, tri_parts = [], [], [], []
+    panel_boundary: list[torch.Tensor] = []
+    edge_vertices: dict[tuple[str, int], torch.Tensor] = {}
+    offset = 0
+    for pid, name in enumerate(pattern.panels):
+        panel = pattern.panels[name]
+        pts, starts = [], []
+        for k in range(len(panel.edges)):
+            starts.append(sum(len(p) for p in pts))
+            # a collapsed edge adds no point: the previous edge runs on to the next edge's start
+            pts.append(panel.sample_edge(k, fractions[(name, k)][:-1]).reshape(-1, 2))
+        boundary = np.concatenate(pts, axis=0)
+        lp = len(boundary)
+        verts, tris = _triangulate_panel(boundary, spacing, min_angle, name, pattern.source)
+        _orient_like_loop(verts, tris, boundary)
+        for k in range(len(panel.edges)):
+            idx = (starts[k] + np.arange(len(fractions[(name, k)]))) % lp + offset
+            edge_vertices[(name, k)] = torch.as_tensor(idx, dtype=torch.int64)
+        panel_boundary.append(torch.arange(offset, offset + lp, dtype=torch.int64))
+        uv_parts.append(verts)
+        pos_parts.append(panel.to_world(verts))
+        panel_ids.append(np.full(len(verts), pid))
+        tri_parts.append(tris + offset)
+        offset += len(verts)
+    return _PanelMeshes(
+        vert_uv=np.concatenate(uv_parts),
+        vert_pos=np.concatenate(pos_parts),
+        vert_panel=np.concatenate(panel_ids),
+        tri_vertices=np.concatenate(tri_parts),
+        panel_boundary=panel_boundary,
+        edge_vertices=edge_vertices,
+    )
+
+
+def _pattern_stitch_pairs(pattern: Pattern, edge_vertices: dict[tuple[str, int], torch.Tensor]) -> np.ndarray:
+    """(S, 2) int64 panel-vertex pairs joined by the pattern's stitches (a dart tip not joined to itself)."""
+    pairs = []
+    for s in pattern.stitches:
+        va = edge_vertices[(s.a.panel, s.a.edge)].numpy()
+        vb = edge_vertices[(s.b.panel, s.b.edge)].numpy()
+        p = stitch_vertex_pairs(va, vb, s.right_wrong)
+        pairs.append(p[p[:, 0] != p[:, 1]])  # a dart tip joins itself
+    return np.concatenate(pairs) if pairs else np.zeros((0, 2), dtype=np.int64)
+
+
+def _check_no_collapse(sim_faces: np.ndarray, meshes: _PanelMeshes, pattern: Pattern) -> None:
+    """PatternError when a triangle (sim faces (F, 3)) has a repeated sim vertex after the merge."""
+    collapsed = (
+        (sim_faces[:, 0] == sim_faces[:, 1])
+        | (sim_faces[:, 1] == sim_faces[:, 2])
+        | (sim_faces[:, 0] == sim_faces[:, 2])
+    )
+    if collapsed.any():
+        pid = meshes.vert_panel[meshes.tri_vertices[collapsed][0, 0]]
+        where = f"{pattern.source}: " if pattern.source else ""
+        raise PatternError(
+            f"{where}{int(collapsed.sum())} triangle(s) collapse when the seams are merged (first in panel "
+            f"{list(pattern.panels)[pid]!r}); check the stitches of that panel"
+        )
+
+
+def _label_vertices(
+    pattern: Pattern, edge_vertices: dict[tuple[str, int], torch.Tensor]
+) -> dict[str, torch.Tensor]:
+    """Edge label -> (n,) int64 sorted panel vertices of the edges with that label."""
+    vert_labels: dict[str, torch.Tensor] = {}
+    labels = sorted({e.label for p in pattern.panels.values() for e in p.edges if e.label is not None})
+    for label in labels:
+        refs: list[EdgeRef] = pattern.edges_with_label(label)
+        idx = np.unique(np.concatenate([edge_vertices[(r.panel, r.edge)].numpy() for r in refs]))
+        vert_labels[label] = torch.as_tensor(idx, dtype=torch.int64)
+    return vert_labels
+
+
+def _sim_loops(
+    pattern: Pattern,
+    sim_faces: np.ndarray,
+    vert_to_sim: np.ndarray,
+    sim_count: int,
+    vert_pos: np.ndarray,
+    vert_labels: dict[str, torch.Tensor],
+) -> list[BoundaryLoop]:
+    """The merged mesh's named openings (sim faces (F, 3), panel vertex -> sim vertex (Vp,)), named on
+    the sim vertices placed at the mean of their panel vertices' positions (Vp, 3) [m]."""
+    sim_pos = np.zeros((sim_count, 3))
+    np.add.at(sim_pos, vert_to_sim, vert_pos)
+    sim_pos /= np.bincount(vert_to_sim, minlength=sim_count)[:, None]
+    lower = (
+        set(vert_to_sim[vert_labels["lower_interface"].numpy()].tolist())
+        if "lower_interface" in vert_labels
+        else set()
+    )
+    return name_boundary_loops(_chain_boundary_loops(sim_faces), sim_pos, pattern.garment_type, lower)
+
+
 def mesh_pattern(pattern: Pattern, spacing: float = 0.015, min_angle: float = 25.0) -> GarmentMesh:
     """Triangulate a sewing pattern into a placed, seam-merged `GarmentMesh`.
 
@@ -317,108 +455,28 @@ def mesh_pattern(pattern: Pattern, spacing: float = 0.015, min_angle: float = 25
         PatternError: a self-intersecting panel, a panel that cannot be triangulated, or seams that
             collapse a triangle when merged.
     """
-    if not (isinstance(spacing, int | float) and math.isfinite(spacing) and spacing > 0):
-        raise ValueError(f"spacing must be a positive length in metres, got {spacing!r}")
-    if not (0 < min_angle <= 34):
-        raise ValueError(
-            f"min_angle must be in (0, 34] degrees (Triangle's guaranteed range), got {min_angle!r}"
-        )
+    _check_mesh_args(spacing, min_angle)
     pattern.validate()
-    source = pattern.source
-    fractions = edge_sample_fractions(pattern, spacing)
-
-    panel_names = list(pattern.panels)
-    uv_parts, pos_parts, panel_ids, tri_parts = [], [], [], []
-    panel_boundary: list[torch.Tensor] = []
-    edge_vertices: dict[tuple[str, int], torch.Tensor] = {}
-    offset = 0
-    for pid, name in enumerate(panel_names):
-        panel = pattern.panels[name]
-        pts, starts = [], []
-        for k in range(len(panel.edges)):
-            starts.append(sum(len(p) for p in pts))
-            # a collapsed edge adds no point: the previous edge runs on to the next edge's start
-            pts.append(panel.sample_edge(k, fractions[(name, k)][:-1]).reshape(-1, 2))
-        boundary = np.concatenate(pts, axis=0)
-        lp = len(boundary)
-        verts, tris = _triangulate_panel(boundary, spacing, min_angle, name, source)
-        # orient triangles like the panel's edge loop
-        loop_sign = np.sign(polygon_signed_area(boundary))
-        a, b, c = verts[tris[:, 0]], verts[tris[:, 1]], verts[tris[:, 2]]
-        tri_sign = np.sign(
-            (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
-        )
-        flip = tri_sign != loop_sign
-        tris[flip] = tris[flip][:, [0, 2, 1]]
-        for k in range(len(panel.edges)):
-            idx = (starts[k] + np.arange(len(fractions[(name, k)]))) % lp + offset
-            edge_vertices[(name, k)] = torch.as_tensor(idx, dtype=torch.int64)
-        panel_boundary.append(torch.arange(offset, offset + lp, dtype=torch.int64))
-        uv_parts.append(verts)
-        pos_parts.append(panel.to_world(verts))
-        panel_ids.append(np.full(len(verts), pid))
-        tri_parts.append(tris + offset)
-        offset += len(verts)
-
-    vert_uv = np.concatenate(uv_parts)
-    vert_count = len(vert_uv)
-    tri_vertices = np.concatenate(tri_parts)
-
-    pairs = []
-    for s in pattern.stitches:
-        va = edge_vertices[(s.a.panel, s.a.edge)].numpy()
-        vb = edge_vertices[(s.b.panel, s.b.edge)].numpy()
-        p = stitch_vertex_pairs(va, vb, s.right_wrong)
-        pairs.append(p[p[:, 0] != p[:, 1]])  # a dart tip joins itself
-    stitch_pairs = np.concatenate(pairs) if pairs else np.zeros((0, 2), dtype=np.int64)
-
+    meshes = _mesh_panels(pattern, edge_sample_fractions(pattern, spacing), spacing, min_angle)
+    stitch_pairs = _pattern_stitch_pairs(pattern, meshes.edge_vertices)
     # sim vertices numbered in order of first appearance (panel order, then position in panel)
-    vert_to_sim, sim_count = merge_pairs(vert_count, stitch_pairs)
-
-    sim_faces = vert_to_sim[tri_vertices]
-    collapsed = (
-        (sim_faces[:, 0] == sim_faces[:, 1])
-        | (sim_faces[:, 1] == sim_faces[:, 2])
-        | (sim_faces[:, 0] == sim_faces[:, 2])
-    )
-    if collapsed.any():
-        pid = np.concatenate(panel_ids)[tri_vertices[collapsed][0, 0]]
-        where = f"{source}: " if source else ""
-        raise PatternError(
-            f"{where}{int(collapsed.sum())} triangle(s) collapse when the seams are merged (first in panel "
-            f"{panel_names[pid]!r}); check the stitches of that panel"
-        )
-
-    vert_pos = np.concatenate(pos_parts)
-    vert_labels: dict[str, torch.Tensor] = {}
-    labels = sorted({e.label for p in pattern.panels.values() for e in p.edges if e.label is not None})
-    for label in labels:
-        refs: list[EdgeRef] = pattern.edges_with_label(label)
-        idx = np.unique(np.concatenate([edge_vertices[(r.panel, r.edge)].numpy() for r in refs]))
-        vert_labels[label] = torch.as_tensor(idx, dtype=torch.int64)
-
-    sim_pos = np.zeros((sim_count, 3))
-    np.add.at(sim_pos, vert_to_sim, vert_pos)
-    sim_pos /= np.bincount(vert_to_sim, minlength=sim_count)[:, None]
-    lower = (
-        set(vert_to_sim[vert_labels["lower_interface"].numpy()].tolist())
-        if "lower_interface" in vert_labels
-        else set()
-    )
-    loops = name_boundary_loops(_chain_boundary_loops(sim_faces), sim_pos, pattern.garment_type, lower)
-
+    vert_to_sim, sim_count = merge_pairs(len(meshes.vert_uv), stitch_pairs)
+    sim_faces = vert_to_sim[meshes.tri_vertices]
+    _check_no_collapse(sim_faces, meshes, pattern)
+    vert_labels = _label_vertices(pattern, meshes.edge_vertices)
+    loops = _sim_loops(pattern, sim_faces, vert_to_sim, sim_count, meshes.vert_pos, vert_labels)
     return GarmentMesh(
-        panel_names=panel_names,
-        vert_uv=torch.as_tensor(vert_uv, dtype=torch.float64),
-        vert_panel=torch.as_tensor(np.concatenate(panel_ids), dtype=torch.int64),
-        vert_pos=torch.as_tensor(vert_pos, dtype=torch.float64),
-        tri_vertices=torch.as_tensor(tri_vertices, dtype=torch.int64),
+        panel_names=list(pattern.panels),
+        vert_uv=torch.as_tensor(meshes.vert_uv, dtype=torch.float64),
+        vert_panel=torch.as_tensor(meshes.vert_panel, dtype=torch.int64),
+        vert_pos=torch.as_tensor(meshes.vert_pos, dtype=torch.float64),
+        tri_vertices=torch.as_tensor(meshes.tri_vertices, dtype=torch.int64),
         stitch_pairs=torch.as_tensor(stitch_pairs, dtype=torch.int64).reshape(-1, 2),
         vert_to_sim=torch.as_tensor(vert_to_sim, dtype=torch.int64),
         sim_vert_count=int(sim_count),
         boundary_loops=loops,
-        panel_boundary=panel_boundary,
-        edge_vertices=edge_vertices,
+        panel_boundary=meshes.panel_boundary,
+        edge_vertices=meshes.edge_vertices,
         vert_labels=vert_labels,
         garment_type=pattern.garment_type,
         spacing=float(spacing),

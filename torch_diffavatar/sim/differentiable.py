@@ -138,6 +138,45 @@ def _drape_batch(rest_uv, garment, body_verts, material, *, state, stats, **kwar
     return torch.stack(out)
 
 
+def _drape_setup(rest_uv, garment, body_verts, material, body_faces, state, config, adjoint, options, stats):
+    """Check `drape`'s inputs and build its `DrapeSetup` (on the CPU model) and material tensors."""
+    if adjoint not in ADJOINTS:
+        raise ValueError(f"unknown adjoint {adjoint!r}; valid: {sorted(ADJOINTS)}")
+    spec = ADJOINTS[adjoint]
+    options = spec.options() if options is None else options
+    if not isinstance(options, spec.options):
+        raise ValueError(f"adjoint {adjoint!r} takes {spec.options.__name__}, got {type(options).__name__}")
+    if isinstance(garment, GarmentMesh):
+        model = ClothModelBuilder(material).add_garment(garment).finalize("cpu", rest_uv.dtype)
+    elif isinstance(garment, ClothModel):
+        model = garment
+    else:
+        raise ValueError(f"garment must be a ClothModel or a GarmentMesh, got {type(garment).__name__}")
+    _check_inputs(model, rest_uv, body_verts, body_faces)
+    material = model.material if material is None else material
+    names, values = material_tensor_fields(material)
+    values = tuple(v.to(dtype=model.dtype, device=model.device) for v in values)
+    if state is None:
+        x0, v0 = model.vert_init_pos, torch.zeros_like(model.vert_init_pos)
+    else:
+        if state.x.shape != (model.vert_count, 3):
+            raise ValueError(f"state.x must be ({model.vert_count}, 3), got {tuple(state.x.shape)}")
+        x0, v0 = state.x.detach().to(model.vert_init_pos), state.v.detach().to(model.vert_init_pos)
+    setup = DrapeSetup(
+        model=model,
+        material=material_with(material, names, tuple(v.detach() for v in values)),
+        material_names=names,
+        body_faces=None if body_faces is None else body_faces.to(model.device),
+        config=DrapeConfig() if config is None else config,
+        x0=x0,
+        v0=v0,
+        options=options,
+        stats=stats,
+    )
+    setup.saved["adjoint"] = adjoint
+    return setup, values
+
+
 def drape(
     rest_uv: torch.Tensor,
     garment: ClothModel | GarmentMesh,
@@ -197,45 +236,14 @@ def drape(
             options=options,
             stats=stats,
         )
-    if adjoint not in ADJOINTS:
-        raise ValueError(f"unknown adjoint {adjoint!r}; valid: {sorted(ADJOINTS)}")
-    spec = ADJOINTS[adjoint]
-    options = spec.options() if options is None else options
-    if not isinstance(options, spec.options):
-        raise ValueError(f"adjoint {adjoint!r} takes {spec.options.__name__}, got {type(options).__name__}")
-    if isinstance(garment, GarmentMesh):
-        model = ClothModelBuilder(material).add_garment(garment).finalize("cpu", rest_uv.dtype)
-    elif isinstance(garment, ClothModel):
-        model = garment
-    else:
-        raise ValueError(f"garment must be a ClothModel or a GarmentMesh, got {type(garment).__name__}")
-    _check_inputs(model, rest_uv, body_verts, body_faces)
+    setup, values = _drape_setup(
+        rest_uv, garment, body_verts, material, body_faces, state, config, adjoint, options, stats
+    )
     device = rest_uv.device
     # to the simulator's device; `Tensor.cpu` is differentiable, so gradients flow back to ``device``
     rest_uv = rest_uv.cpu()
     body_verts = None if body_verts is None else body_verts.cpu()
-    material = model.material if material is None else material
-    names, values = material_tensor_fields(material)
-    values = tuple(v.to(dtype=model.dtype, device=model.device) for v in values)
-    if state is None:
-        x0, v0 = model.vert_init_pos, torch.zeros_like(model.vert_init_pos)
-    else:
-        if state.x.shape != (model.vert_count, 3):
-            raise ValueError(f"state.x must be ({model.vert_count}, 3), got {tuple(state.x.shape)}")
-        x0, v0 = state.x.detach().to(model.vert_init_pos), state.v.detach().to(model.vert_init_pos)
-    setup = DrapeSetup(
-        model=model,
-        material=material_with(material, names, tuple(v.detach() for v in values)),
-        material_names=names,
-        body_faces=None if body_faces is None else body_faces.to(model.device),
-        config=DrapeConfig() if config is None else config,
-        x0=x0,
-        v0=v0,
-        options=options,
-        stats=stats,
-    )
-    setup.saved["adjoint"] = adjoint
     x, frames = _Drape.apply(setup, rest_uv, body_verts, *values)
-    if getattr(options, "return_trajectory", False):
+    if getattr(setup.options, "return_trajectory", False):
         return x.to(device), frames.to(device)
     return x.to(device)
