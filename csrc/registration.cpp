@@ -42,16 +42,18 @@ TORCH_LIBRARY(diffavatar, m) {
       "bend_project_jacobi_(Tensor(a!) x, Tensor(b!) lam, Tensor vert_inv_mass, Tensor edge_quads, "
       "Tensor edge_rest_angle, Tensor edge_compliance, float dt, float omega) -> ()");
   // Fused XPBD substeps (predict, iterations x (stretch, bend, attachments, body contacts, stitches),
-  // friction, velocity update), in place on x and v; twin: reference.xpbd_substeps_.
+  // friction, velocity update), in place on x and v; twin: reference.xpbd_substeps_. The arguments are
+  // grouped by role; sim/substep.py (SubstepInputs) builds them and documents each list's layout:
+  //   stretch = [tri_vertices, tri_rest_inv, tri_compliance, tri_order, tri_color_offsets]
+  //   bend = [edge_quads, edge_rest_angle, edge_compliance, edge_order, edge_color_offsets]
+  //   seams = [stitch_vertices, attach_vertices, attach_height]
+  //   body = [body_verts, body_faces, contact_vert, contact_tri, contact_bary]
+  //   coefficients = [gravity x, y, z, velocity_decay, dt, stitch_compliance, stitch_max_move,
+  //                   stitch_snap, attach_compliance, thickness, friction, jacobi_omega]
   m.def(
-      "xpbd_substeps_(Tensor(a!) x, Tensor(b!) v, Tensor vert_inv_mass, Tensor tri_vertices, "
-      "Tensor tri_rest_inv, Tensor tri_compliance, Tensor tri_order, Tensor tri_color_offsets, "
-      "Tensor edge_quads, Tensor edge_rest_angle, Tensor edge_compliance, Tensor edge_order, "
-      "Tensor edge_color_offsets, Tensor stitch_vertices, Tensor attach_vertices, Tensor attach_height, "
-      "Tensor body_verts, Tensor body_faces, Tensor contact_vert, Tensor contact_tri, Tensor contact_bary, "
-      "float[] gravity, float velocity_decay, float dt, int substeps, int iterations, float stitch_compliance, "
-      "float stitch_max_move, float stitch_snap, float attach_compliance, float thickness, float friction, "
-      "bool jacobi, float jacobi_omega, int num_threads) -> ()");
+      "xpbd_substeps_(Tensor(a!) x, Tensor(b!) v, Tensor vert_inv_mass, Tensor[] stretch, Tensor[] bend, "
+      "Tensor[] seams, Tensor[] body, float[] coefficients, int substeps, int iterations, bool jacobi, "
+      "int num_threads) -> ()");
   // Largest |Green strain component| over the triangles (0-dim tensor): the solver's blow-up test.
   m.def("max_abs_green_strain(Tensor x, Tensor tri_vertices, Tensor tri_rest_inv) -> Tensor");
   // Closest point on a triangle mesh within max_dist (uniform grid + exact point-triangle distance).

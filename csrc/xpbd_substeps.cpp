@@ -1,8 +1,10 @@
 // Fused XPBD substeps: `xpbd_substeps_` runs `substeps` × (predict → `iterations` × (stretch, bend,
 // attachments, body contacts, stitches) → friction → velocity update) in one call, in place on x and v.
-// Its PyTorch twin is `torch_diffavatar/sim/reference.py: xpbd_substeps_` (the composition of the
-// per-constraint reference kernels and `sim/collision.py`), which documents the maths; the tests compare
-// the two.
+// Its PyTorch twin is `torch_diffavatar/sim/reference.py: xpbd_substeps_`, whose maths `xpbd_substeps`
+// (the per-constraint reference kernels and `sim/contacts.py`) is also the frame the trajectory adjoint
+// replays; the tests compare the two (tests/sim/test_ops_cpp.py, test_xpbd_frame.py). The arguments come
+// grouped by role (tensor lists stretch, bend, seams, body and the float list coefficients), in the
+// layout of `sim/substep.py` (SubstepInputs), unpacked once below (FrameTensors, unpack_options).
 //
 // Why one op: a substep of the 64x64 benchmark sheet is ~1 ms of arithmetic, so per-kernel dispatch,
 // argument checks and the torch contact/stitch code (~2 ms) dominated. Here the inputs are checked once,
@@ -579,16 +581,61 @@ struct Options {
   int threads;
 };
 
+// The op's tensor lists by role, unpacked once (layout: torch_diffavatar/sim/substep.py, whose
+// SubstepInputs builds them; `unpack_frame` checks the list lengths).
+struct FrameTensors {
+  at::Tensor tri_vertices, tri_rest_inv, tri_compliance, tri_order, tri_color_offsets;    // stretch
+  at::Tensor edge_quads, edge_rest_angle, edge_compliance, edge_order, edge_color_offsets;  // bend
+  at::Tensor stitch_vertices, attach_vertices, attach_height;                               // seams
+  at::Tensor body_verts, body_faces, contact_vert, contact_tri, contact_bary;               // body
+};
+
+void check_list_size(at::TensorList list, size_t n, const char* name, const char* layout) {
+  TORCH_CHECK(list.size() == n, "diffavatar: xpbd_substeps_ ", name, " must hold ", n, " tensors ", layout,
+              ", got ", list.size());
+}
+
+FrameTensors unpack_frame(at::TensorList stretch, at::TensorList bend, at::TensorList seams, at::TensorList body) {
+  check_list_size(stretch, 5, "stretch", "(tri_vertices, tri_rest_inv, tri_compliance, tri_order, tri_color_offsets)");
+  check_list_size(bend, 5, "bend", "(edge_quads, edge_rest_angle, edge_compliance, edge_order, edge_color_offsets)");
+  check_list_size(seams, 3, "seams", "(stitch_vertices, attach_vertices, attach_height)");
+  check_list_size(body, 5, "body", "(body_verts, body_faces, contact_vert, contact_tri, contact_bary)");
+  return FrameTensors{stretch[0], stretch[1], stretch[2], stretch[3], stretch[4],  // stretch
+                      bend[0],    bend[1],    bend[2],    bend[3],    bend[4],     // bend
+                      seams[0],   seams[1],   seams[2],                            // seams
+                      body[0],    body[1],    body[2],    body[3],    body[4]};    // body
+}
+
+// The op's `coefficients` (the float fields of sim/substep.py's SubstepParams, in order) and counts.
+Options unpack_options(at::ArrayRef<double> c, int64_t substeps, int64_t iterations, bool jacobi,
+                       int64_t num_threads) {
+  TORCH_CHECK(c.size() == 12,
+              "diffavatar: xpbd_substeps_ coefficients must hold 12 floats (gravity x, y, z, velocity_decay, dt, "
+              "stitch_compliance, stitch_max_move, stitch_snap, attach_compliance, thickness, friction, "
+              "jacobi_omega), got ",
+              c.size());
+  TORCH_CHECK(num_threads >= 0, "diffavatar: num_threads must be >= 0 (0 = torch.get_num_threads()), got ",
+              num_threads);
+  Options o;
+  std::copy(c.begin(), c.begin() + 3, o.gravity);
+  o.velocity_decay = c[3];
+  o.dt = c[4];
+  o.stitch_compliance = c[5];
+  o.stitch_max_move = c[6];
+  o.stitch_snap = c[7];
+  o.attach_compliance = c[8];
+  o.thickness = c[9];
+  o.friction = c[10];
+  o.omega = c[11];
+  o.substeps = substeps;
+  o.iterations = iterations;
+  o.jacobi = jacobi;
+  o.threads = num_threads == 0 ? diffavatar::num_threads() : static_cast<int>(num_threads);
+  return o;
+}
+
 template <typename T>
-void run_substeps(at::Tensor& x_t, at::Tensor& v_t, const at::Tensor& w_t, const at::Tensor& tri_vertices,
-                  const at::Tensor& tri_rest_inv, const at::Tensor& tri_compliance, const at::Tensor& tri_order,
-                  const at::Tensor& tri_color_offsets, const at::Tensor& edge_quads,
-                  const at::Tensor& edge_rest_angle, const at::Tensor& edge_compliance,
-                  const at::Tensor& edge_order, const at::Tensor& edge_color_offsets,
-                  const at::Tensor& stitch_vertices, const at::Tensor& attach_vertices,
-                  const at::Tensor& attach_height, const at::Tensor& body_verts, const at::Tensor& body_faces,
-                  const at::Tensor& contact_vert, const at::Tensor& contact_tri, const at::Tensor& contact_bary,
-                  const Options& o) {
+void run_substeps(at::Tensor& x_t, at::Tensor& v_t, const at::Tensor& w_t, const FrameTensors& t, const Options& o) {
   T* x = x_t.data_ptr<T>();
   T* v = v_t.data_ptr<T>();
   const T* w = w_t.data_ptr<T>();
@@ -600,15 +647,15 @@ void run_substeps(at::Tensor& x_t, at::Tensor& v_t, const at::Tensor& w_t, const
   const T gh[3] = {static_cast<T>(o.gravity[0]) * h, static_cast<T>(o.gravity[1]) * h,
                    static_cast<T>(o.gravity[2]) * h};
 
-  StretchPack<T> sp =
-      pack_stretch<T>(tri_vertices, tri_rest_inv, tri_compliance, tri_order, tri_color_offsets, w, o.jacobi, inv_h2);
-  BendPack<T> bp =
-      pack_bend<T>(edge_quads, edge_rest_angle, edge_compliance, edge_order, edge_color_offsets, w, o.jacobi, inv_h2);
-  StitchPack<T> st = pack_stitches<T>(stitch_vertices, nv);
-  ContactPack<T> cp = pack_contacts<T>(contact_vert, contact_tri, contact_bary, body_verts, body_faces, w);
-  const int64_t n_attach = attach_vertices.numel();
-  const int64_t* attach_v = attach_vertices.data_ptr<int64_t>();
-  const T* attach_y = attach_height.data_ptr<T>();
+  StretchPack<T> sp = pack_stretch<T>(t.tri_vertices, t.tri_rest_inv, t.tri_compliance, t.tri_order,
+                                       t.tri_color_offsets, w, o.jacobi, inv_h2);
+  BendPack<T> bp = pack_bend<T>(t.edge_quads, t.edge_rest_angle, t.edge_compliance, t.edge_order,
+                                t.edge_color_offsets, w, o.jacobi, inv_h2);
+  StitchPack<T> st = pack_stitches<T>(t.stitch_vertices, nv);
+  ContactPack<T> cp = pack_contacts<T>(t.contact_vert, t.contact_tri, t.contact_bary, t.body_verts, t.body_faces, w);
+  const int64_t n_attach = t.attach_vertices.numel();
+  const int64_t* attach_v = t.attach_vertices.data_ptr<int64_t>();
+  const T* attach_y = t.attach_height.data_ptr<T>();
   std::vector<T> attach_lam(static_cast<size_t>(n_attach));
   const T attach_at = static_cast<T>(o.attach_compliance) * inv_h2;
   const T stitch_at = static_cast<T>(o.stitch_compliance) * inv_h2;
@@ -732,88 +779,65 @@ void run_substeps(at::Tensor& x_t, at::Tensor& v_t, const at::Tensor& w_t, const
   }
 }
 
-void xpbd_substeps_(at::Tensor x, at::Tensor v, const at::Tensor& vert_inv_mass, const at::Tensor& tri_vertices,
-                    const at::Tensor& tri_rest_inv, const at::Tensor& tri_compliance, const at::Tensor& tri_order,
-                    const at::Tensor& tri_color_offsets, const at::Tensor& edge_quads,
-                    const at::Tensor& edge_rest_angle, const at::Tensor& edge_compliance,
-                    const at::Tensor& edge_order, const at::Tensor& edge_color_offsets,
-                    const at::Tensor& stitch_vertices, const at::Tensor& attach_vertices,
-                    const at::Tensor& attach_height, const at::Tensor& body_verts, const at::Tensor& body_faces,
-                    const at::Tensor& contact_vert, const at::Tensor& contact_tri, const at::Tensor& contact_bary,
-                    at::ArrayRef<double> gravity, double velocity_decay, double dt, int64_t substeps,
-                    int64_t iterations, double stitch_compliance, double stitch_max_move, double stitch_snap,
-                    double attach_compliance, double thickness, double friction, bool jacobi, double jacobi_omega,
-                    int64_t num_threads) {
+void check_frame(const at::Tensor& x, const at::Tensor& v, const at::Tensor& vert_inv_mass, const FrameTensors& t,
+                 bool jacobi) {
+  const auto dtype = x.scalar_type();
+  const int64_t nv = x.size(0), nf = t.tri_vertices.size(0), ne = t.edge_quads.size(0);
+  check_float(v, "v", dtype, {nv, 3});
+  check_float(vert_inv_mass, "vert_inv_mass", dtype, {nv});
+  check_cpu_contiguous(t.tri_vertices, "tri_vertices");
+  check_shape(t.tri_vertices, "tri_vertices", {-1, 3});
+  check_dtype(t.tri_vertices, "tri_vertices", at::kLong);
+  check_index_range(t.tri_vertices, nv, "tri_vertices");
+  check_float(t.tri_rest_inv, "tri_rest_inv", dtype, {nf, 2, 2});
+  check_float(t.tri_compliance, "tri_compliance", dtype, {nf, 3, 3});
+  check_cpu_contiguous(t.edge_quads, "edge_quads");
+  check_shape(t.edge_quads, "edge_quads", {-1, 4});
+  check_dtype(t.edge_quads, "edge_quads", at::kLong);
+  check_index_range(t.edge_quads, nv, "edge_quads");
+  check_float(t.edge_rest_angle, "edge_rest_angle", dtype, {ne});
+  check_float(t.edge_compliance, "edge_compliance", dtype, {ne});
+  if (!jacobi) {
+    check_order_pair(t.tri_order, t.tri_color_offsets, nf, "tri_order");
+    check_order_pair(t.edge_order, t.edge_color_offsets, ne, "edge_order");
+  }
+  check_cpu_contiguous(t.stitch_vertices, "stitch_vertices");
+  check_shape(t.stitch_vertices, "stitch_vertices", {-1, 2});
+  check_dtype(t.stitch_vertices, "stitch_vertices", at::kLong);
+  check_index_range(t.stitch_vertices, nv, "stitch_vertices");
+  check_long_1d(t.attach_vertices, "attach_vertices");
+  check_index_range(t.attach_vertices, nv, "attach_vertices");
+  check_float(t.attach_height, "attach_height", dtype, {t.attach_vertices.numel()});
+  check_float(t.body_verts, "body_verts", dtype, {-1, 3});
+  check_cpu_contiguous(t.body_faces, "body_faces");
+  check_shape(t.body_faces, "body_faces", {-1, 3});
+  check_dtype(t.body_faces, "body_faces", at::kLong);
+  check_index_range(t.body_faces, t.body_verts.size(0), "body_faces");
+  check_long_1d(t.contact_vert, "contact_vert");
+  check_index_range(t.contact_vert, nv, "contact_vert");
+  const int64_t nc = t.contact_vert.numel();
+  check_long_1d(t.contact_tri, "contact_tri");
+  TORCH_CHECK(t.contact_tri.numel() == nc, "diffavatar: contact_tri must have shape (", nc, "), got ",
+              t.contact_tri.sizes());
+  check_index_range(t.contact_tri, t.body_faces.size(0), "contact_tri");
+  check_float(t.contact_bary, "contact_bary", dtype, {nc, 3});
+}
+
+void xpbd_substeps_(at::Tensor x, at::Tensor v, const at::Tensor& vert_inv_mass, at::TensorList stretch,
+                    at::TensorList bend, at::TensorList seams, at::TensorList body, at::ArrayRef<double> coefficients,
+                    int64_t substeps, int64_t iterations, bool jacobi, int64_t num_threads) {
   check_cpu_contiguous(x, "x");
   const auto dtype = x.scalar_type();
   TORCH_CHECK(dtype == at::kFloat || dtype == at::kDouble, "diffavatar: x must be float32 or float64, got ", dtype);
   check_shape(x, "x", {-1, 3});
-  const int64_t nv = x.size(0), nf = tri_vertices.size(0), ne = edge_quads.size(0);
-  TORCH_CHECK(nv < (int64_t(1) << 31), "diffavatar: xpbd_substeps_ supports fewer than 2^31 vertices");
-  check_float(v, "v", dtype, {nv, 3});
-  check_float(vert_inv_mass, "vert_inv_mass", dtype, {nv});
-  check_cpu_contiguous(tri_vertices, "tri_vertices");
-  check_shape(tri_vertices, "tri_vertices", {-1, 3});
-  check_dtype(tri_vertices, "tri_vertices", at::kLong);
-  check_index_range(tri_vertices, nv, "tri_vertices");
-  check_float(tri_rest_inv, "tri_rest_inv", dtype, {nf, 2, 2});
-  check_float(tri_compliance, "tri_compliance", dtype, {nf, 3, 3});
-  check_cpu_contiguous(edge_quads, "edge_quads");
-  check_shape(edge_quads, "edge_quads", {-1, 4});
-  check_dtype(edge_quads, "edge_quads", at::kLong);
-  check_index_range(edge_quads, nv, "edge_quads");
-  check_float(edge_rest_angle, "edge_rest_angle", dtype, {ne});
-  check_float(edge_compliance, "edge_compliance", dtype, {ne});
-  if (!jacobi) {
-    check_order_pair(tri_order, tri_color_offsets, nf, "tri_order");
-    check_order_pair(edge_order, edge_color_offsets, ne, "edge_order");
-  }
-  check_cpu_contiguous(stitch_vertices, "stitch_vertices");
-  check_shape(stitch_vertices, "stitch_vertices", {-1, 2});
-  check_dtype(stitch_vertices, "stitch_vertices", at::kLong);
-  check_index_range(stitch_vertices, nv, "stitch_vertices");
-  check_long_1d(attach_vertices, "attach_vertices");
-  check_index_range(attach_vertices, nv, "attach_vertices");
-  check_float(attach_height, "attach_height", dtype, {attach_vertices.numel()});
-  check_float(body_verts, "body_verts", dtype, {-1, 3});
-  check_cpu_contiguous(body_faces, "body_faces");
-  check_shape(body_faces, "body_faces", {-1, 3});
-  check_dtype(body_faces, "body_faces", at::kLong);
-  check_index_range(body_faces, body_verts.size(0), "body_faces");
-  check_long_1d(contact_vert, "contact_vert");
-  check_index_range(contact_vert, nv, "contact_vert");
-  const int64_t nc = contact_vert.numel();
-  check_long_1d(contact_tri, "contact_tri");
-  TORCH_CHECK(contact_tri.numel() == nc, "diffavatar: contact_tri must have shape (", nc, "), got ",
-              contact_tri.sizes());
-  check_index_range(contact_tri, body_faces.size(0), "contact_tri");
-  check_float(contact_bary, "contact_bary", dtype, {nc, 3});
-  TORCH_CHECK(gravity.size() == 3, "diffavatar: gravity must have 3 components, got ", gravity.size());
-  TORCH_CHECK(dt > 0, "diffavatar: dt must be > 0, got ", dt);
+  TORCH_CHECK(x.size(0) < (int64_t(1) << 31), "diffavatar: xpbd_substeps_ supports fewer than 2^31 vertices");
+  const FrameTensors t = unpack_frame(stretch, bend, seams, body);
+  check_frame(x, v, vert_inv_mass, t, jacobi);
+  const Options o = unpack_options(coefficients, substeps, iterations, jacobi, num_threads);
+  TORCH_CHECK(o.dt > 0, "diffavatar: dt must be > 0, got ", o.dt);
   TORCH_CHECK(substeps >= 0 && iterations >= 1, "diffavatar: need substeps >= 0 and iterations >= 1, got ",
               substeps, ", ", iterations);
-  TORCH_CHECK(num_threads >= 0, "diffavatar: num_threads must be >= 0 (0 = torch.get_num_threads()), got ",
-              num_threads);
-  Options o{{gravity[0], gravity[1], gravity[2]},
-            velocity_decay,
-            dt,
-            substeps,
-            iterations,
-            stitch_compliance,
-            stitch_max_move,
-            stitch_snap,
-            attach_compliance,
-            thickness,
-            friction,
-            jacobi,
-            jacobi_omega,
-            num_threads == 0 ? diffavatar::num_threads() : static_cast<int>(num_threads)};
-  AT_DISPATCH_FLOATING_TYPES(dtype, "xpbd_substeps_", [&] {
-    run_substeps<scalar_t>(x, v, vert_inv_mass, tri_vertices, tri_rest_inv, tri_compliance, tri_order,
-                           tri_color_offsets, edge_quads, edge_rest_angle, edge_compliance, edge_order,
-                           edge_color_offsets, stitch_vertices, attach_vertices, attach_height, body_verts,
-                           body_faces, contact_vert, contact_tri, contact_bary, o);
-  });
+  AT_DISPATCH_FLOATING_TYPES(dtype, "xpbd_substeps_", [&] { run_substeps<scalar_t>(x, v, vert_inv_mass, t, o); });
 }
 
 // Largest |E00|, |E11|, |E01| of the Green strain over the triangles (0-dim tensor; NaN if any is NaN).

@@ -5,6 +5,7 @@ input validation."""
 from __future__ import annotations
 
 import math
+import warnings
 
 import pytest
 import torch
@@ -137,6 +138,19 @@ def test_trajectory_gradcheck_sheet_on_sphere(sheet, group):
     x = f(t.detach()).detach()
     r = (x - sheet[2].mean(0)).norm(dim=-1)
     assert float(r.min()) < 0.2 + 0.006  # some vertex was pushed by the body (radius + thickness)
+
+
+@pytest.mark.parametrize("group", ("rest_uv", "body"))
+def test_trajectory_gradcheck_jacobi(sheet, group):
+    """The Jacobi scheme replays through the reference kernels; their multipliers were updated in place
+    after autograd had saved them, and every Jacobi backward failed."""
+    cfg = DrapeConfig(
+        xpbd=XPBDConfig(substeps=2, iterations=2, scheme="jacobi"), dt=1 / 30, max_steps=2, min_steps=2
+    )
+    stats = {}
+    f, t = _fn(sheet, group, "trajectory", cfg, TrajectoryOptions(checkpoint_every=1), stats)
+    _gradcheck(f, t)
+    assert stats["max_contacts"] > 0
 
 
 def test_trajectory_gradcheck_tube(tube):
@@ -272,6 +286,80 @@ def test_cpp_sparse_solve_matches_scipy(dtype):
     _, info = op(crow2, col2, val2, b2, 0, 1e-10, 500)
     assert int(info[2]) == 2 and float(info[3]) < 0  # CG reports the negative curvature
     torch.library.opcheck(op.default, (crow, col, val, b, 1, 1e-10, 500))
+
+
+def _spring_chain(n=300, spread=6.0, seed=0):
+    """A stiff 1D spring chain (springs 1 to 10^spread N/m, light masses) like a cloth Hessian: condition
+    number ~1e8 at spread 6, and ‖H‖ ‖x‖ ≫ ‖b‖."""
+    gen = torch.Generator().manual_seed(seed)
+    k = 10 ** (spread * torch.rand(n + 1, generator=gen, dtype=DT))
+    i = torch.arange(n)
+    a = torch.zeros(n, n, dtype=DT)
+    a[i, i] = k[:-1] + k[1:] + 1e-2
+    a[i[:-1], i[:-1] + 1] = a[i[:-1] + 1, i[:-1]] = -k[1:-1]
+    nz = a != 0
+    crow = torch.zeros(n + 1, dtype=torch.int64)
+    crow[1:] = torch.cumsum(nz.sum(1), 0)
+    return a, crow, nz.nonzero()[:, 1], a[nz], torch.randn(n, generator=gen, dtype=DT)
+
+
+@pytest.mark.parametrize("method", ["auto", "minres"])
+def test_converged_solve_of_a_stiff_system_does_not_warn(method):
+    """Every equilibrium backward warned "inexact sparse solve … 1.15e-08 > 1e-08": converged solves end
+    with a true relative residual around their target (CG's recursive residual drifts; MINRES measures
+    it in its preconditioner's norm), and the check compared it with that very target."""
+    from torch_diffavatar.sim.adjoint.linsolve import check_solve
+
+    a, crow, col, val, b = _spring_chain()
+    x, info = solve_symmetric(crow, col, val, b, method=method, tol=1e-8)
+    exact = torch.linalg.solve(a, b)
+    assert info.converged and info.residual > 1e-8  # what used to warn
+    assert float((x - exact).norm() / exact.norm()) < 1e-7  # the answer is good
+    assert info.backward_error < 1e-10
+    for dtype in (torch.float64, torch.float32):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            check_solve(info, 1e-8, "test", dtype)
+
+
+@pytest.mark.parametrize(
+    "method, spread, max_iter", [("cg", 3.0, 650), ("minres", 3.0, 600), ("minres", 4.0, 1200)]
+)
+def test_unconverged_solve_warns(method, spread, max_iter):
+    """Solves cut short by the iteration cap (forward errors 3e-5 to 2e-4) still warn. Their relative
+    residuals are no worse than the converged MINRES solve's above, and the last one's backward error is
+    7e-10: the convergence flag tells them apart."""
+    from torch_diffavatar.sim.adjoint.linsolve import check_solve
+
+    a, crow, col, val, b = _spring_chain(spread=spread)
+    x, info = solve_symmetric(crow, col, val, b, method=method, tol=1e-8, max_iter=max_iter)
+    exact = torch.linalg.solve(a, b)
+    assert not info.converged and info.residual < 1e-3
+    assert float((x - exact).norm() / exact.norm()) > 1e-5
+    with pytest.warns(RuntimeWarning, match="did not converge"):
+        check_solve(info, 1e-8, "test")
+
+
+@pytest.mark.parametrize(
+    "noise, warns64, warns32", [(1e-13, False, False), (1e-7, True, False), (1e-6, True, True)]
+)
+def test_backward_error_guards_a_converged_but_inaccurate_answer(noise, warns64, warns32):
+    """An answer off by a relative ``noise`` (backward errors 2e-14, 2e-8, 2e-7): beyond ``tol`` it warns,
+    unless the answer is used in float32, whose rounding (1.2e-7) would hide the error anyway."""
+    from torch_diffavatar.sim.adjoint.linsolve import SolveInfo, backward_error, check_solve, residual
+
+    a, crow, col, val, b = _spring_chain(spread=2.0)
+    x = torch.linalg.solve(a, b) * (1 + noise * torch.sin(torch.arange(b.shape[0], dtype=DT)))
+    res, omega = residual(crow, col, val, x, b), backward_error(crow, col, val, x, b)
+    info = SolveInfo("direct", 0, res, False, ("direct",), True, omega)
+    for dtype, warns in ((torch.float64, warns64), (torch.float32, warns32)):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            check_solve(info, 1e-8, "test", dtype)
+        assert [str(w.message).count("backward error") for w in caught] == ([1] if warns else []), (
+            dtype,
+            omega,
+        )
 
 
 def test_singular_adjoint_solve_raises():

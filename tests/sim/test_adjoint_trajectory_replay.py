@@ -10,12 +10,12 @@ from test_adjoint import DT, material, sheet_on_sphere
 from torch_diffavatar.sim import collision
 from torch_diffavatar.sim.adjoint import TrajectoryOptions
 from torch_diffavatar.sim.adjoint.replay import ReplayPlan
-from torch_diffavatar.sim.adjoint.trajectory import replay_frame, step_band
+from torch_diffavatar.sim.adjoint.trajectory import replay_frame
 from torch_diffavatar.sim.differentiable import drape
 from torch_diffavatar.sim.drape import DrapeConfig
 from torch_diffavatar.sim.material import ClothMaterial
 from torch_diffavatar.sim.model import ClothModelBuilder
-from torch_diffavatar.sim.solver import XPBDConfig, XPBDSolver
+from torch_diffavatar.sim.solver import XPBDConfig, XPBDSolver, contact_band
 from torch_diffavatar.sim.state import ClothState
 from torch_diffavatar.sim.testing import tube_garment
 
@@ -33,11 +33,13 @@ def _frames(model, rest, body, faces, cfg, state, count):
     for _ in range(count):
         c = None
         if body is not None:
-            c = collision.detect_contacts(state.x, body, faces, step_band(state.v, rest, cfg, DT_FRAME))
+            band = contact_band(state.v, rest.material, cfg, DT_FRAME)
+            c = collision.detect_contacts(state.x, body, faces, band)
             c = c if c.count else None
-        new = solver.step(state, rest, DT_FRAME, body_verts=body, body_faces=faces, velocity_scale=0.97)
+        result = solver.advance(state, rest, DT_FRAME, body_verts=body, body_faces=faces, velocity_scale=0.97)
+        new = result.state
         # the contacts the step used, which the trajectory adjoint's rollout records, are this very set
-        last = solver.last_contacts
+        last = result.contacts
         assert (last is None) == (c is None)
         if c is not None:
             assert torch.equal(last.vert, c.vert) and torch.equal(last.tri, c.tri)

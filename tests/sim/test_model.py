@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import pytest
 import torch
 
@@ -84,6 +86,17 @@ def test_material_validation_and_defaults():
         ClothMaterial(k_uu=0.0)
     with pytest.raises(ValueError, match="finite"):
         ClothMaterial(damping=float("nan"))
+    with pytest.raises(ValueError, match="k_vv"):
+        ClothMaterial(k_vv=torch.tensor(0.0, requires_grad=True))
+
+
+def test_material_with_fitted_tensors_validates_without_warnings():
+    # a fit passes its stiffness as a tensor that requires grad: validating it is no reason to warn
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ClothMaterial(
+            k_uu=torch.tensor(60.0, requires_grad=True), poisson=torch.tensor(0.2, requires_grad=True)
+        )
 
 
 def test_energies_and_rest_data_gradcheck():

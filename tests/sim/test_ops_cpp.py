@@ -5,6 +5,7 @@ Skipped when the extension is not built (`python setup.py build_ext --inplace`).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -347,10 +348,10 @@ def _sphere(dtype=F64):
 
 
 def _substep_args(case: str, dtype=F64, monkeypatch=None):
-    """The exact argument list `XPBDSolver.step` passes to `ops.xpbd_substeps_` in a state where every
-    constraint kind is active: ``"sphere"`` a perturbed, moving sheet pressed onto a sphere (contacts,
-    friction), ``"tube"`` an open stitched tube with its waist attached (stitches with the bounded pull,
-    attachments), ``"jacobi"`` the sphere case with the Jacobi scheme."""
+    """(x, v, inputs): the exact `SubstepInputs` that `XPBDSolver.step` passes to `ops.xpbd_substeps_` in a
+    state where every constraint kind is active: ``"sphere"`` a perturbed, moving sheet pressed onto a
+    sphere (contacts, friction), ``"tube"`` an open stitched tube with its waist attached (stitches with
+    the bounded pull, attachments), ``"jacobi"`` the sphere case with the Jacobi scheme."""
     from torch_diffavatar.sim.material import ClothMaterial
     from torch_diffavatar.sim.model import ClothModelBuilder
     from torch_diffavatar.sim.solver import XPBDConfig, XPBDSolver
@@ -383,38 +384,85 @@ def _substep_args(case: str, dtype=F64, monkeypatch=None):
     XPBDSolver(model, cfg).step(ClothState(x, v), rest, 1 / 60, **kw)
     monkeypatch.undo()
     (args,) = captured
-    return list(args)
+    return args
 
 
-def _run_substeps(fn, args, **overrides):
-    """(x, v) after fn(*args) on copies of x and v; keyword overrides replace named scalar arguments."""
-    names = ["substeps", "iterations", "num_threads"]
-    position = {"substeps": 24, "iterations": 25, "num_threads": 34}
-    args = list(args)
-    for name, value in overrides.items():
-        assert name in names
-        args[position[name]] = value
-    x, v = args[0].clone(), args[1].clone()
-    fn(x, v, *args[2:])
+def _with_params(inputs, **params):
+    """``inputs`` with some `SubstepParams` fields replaced."""
+    return dataclasses.replace(inputs, params=dataclasses.replace(inputs.params, **params))
+
+
+def _run_substeps(fn, args, **params):
+    """(x, v) after fn(x, v, *inputs.op_args()) on copies of x and v; keywords replace `SubstepParams`
+    fields."""
+    x, v, inputs = args
+    x, v = x.clone(), v.clone()
+    fn(x, v, *_with_params(inputs, **params).op_args())
     return x, v
 
 
 @pytest.mark.parametrize("case", ["sphere", "tube", "jacobi"])
 def test_xpbd_substeps_matches_reference_float64(case, monkeypatch):
     args = _substep_args(case, monkeypatch=monkeypatch)
+    x0, _, inputs = args
     if case != "tube":
-        assert args[18].numel() > 10, "the problem must have body contacts"
-        assert args[31] > 0, "and friction"
+        assert inputs.body.contact_vert.numel() > 10, "the problem must have body contacts"
+        assert inputs.params.friction > 0, "and friction"
     x_cpp, v_cpp = _run_substeps(_op("xpbd_substeps_"), args)
     x_ref, v_ref = _run_substeps(reference.xpbd_substeps_, args)
-    assert (x_ref - args[0]).abs().max() > 1e-3, "the problem must actually move the vertices"
+    assert (x_ref - x0).abs().max() > 1e-3, "the problem must actually move the vertices"
     torch.testing.assert_close(x_cpp, x_ref, rtol=0.0, atol=1e-10)
     torch.testing.assert_close(v_cpp, v_ref, rtol=0.0, atol=1e-7)
     if case == "tube":  # the bounded stitch pull was active: gaps shrink, but by at most max_move per pass
-        pairs = args[13]
-        gap0 = (args[0][pairs[:, 0]] - args[0][pairs[:, 1]]).norm(dim=-1)
+        pairs = inputs.seams.stitch_vertices
+        gap0 = (x0[pairs[:, 0]] - x0[pairs[:, 1]]).norm(dim=-1)
         gap1 = (x_cpp[pairs[:, 0]] - x_cpp[pairs[:, 1]]).norm(dim=-1)
         assert float(gap1.max()) < float(gap0.max()) - 1e-3
+
+
+# Each coefficient changed on its own, in a case where it acts: the C++ op must read it where the Python
+# layout (`SubstepParams.op_args`) puts it, or C++ and reference part ways.
+_COEFFICIENT_CASES = [
+    ("sphere", {"gravity": (1.5, -9.81, 0.0)}),
+    ("sphere", {"gravity": (0.0, -4.0, 0.0)}),
+    ("sphere", {"gravity": (0.0, -9.81, -2.0)}),
+    ("sphere", {"velocity_decay": 0.9}),
+    ("sphere", {"dt": 1 / 720}),
+    ("tube", {"stitch_compliance": 1.0}),
+    ("tube", {"stitch_max_move": 1e-4}),
+    ("tube", {"stitch_snap": 0.2}),
+    ("tube", {"attach_compliance": 1e-1}),
+    ("sphere", {"thickness": 0.03}),
+    ("sphere", {"friction": 2.0}),
+    ("jacobi", {"jacobi_omega": 0.5}),
+]
+
+
+@pytest.mark.parametrize("case, params", _COEFFICIENT_CASES)
+def test_xpbd_substeps_coefficients_reach_the_op(case, params, monkeypatch):
+    args = _substep_args(case, monkeypatch=monkeypatch)
+    x_before, _ = _run_substeps(_op("xpbd_substeps_"), args)
+    x_cpp, v_cpp = _run_substeps(_op("xpbd_substeps_"), args, **params)
+    x_ref, v_ref = _run_substeps(reference.xpbd_substeps_, args, **params)
+    assert (x_cpp - x_before).abs().max() > 1e-6, f"{params} must change the result"
+    torch.testing.assert_close(x_cpp, x_ref, rtol=0.0, atol=1e-10)
+    torch.testing.assert_close(v_cpp, v_ref, rtol=0.0, atol=1e-7)
+
+
+def test_substep_inputs_round_trip(monkeypatch):
+    from torch_diffavatar.sim.substep import SubstepInputs
+
+    _, _, inputs = _substep_args("sphere", monkeypatch=monkeypatch)
+    back = SubstepInputs.from_op_args(*inputs.op_args())
+    assert back.params == inputs.params
+    for group in ("stretch", "bend", "seams", "body"):
+        a, b = getattr(inputs, group), getattr(back, group)
+        for f in dataclasses.fields(a):
+            assert getattr(a, f.name) is getattr(b, f.name)
+    args = list(inputs.op_args())
+    args[1] = args[1][:-1]  # a stretch list without its colour offsets
+    with pytest.raises(ValueError, match="StretchInputs takes 5 tensors"):
+        SubstepInputs.from_op_args(*args)
 
 
 def test_xpbd_substeps_matches_reference_float32(monkeypatch):
@@ -434,38 +482,44 @@ def test_xpbd_substeps_is_identical_with_two_threads(monkeypatch):
 
 
 def test_xpbd_substeps_opcheck(monkeypatch):
-    args = _substep_args("tube", monkeypatch=monkeypatch)
-    args[24] = 2  # substeps
-    torch.library.opcheck(_op("xpbd_substeps_").default, (args[0].clone(), args[1].clone(), *args[2:]))
+    x, v, inputs = _substep_args("tube", monkeypatch=monkeypatch)
+    torch.library.opcheck(
+        _op("xpbd_substeps_").default, (x.clone(), v.clone(), *_with_params(inputs, substeps=2).op_args())
+    )
 
 
 def test_xpbd_substeps_rejects_bad_arguments(monkeypatch):
-    args = _substep_args("sphere", monkeypatch=monkeypatch)
+    x, v, inputs = _substep_args("sphere", monkeypatch=monkeypatch)
     op = _op("xpbd_substeps_")
 
-    def call(index, value):
-        bad = list(args)
-        bad[index] = value
-        op(bad[0].clone(), bad[1].clone(), *bad[2:])
+    def call(v=v, **groups):
+        bad = inputs
+        for group, fields in groups.items():
+            bad = dataclasses.replace(bad, **{group: dataclasses.replace(getattr(bad, group), **fields)})
+        op(x.clone(), v.clone(), *bad.op_args())
 
+    body, stretch = inputs.body, inputs.stretch
     with pytest.raises(RuntimeError, match="v must"):
-        call(1, args[1].float())
+        call(v=v.float())
     with pytest.raises(RuntimeError, match="contact_tri holds indices outside"):
-        call(19, torch.full_like(args[19], args[17].shape[0]))
+        call(body={"contact_tri": torch.full_like(body.contact_tri, body.body_faces.shape[0])})
     with pytest.raises(RuntimeError, match="contact_bary must have shape"):
-        call(20, args[20][:-1].contiguous())
-    with pytest.raises(RuntimeError, match="gravity must have 3"):
-        call(21, [0.0, -9.81])
+        call(body={"contact_bary": body.contact_bary[:-1].contiguous()})
     with pytest.raises(RuntimeError, match="tri_order"):
-        call(6, args[6] + args[3].shape[0])
+        call(stretch={"tri_order": stretch.tri_order + stretch.tri_vertices.shape[0]})
+    args = list(inputs.op_args())
+    with pytest.raises(RuntimeError, match="coefficients must hold 12"):
+        op(x.clone(), v.clone(), *args[:5], args[5][:-1], *args[6:])
+    with pytest.raises(RuntimeError, match="bend must hold 5 tensors"):
+        op(x.clone(), v.clone(), args[0], args[1], args[2][:4], *args[3:])
 
 
 def test_unfused_composition_matches_fused_op(monkeypatch):
     # the benchmark's "before" path: per-constraint C++ ops composed in Python
     args = _substep_args("sphere", monkeypatch=monkeypatch)
     x_cpp, v_cpp = _run_substeps(_op("xpbd_substeps_"), args)
-    x, v = args[0].clone(), args[1].clone()
-    reference.compose_substeps(ops, x, v, *args[2:-1])
+    x, v, inputs = args
+    x, v = reference.xpbd_substeps(x, v, inputs, reference.KernelMembrane(inputs, ops))
     torch.testing.assert_close(x, x_cpp, rtol=0.0, atol=1e-10)
     torch.testing.assert_close(v, v_cpp, rtol=0.0, atol=1e-7)
 

@@ -29,10 +29,12 @@ from torch_diffavatar.sim.testing import rectangle_garment
 class _UnfusedSolver(XPBDSolver):
     """The solver's former path, for before/after timings: the per-constraint C++ kernels called once per
     substep and iteration from Python, with the contact, stitch, attachment and friction steps in torch
-    (`reference.compose_substeps` over `sim.ops`)."""
+    (`reference.xpbd_substeps` with the `sim.ops` kernels as its membrane)."""
 
-    def _substeps(self, *args) -> None:
-        reference.compose_substeps(ops, *args[:-1])  # the last argument is num_threads
+    def _substeps(self, x, v, inputs) -> None:
+        xs, vs = reference.xpbd_substeps(x, v, inputs, reference.KernelMembrane(inputs, ops))
+        x.copy_(xs)
+        v.copy_(vs)
 
 
 def sphere_mesh(radius: float = 0.3, subdivisions: int = 4, dtype=torch.float32):

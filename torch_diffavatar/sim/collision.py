@@ -1,11 +1,12 @@
 """Cloth–body collision: vertex–triangle contacts against any triangle mesh, with friction.
 
 Detection (`detect_contacts`, no autograd) runs once per step: for every cloth vertex the closest body
-triangle within a band. The response (`contact_frames`, `project_contacts`, `apply_friction`) is plain,
-out-of-place torch and recomputes the contact point (barycentric point on the stored triangle) and the
-face normal from the CURRENT ``body_verts`` each time, so the projected positions are a differentiable
-function of the body vertices (paper eq. 6). Limitations: no self-collision, no edge–edge contacts, one
-contact per cloth vertex, the body is static within a step.
+triangle within a band. The response (`contact_frames`, `project_contacts`, `apply_friction`, in
+`sim/contacts.py` and re-exported here) is plain, out-of-place torch and recomputes the contact point
+(barycentric point on the stored triangle) and the face normal from the CURRENT ``body_verts`` each time,
+so the projected positions are a differentiable function of the body vertices (paper eq. 6).
+Limitations: no self-collision, no edge–edge contacts, one contact per cloth vertex, the body is static
+within a step.
 
 Ties: a vertex whose closest body point lies on a body edge (or vertex) is equally close to every face
 sharing that feature, and the query picks one of them by rounding. The response uses the picked face's
@@ -18,30 +19,18 @@ is then continuous as the vertex crosses the edge's region.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 
 from torch_diffavatar.sim import ops
 
-
-@dataclass(frozen=True)
-class Contacts:
-    """Cloth vertices near the body and their closest body triangle.
-
-    Attributes:
-        vert: (C,) int64 cloth (simulated) vertex ids.
-        tri: (C,) int64 body face ids.
-        bary: (C, 3) barycentric coordinates of the closest point on ``tri`` at detection time.
-    """
-
-    vert: torch.Tensor
-    tri: torch.Tensor
-    bary: torch.Tensor
-
-    @property
-    def count(self) -> int:
-        return int(self.vert.shape[0])
+# the differentiable response lives below the kernels (`sim/contacts.py`); re-exported for callers
+from torch_diffavatar.sim.contacts import (  # noqa: F401
+    Contacts,
+    apply_friction,
+    contact_frames,
+    project_contacts,
+    signed_distance_along_normal,
+)
 
 
 class BodyIndex:
@@ -231,63 +220,3 @@ class _FeatureFaces:
         bary[moved] = (bary[moved][:, :, None] * same).sum(1)
         tri[moved] = new[moved]
         return tri, bary
-
-
-def contact_frames(body_verts: torch.Tensor, body_faces: torch.Tensor, contacts: Contacts):
-    """Contact points and unit outward face normals from the current body (differentiable).
-
-    Returns:
-        point: (C, 3) [m]; normal: (C, 3) unit right-hand normal of the contact triangle.
-    """
-    corners = body_verts[body_faces[contacts.tri]]  # (C, 3, 3)
-    point = (contacts.bary[:, :, None] * corners).sum(1)
-    n = torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    return point, n / n.norm(dim=-1, keepdim=True).clamp_min(1e-20)
-
-
-def project_contacts(
-    x: torch.Tensor,
-    vert_inv_mass: torch.Tensor,
-    body_verts: torch.Tensor,
-    body_faces: torch.Tensor,
-    contacts: Contacts,
-    thickness,
-):
-    """Push contact vertices to ``thickness`` outside the body along the face normal (out of place).
-
-    Args:
-        x: (Vs, 3) [m]; vert_inv_mass: (Vs,) (pinned vertices do not move); thickness: [m].
-
-    Returns:
-        x: (Vs, 3) projected positions; depth: (C,) correction applied [m] (0 where none);
-        normal: (C, 3) contact normals.
-    """
-    point, normal = contact_frames(body_verts, body_faces, contacts)
-    s = ((x[contacts.vert] - point) * normal).sum(-1) - thickness
-    movable = vert_inv_mass[contacts.vert] > 0
-    depth = torch.where(movable, torch.clamp(-s, min=0.0), torch.zeros_like(s))
-    return x.index_add(0, contacts.vert, normal * depth[:, None]), depth, normal
-
-
-def apply_friction(
-    x: torch.Tensor, x_start: torch.Tensor, contacts: Contacts, normal: torch.Tensor, depth: torch.Tensor, mu
-) -> torch.Tensor:
-    """Position-based Coulomb friction (Macklin et al. 2014, §6.1) on the step's tangential motion.
-
-    For each contact with a normal correction ``depth`` > 0 in this substep, the tangential displacement
-    ``dt = P_t (x − x_start)`` is cancelled when ``|dt| < mu·depth`` (static) and reduced by ``mu·depth``
-    otherwise (kinetic). Returns the new (Vs, 3) positions (out of place).
-    """
-    d = x[contacts.vert] - x_start[contacts.vert]
-    dt_ = d - (d * normal).sum(-1, keepdim=True) * normal
-    length = dt_.norm(dim=-1)
-    limit = mu * depth
-    scale = torch.where(length <= limit, torch.ones_like(length), limit / length.clamp_min(1e-20))
-    scale = torch.where(depth > 0, scale, torch.zeros_like(scale))
-    return x.index_add(0, contacts.vert, -dt_ * scale[:, None])
-
-
-def signed_distance_along_normal(x: torch.Tensor, body_verts, body_faces, contacts: Contacts) -> torch.Tensor:
-    """(C,) signed distance [m] of each contact vertex above its contact triangle's plane."""
-    point, normal = contact_frames(body_verts, body_faces, contacts)
-    return ((x[contacts.vert] - point) * normal).sum(-1)

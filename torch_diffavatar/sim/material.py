@@ -41,16 +41,20 @@ class ClothMaterial:
     thickness: float | torch.Tensor = 0.003
 
     def __post_init__(self):
-        for f in fields(self):
-            value = getattr(self, f.name)
-            v = float(value.detach()) if isinstance(value, torch.Tensor) else float(value)
+        # values read detached: a field being fitted requires grad, and float() of it warns
+        value = {f.name: _float(getattr(self, f.name)) for f in fields(self)}
+        for name, v in value.items():
             if v != v or v < 0:
-                raise ValueError(f"ClothMaterial.{f.name} must be finite and >= 0, got {v}")
-        if float(self.poisson) >= 1.0:
-            raise ValueError(f"ClothMaterial.poisson must be < 1, got {float(self.poisson):g}")
+                raise ValueError(f"ClothMaterial.{name} must be finite and >= 0, got {v}")
+        if value["poisson"] >= 1.0:
+            raise ValueError(f"ClothMaterial.poisson must be < 1, got {value['poisson']:g}")
         for name in ("areal_density", "k_uu", "k_vv", "k_uv"):
-            if float(getattr(self, name)) <= 0:
-                raise ValueError(f"ClothMaterial.{name} must be > 0, got {float(getattr(self, name))}")
+            if value[name] <= 0:
+                raise ValueError(f"ClothMaterial.{name} must be > 0, got {value[name]}")
+
+
+def _float(value: float | torch.Tensor) -> float:
+    return float(value.detach()) if isinstance(value, torch.Tensor) else float(value)
 
 
 def medium_cotton() -> ClothMaterial:

@@ -201,61 +201,20 @@ class ClothModelBuilder:
         """Validate, build topology and colourings, and move everything to ``device`` / ``dtype``."""
         if not self._garments:
             raise ValueError("ClothModelBuilder.finalize: add at least one garment first")
-        vts, tris, tri_panel, stitches, attach, attach_h, pins, init = [], [], [], [], [], [], [], []
-        v_off = s_off = 0
-        for garment, merge, labels, pinned in self._garments:
-            gv = garment.vert_count
-            if merge:
-                v2s = garment.vert_to_sim.cpu().to(torch.int64)
-                n_sim = int(garment.sim_vert_count)
-                st = v2s[garment.stitch_pairs.cpu()]
-                st = st[st[:, 0] != st[:, 1]] if st.numel() else st.reshape(0, 2)
-            else:
-                v2s = torch.arange(gv)
-                n_sim = gv
-                st = garment.stitch_pairs.cpu().to(torch.int64).reshape(-1, 2)
-            pos = garment.vert_pos.cpu().to(torch.float64)
-            x0 = torch.zeros(n_sim, 3, dtype=torch.float64).index_add_(0, v2s, pos)
-            x0 /= torch.zeros(n_sim, dtype=torch.float64).index_add_(
-                0, v2s, torch.ones(gv, dtype=torch.float64)
-            )[:, None]
-            stitched = torch.zeros(gv, dtype=torch.bool)
-            if garment.stitch_pairs.numel():
-                stitched[garment.stitch_pairs.cpu().reshape(-1)] = True
-            att = []
-            for label in labels:
-                if label in garment.vert_labels:
-                    pv = garment.vert_labels[label].cpu().to(torch.int64)
-                    att.append(v2s[pv[~stitched[pv]]])
-            att_t = torch.unique(torch.cat(att)) if att else torch.zeros(0, dtype=torch.int64)
-            pin = torch.zeros(n_sim, dtype=torch.bool)
-            if pinned is not None:
-                pin[v2s[pinned.cpu().to(torch.int64)]] = True
-            vts.append(v2s + s_off)
-            tris.append(v2s[garment.tri_vertices.cpu()] + s_off)
-            tri_panel.append(garment.tri_vertices.cpu().to(torch.int64) + v_off)
-            stitches.append(st + s_off)
-            attach.append(att_t + s_off)
-            attach_h.append(x0[att_t, 1])
-            pins.append(pin)
-            init.append(x0)
-            v_off += gv
-            s_off += n_sim
-        tri_vertices = torch.cat(tris)
-        tri_panel_vertices = torch.cat(tri_panel)
+        parts = [_GarmentPart.of(*entry) for entry in self._garments]
+        panel_offsets = torch.tensor([0] + [p.panel_vert_count for p in parts]).cumsum(0).tolist()
+        sim_offsets = torch.tensor([0] + [p.sim_vert_count for p in parts]).cumsum(0).tolist()
+
+        def cat(name, offsets=None):
+            """The parts' ``name`` tensors concatenated; vertex ids shifted by their part's ``offsets``."""
+            if offsets is None:
+                return torch.cat([getattr(p, name) for p in parts])
+            return torch.cat([getattr(p, name) + o for p, o in zip(parts, offsets)])
+
+        tri_vertices = cat("tri_vertices", sim_offsets)
+        tri_panel_vertices = cat("tri_panel_vertices", panel_offsets)
         quads, edge_tris, edge_local, skipped = interior_edges(tri_vertices)
-        l1, l2 = edge_local[:, 0], edge_local[:, 1]
-        t1, t2 = edge_tris[:, 0], edge_tris[:, 1]
-        edge_panel = torch.stack(
-            (
-                tri_panel_vertices[t1, l1],
-                tri_panel_vertices[t1, (l1 + 1) % 3],
-                tri_panel_vertices[t2, (l2 + 1) % 3],
-                tri_panel_vertices[t2, l2],
-            ),
-            dim=1,
-        )  # endpoints (v0, v1) as seen from each triangle
-        x0 = torch.cat(init)
+        x0 = cat("vert_init_pos")
         if not torch.isfinite(x0).all():
             raise ValueError("garment.vert_pos contains NaN or inf")
 
@@ -263,21 +222,109 @@ class ClothModelBuilder:
             return t.to(device=device, dtype=torch.int64).contiguous()
 
         return ClothModel(
-            vert_count=s_off,
-            panel_vert_count=v_off,
-            vert_to_sim=ints(torch.cat(vts)),
+            vert_count=sim_offsets[-1],
+            panel_vert_count=panel_offsets[-1],
+            vert_to_sim=ints(cat("vert_to_sim", sim_offsets)),
             tri_vertices=ints(tri_vertices),
             tri_panel_vertices=ints(tri_panel_vertices),
             edge_quads=ints(quads),
             edge_tris=ints(edge_tris),
-            edge_panel_vertices=ints(edge_panel),
-            stitch_vertices=ints(torch.cat(stitches).reshape(-1, 2)),
-            attach_vertices=ints(torch.cat(attach)),
-            attach_height=torch.cat(attach_h).to(device=device, dtype=dtype),
-            vert_pinned=torch.cat(pins).to(device=device),
+            edge_panel_vertices=ints(_edge_panel_vertices(tri_panel_vertices, edge_tris, edge_local)),
+            stitch_vertices=ints(cat("stitch_vertices", sim_offsets).reshape(-1, 2)),
+            attach_vertices=ints(cat("attach_vertices", sim_offsets)),
+            attach_height=cat("attach_height").to(device=device, dtype=dtype),
+            vert_pinned=cat("vert_pinned").to(device=device),
             vert_init_pos=x0.to(device=device, dtype=dtype).contiguous(),
             tri_coloring=greedy_coloring(tri_vertices).to(device),
             edge_coloring=greedy_coloring(quads).to(device),
             material=self.material,
             skipped_edge_count=skipped,
         )
+
+
+@dataclass(frozen=True)
+class _GarmentPart:
+    """One garment's share of a `ClothModel`, with vertex ids local to the garment (CPU tensors).
+
+    Attributes:
+        panel_vert_count, sim_vert_count: its panel vertices V and simulated vertices Vs.
+        vert_to_sim: (V,) int64; tri_vertices, tri_panel_vertices: (F, 3) int64; stitch_vertices: (S, 2)
+        int64 (sim vertices); attach_vertices: (A,) int64; attach_height: (A,) float64 [m];
+        vert_pinned: (Vs,) bool; vert_init_pos: (Vs, 3) float64 [m] (mean of the panel positions).
+    """
+
+    panel_vert_count: int
+    sim_vert_count: int
+    vert_to_sim: torch.Tensor
+    tri_vertices: torch.Tensor
+    tri_panel_vertices: torch.Tensor
+    stitch_vertices: torch.Tensor
+    attach_vertices: torch.Tensor
+    attach_height: torch.Tensor
+    vert_pinned: torch.Tensor
+    vert_init_pos: torch.Tensor
+
+    @staticmethod
+    def of(garment: GarmentMesh, merge: bool, labels: tuple[str, ...], pinned) -> _GarmentPart:
+        """The part of ``garment`` as `ClothModelBuilder.add_garment` describes it."""
+        gv = garment.vert_count
+        if merge:
+            v2s = garment.vert_to_sim.cpu().to(torch.int64)
+            n_sim = int(garment.sim_vert_count)
+            st = v2s[garment.stitch_pairs.cpu()]
+            st = st[st[:, 0] != st[:, 1]] if st.numel() else st.reshape(0, 2)
+        else:
+            v2s = torch.arange(gv)
+            n_sim = gv
+            st = garment.stitch_pairs.cpu().to(torch.int64).reshape(-1, 2)
+        pos = garment.vert_pos.cpu().to(torch.float64)
+        x0 = torch.zeros(n_sim, 3, dtype=torch.float64).index_add_(0, v2s, pos)
+        count = torch.zeros(n_sim, dtype=torch.float64).index_add_(
+            0, v2s, torch.ones(gv, dtype=torch.float64)
+        )
+        x0 /= count[:, None]
+        attach = _attached(garment, v2s, labels)
+        pin = torch.zeros(n_sim, dtype=torch.bool)
+        if pinned is not None:
+            pin[v2s[pinned.cpu().to(torch.int64)]] = True
+        return _GarmentPart(
+            panel_vert_count=gv,
+            sim_vert_count=n_sim,
+            vert_to_sim=v2s,
+            tri_vertices=v2s[garment.tri_vertices.cpu()],
+            tri_panel_vertices=garment.tri_vertices.cpu().to(torch.int64),
+            stitch_vertices=st,
+            attach_vertices=attach,
+            attach_height=x0[attach, 1],
+            vert_pinned=pin,
+            vert_init_pos=x0,
+        )
+
+
+def _attached(garment: GarmentMesh, vert_to_sim: torch.Tensor, labels: tuple[str, ...]) -> torch.Tensor:
+    """(A,) int64 sorted sim vertices of the panel vertices labelled ``labels`` that are not stitched."""
+    stitched = torch.zeros(garment.vert_count, dtype=torch.bool)
+    if garment.stitch_pairs.numel():
+        stitched[garment.stitch_pairs.cpu().reshape(-1)] = True
+    att = []
+    for label in labels:
+        if label in garment.vert_labels:
+            pv = garment.vert_labels[label].cpu().to(torch.int64)
+            att.append(vert_to_sim[pv[~stitched[pv]]])
+    return torch.unique(torch.cat(att)) if att else torch.zeros(0, dtype=torch.int64)
+
+
+def _edge_panel_vertices(tri_panel_vertices, edge_tris, edge_local) -> torch.Tensor:
+    """(E, 4) int64: each interior edge's endpoints (v0, v1) as panel vertices of its first triangle,
+    then of its second (they differ across a seam)."""
+    l1, l2 = edge_local[:, 0], edge_local[:, 1]
+    t1, t2 = edge_tris[:, 0], edge_tris[:, 1]
+    return torch.stack(
+        (
+            tri_panel_vertices[t1, l1],
+            tri_panel_vertices[t1, (l1 + 1) % 3],
+            tri_panel_vertices[t2, (l2 + 1) % 3],
+            tri_panel_vertices[t2, l2],
+        ),
+        dim=1,
+    )

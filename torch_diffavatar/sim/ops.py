@@ -12,6 +12,7 @@ import torch
 
 from torch_diffavatar._ext import has_extension
 from torch_diffavatar.sim import reference
+from torch_diffavatar.sim.substep import SubstepInputs
 
 __all__ = [
     "bend_hessians",
@@ -261,82 +262,11 @@ def closest_point_query(
 
 
 def xpbd_substeps_(
-    x: torch.Tensor,
-    v: torch.Tensor,
-    vert_inv_mass: torch.Tensor,
-    tri_vertices: torch.Tensor,
-    tri_rest_inv: torch.Tensor,
-    tri_compliance: torch.Tensor,
-    tri_order: torch.Tensor,
-    tri_color_offsets: torch.Tensor,
-    edge_quads: torch.Tensor,
-    edge_rest_angle: torch.Tensor,
-    edge_compliance: torch.Tensor,
-    edge_order: torch.Tensor,
-    edge_color_offsets: torch.Tensor,
-    stitch_vertices: torch.Tensor,
-    attach_vertices: torch.Tensor,
-    attach_height: torch.Tensor,
-    body_verts: torch.Tensor,
-    body_faces: torch.Tensor,
-    contact_vert: torch.Tensor,
-    contact_tri: torch.Tensor,
-    contact_bary: torch.Tensor,
-    gravity,
-    velocity_decay: float,
-    dt: float,
-    substeps: int,
-    iterations: int,
-    stitch_compliance: float,
-    stitch_max_move: float,
-    stitch_snap: float,
-    attach_compliance: float,
-    thickness: float,
-    friction: float,
-    jacobi: bool,
-    jacobi_omega: float,
-    num_threads: int,
-    *,
-    use_extension: bool = True,
+    x: torch.Tensor, v: torch.Tensor, inputs: SubstepInputs, *, use_extension: bool = True
 ) -> None:
-    """XPBD substeps of one frame, in place on x and v (see `reference.xpbd_substeps_` for the arguments)."""
-    _pick("xpbd_substeps_", x, use_extension)(
-        x,
-        v,
-        vert_inv_mass,
-        tri_vertices,
-        tri_rest_inv,
-        tri_compliance,
-        tri_order,
-        tri_color_offsets,
-        edge_quads,
-        edge_rest_angle,
-        edge_compliance,
-        edge_order,
-        edge_color_offsets,
-        stitch_vertices,
-        attach_vertices,
-        attach_height,
-        body_verts,
-        body_faces,
-        contact_vert,
-        contact_tri,
-        contact_bary,
-        [float(gi) for gi in gravity],
-        float(velocity_decay),
-        float(dt),
-        int(substeps),
-        int(iterations),
-        float(stitch_compliance),
-        float(stitch_max_move),
-        float(stitch_snap),
-        float(attach_compliance),
-        float(thickness),
-        float(friction),
-        bool(jacobi),
-        float(jacobi_omega),
-        int(num_threads),
-    )
+    """XPBD substeps, in place on x and v (Vs, 3): the op (or `reference.xpbd_substeps_`) called with
+    ``inputs.op_args()`` (`SubstepInputs` documents the arguments)."""
+    _pick("xpbd_substeps_", x, use_extension)(x, v, *inputs.op_args())
 
 
 def max_abs_green_strain(

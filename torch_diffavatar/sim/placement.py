@@ -862,35 +862,10 @@ def _wrap_arm(ctx: _Context, kind: str, out: np.ndarray, shift: float = 0.0) -> 
     if not panels:
         return
     side = 1.0 if kind == "arm_left" else -1.0
-    lm = ctx.lm
-    poly = lm.arm_left if side > 0 else lm.arm_right
-    radii = lm.arm_left_radius if side > 0 else lm.arm_right_radius
-    verts_all = np.nonzero(np.isin(ctx.vert_panel, panels))[0]
-    pos = ctx.gc_pos[verts_all]
-    # GarmentCode arm line: direction from the sleeve panels' rotation, through their centroid
-    alpha = math.radians(GC_BODY["arm_angle_deg"])
-    d_gc = np.array([side * math.cos(alpha), -math.sin(alpha), 0.0])
-    rot = _panel_rotation_angle(ctx.garment, panels[0])
-    if rot is not None and 10.0 < abs(math.degrees(rot)) < 80.0:
-        d = np.array([math.cos(rot), math.sin(rot), 0.0])
-        d_gc = d if d[0] * side > 0 else -d
-    if d_gc[1] > 0:  # the arm points down
-        d_gc = np.array([d_gc[0], -d_gc[1], 0.0])
-    n_gc = np.array([-d_gc[1], d_gc[0], 0.0])
-    if n_gc[1] < 0:
-        n_gc = -n_gc
-    c0 = pos.mean(0)
-    # GarmentCode arm root: on that line where |x| = GarmentCode's shoulder half width
-    root_gc = c0 + (side * GC_BODY["shoulder_half_width"] - c0[0]) / d_gc[0] * d_gc
-    if poly is None:  # no separable arms: GarmentCode's line mapped to the body's heights
-        root = np.array([side * GC_BODY["shoulder_half_width"], float(ctx.vmap(root_gc[1])), 0.0])
-        poly = np.stack([root, root + 0.6 * d_gc])
-        radii = np.array([0.05, 0.04])
-    seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
-    raw_arc = np.concatenate([[0.0], np.cumsum(seg)])
-    poly, arc = _smooth_polyline(poly, 0.15)
-    radii = np.interp(arc * raw_arc[-1] / max(arc[-1], 1e-9), raw_arc, radii)
-    tang, e1s, e2s = _rotation_minimizing_frames(poly)
+    pos = ctx.gc_pos[np.nonzero(np.isin(ctx.vert_panel, panels))[0]]
+    root_gc, d_gc, n_gc = _garmentcode_arm_line(ctx, panels, side, pos)
+    axis = _ArmAxis.of(ctx, side, root_gc, d_gc)
+    arc = axis.arc
     sets = _side_sets(ctx, panels)
     # a sleeve longer than the arm's axis polyline (which ends inside the hand, where the fingers part) is
     # compressed along the arm to end before it, instead of being laid straight on past the hand with its
@@ -917,40 +892,100 @@ def _wrap_arm(ctx: _Context, kind: str, out: np.ndarray, shift: float = 0.0) -> 
     # the tube follows the arm's measured radius to the axis end (the palm). Inflating it to the shoulder's
     # radius over the hand made a cuff narrower than that tube start with its front and back panels ~10 cm
     # apart around the forearm; sewing them shut folded the longsleeve's front panel through itself.
-    r_body = np.interp(grid, arc, radii)
+    r_body = np.interp(grid, arc, axis.radii)
     r = _slope_envelope(grid, np.maximum(r_body + ctx.clearance[kind], need / (2 * math.pi)), _MAX_SLOPE)
     for g, verts in enumerate(sets):
         if len(verts) == 0:
             continue
-        rel = ctx.gc_pos[verts] - root_gc
-        a, lat = arm_coord(ctx.gc_pos[verts]), rel @ n_gc
-        c, lo, hi = profiles[g]
-        # the panel's lateral centre at each arm position (smoothed, like the leg wraps), so that front and
-        # back panels meet on top of the arm and underneath it all along the sleeve. One centre line for
-        # the whole panel (the exact isometry) puts the cap off-centre on long tapered sleeves: their cap's
-        # underarm corner then wraps past the bottom of the arm onto the other side, the front and back
-        # panels cross under the arm, and sewing them to the armhole pulls cloth through the arm. The
-        # smoothed centre moves slowly along the sleeve (a small shear, not a stretch).
-        # The smoothing must not push the wide cap past the top or the bottom of the arm: each bin's centre
-        # is clamped so that the panel stays within its half of the tube, with a margin.
-        mid_profile = _moving_average(0.5 * (lo + hi), int(round(_CENTRE_WINDOW / 0.01)))
-        quarter = 0.5 * math.pi * np.interp(c, grid, r) - _SLEEVE_SEAM_MARGIN
-        low, high = hi - quarter, lo + quarter
-        mid_profile = np.where(low <= high, np.clip(mid_profile, low, high), 0.5 * (lo + hi))
-        mid = np.interp(a, c, mid_profile)
-        # axis point and frame at arc length a (straight extension beyond the ends)
-        k = np.clip(np.searchsorted(arc, a) - 1, 0, len(arc) - 2)
-        f = np.clip((a - arc[k]) / np.maximum(arc[k + 1] - arc[k], 1e-12), 0.0, 1.0)
-        point = poly[k] + f[:, None] * (poly[k + 1] - poly[k])
-        point += np.minimum(a, 0.0)[:, None] * tang[0] + np.maximum(a - arc[-1], 0.0)[:, None] * tang[-1]
-        e1 = e1s[k] + f[:, None] * (e1s[k + 1] - e1s[k])
-        e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-        e2 = e2s[k] + f[:, None] * (e2s[k + 1] - e2s[k])
-        e2 /= np.linalg.norm(e2, axis=1, keepdims=True)
+        a, lat = arm_coord(ctx.gc_pos[verts]), (ctx.gc_pos[verts] - root_gc) @ n_gc
+        mid = np.interp(a, profiles[g][0], _sleeve_centre(*profiles[g], grid, r))
+        point, e1, e2 = axis.frame_at(a)
         rv = np.interp(a, grid, r)
         dx, dz = _ellipse_arc_point(lat - mid, rv, rv)
         front = 1.0 if g == 0 else -1.0
         out[verts] = point + dx[:, None] * e1 + front * dz[:, None] * e2
+
+
+def _garmentcode_arm_line(ctx: _Context, panels: list[int], side: float, pos: np.ndarray):
+    """GarmentCode's arm line of a sleeve: (root (3,), direction d (3,), in-plane normal n (3,)) [m].
+
+    The direction follows the sleeve panels' rotation, the line runs through their centroid, and the root
+    is where ``|x|`` equals GarmentCode's shoulder half width. ``pos``: (N, 3) the panels' vertices.
+    """
+    alpha = math.radians(GC_BODY["arm_angle_deg"])
+    d_gc = np.array([side * math.cos(alpha), -math.sin(alpha), 0.0])
+    rot = _panel_rotation_angle(ctx.garment, panels[0])
+    if rot is not None and 10.0 < abs(math.degrees(rot)) < 80.0:
+        d = np.array([math.cos(rot), math.sin(rot), 0.0])
+        d_gc = d if d[0] * side > 0 else -d
+    if d_gc[1] > 0:  # the arm points down
+        d_gc = np.array([d_gc[0], -d_gc[1], 0.0])
+    n_gc = np.array([-d_gc[1], d_gc[0], 0.0])
+    if n_gc[1] < 0:
+        n_gc = -n_gc
+    c0 = pos.mean(0)
+    root_gc = c0 + (side * GC_BODY["shoulder_half_width"] - c0[0]) / d_gc[0] * d_gc
+    return root_gc, d_gc, n_gc
+
+
+@dataclass(frozen=True)
+class _ArmAxis:
+    """The body's arm axis for a sleeve: smoothed polyline (K, 3), its arc lengths (K,) [m], the arm's
+    radii there (K,) [m] and rotation-minimising frames (tangents, e1 'up', e2 'front', (K, 3) each)."""
+
+    poly: np.ndarray
+    arc: np.ndarray
+    radii: np.ndarray
+    tang: np.ndarray
+    e1s: np.ndarray
+    e2s: np.ndarray
+
+    @staticmethod
+    def of(ctx: _Context, side: float, root_gc: np.ndarray, d_gc: np.ndarray) -> _ArmAxis:
+        lm = ctx.lm
+        poly = lm.arm_left if side > 0 else lm.arm_right
+        radii = lm.arm_left_radius if side > 0 else lm.arm_right_radius
+        if poly is None:  # no separable arms: GarmentCode's line mapped to the body's heights
+            root = np.array([side * GC_BODY["shoulder_half_width"], float(ctx.vmap(root_gc[1])), 0.0])
+            poly = np.stack([root, root + 0.6 * d_gc])
+            radii = np.array([0.05, 0.04])
+        seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
+        raw_arc = np.concatenate([[0.0], np.cumsum(seg)])
+        poly, arc = _smooth_polyline(poly, 0.15)
+        radii = np.interp(arc * raw_arc[-1] / max(arc[-1], 1e-9), raw_arc, radii)
+        return _ArmAxis(poly, arc, radii, *_rotation_minimizing_frames(poly))
+
+    def frame_at(self, a: np.ndarray):
+        """Axis point and unit e1, e2 at arc lengths ``a`` (N,) [m] (straight extension beyond the ends)."""
+        arc, poly = self.arc, self.poly
+        k = np.clip(np.searchsorted(arc, a) - 1, 0, len(arc) - 2)
+        f = np.clip((a - arc[k]) / np.maximum(arc[k + 1] - arc[k], 1e-12), 0.0, 1.0)
+        point = poly[k] + f[:, None] * (poly[k + 1] - poly[k])
+        point += (
+            np.minimum(a, 0.0)[:, None] * self.tang[0] + np.maximum(a - arc[-1], 0.0)[:, None] * self.tang[-1]
+        )
+        e1 = self.e1s[k] + f[:, None] * (self.e1s[k + 1] - self.e1s[k])
+        e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+        e2 = self.e2s[k] + f[:, None] * (self.e2s[k + 1] - self.e2s[k])
+        e2 /= np.linalg.norm(e2, axis=1, keepdims=True)
+        return point, e1, e2
+
+
+def _sleeve_centre(c, lo, hi, grid, r) -> np.ndarray:
+    """A sleeve panel's lateral centre at each of its profile's arm positions ``c`` [m].
+
+    Smoothed, like the leg wraps, so that front and back panels meet on top of the arm and underneath it
+    all along the sleeve. One centre line for the whole panel (the exact isometry) puts the cap off-centre
+    on long tapered sleeves: their cap's underarm corner then wraps past the bottom of the arm onto the
+    other side, the front and back panels cross under the arm, and sewing them to the armhole pulls cloth
+    through the arm. The smoothed centre moves slowly along the sleeve (a small shear, not a stretch).
+    The smoothing must not push the wide cap past the top or the bottom of the arm: each bin's centre is
+    clamped so that the panel stays within its half of the tube (radius ``r`` on ``grid``), with a margin.
+    """
+    mid_profile = _moving_average(0.5 * (lo + hi), int(round(_CENTRE_WINDOW / 0.01)))
+    quarter = 0.5 * math.pi * np.interp(c, grid, r) - _SLEEVE_SEAM_MARGIN
+    low, high = hi - quarter, lo + quarter
+    return np.where(low <= high, np.clip(mid_profile, low, high), 0.5 * (lo + hi))
 
 
 def _panel_rotation_angle(garment: GarmentMesh, panel: int) -> float | None:
@@ -1276,6 +1311,19 @@ def place_garment(
     if not isinstance(garment, GarmentMesh):
         raise TypeError(f"garment must be a GarmentMesh, got {type(garment).__name__}")
     verts, faces = _check_body(body_verts, body_faces)
+    ctx = _placement_context(garment, verts, faces, body_landmarks, arm_joints, clearance)
+    fit = _Clearances(
+        _BodyDistance(verts, faces), garment.stitch_pairs.cpu().numpy(), vertex_clearance, stitch_clearance
+    )
+    arm_shift = _arm_shifts(ctx, fit)
+    pos = _lift_and_widen(ctx, fit, arm_shift, clearance, max_lift)
+    pos = _push_out(garment, fit, pos, push_radius)
+    new_pos = torch.as_tensor(pos, dtype=garment.vert_pos.dtype, device=garment.vert_pos.device)
+    return replace(garment, vert_pos=new_pos)
+
+
+def _placement_context(garment, verts, faces, body_landmarks, arm_joints, clearance: float) -> _Context:
+    """The body's sections and landmarks, the panels' kinds and sides, and the wraps' clearances."""
     if body_landmarks is not None and body_landmarks._sections is not None:
         lm, sec = body_landmarks, body_landmarks._sections
     else:
@@ -1292,7 +1340,7 @@ def place_garment(
     z_mid = 0.5 * (gc_pos[:, 2].min() + gc_pos[:, 2].max())
     front = np.array([gc_pos[vert_panel == p, 2].mean() > z_mid for p in range(len(garment.panel_names))])
     kind_names = ("torso", "leg_left", "leg_right", "arm_left", "arm_right")
-    ctx = _Context(
+    return _Context(
         garment,
         gc_pos,
         vert_panel,
@@ -1304,57 +1352,82 @@ def place_garment(
         dict.fromkeys(kind_names, clearance),
         attached=attached,
     )
-    dist = _BodyDistance(verts, faces)
-    pairs = garment.stitch_pairs.cpu().numpy()
-    upper_body = lm.armpit_y
 
-    # sleeves slide out along the arm until they clear the shoulder (their caps start beyond it)
+
+@dataclass
+class _Clearances:
+    """The placement's targets: every vertex ``vertex_clearance`` [m] and every stitched pair's midpoint
+    ``stitch_clearance`` [m] outside the body (``dist``: signed distance and normal to it); ``pairs``:
+    (S, 2) the garment's stitch pairs."""
+
+    dist: _BodyDistance
+    pairs: np.ndarray
+    vertex_clearance: float
+    stitch_clearance: float
+
+    def deficits(self, pos: np.ndarray):
+        """(vertex shortfalls (V,) [m], their body normals (V, 3), midpoint shortfalls (S,) [m], their
+        normals (S, 3), the midpoints (S, 3)) at positions ``pos`` (V, 3)."""
+        pairs = self.pairs
+        sd_v, n_v = self.dist(pos)
+        mids = 0.5 * (pos[pairs[:, 0]] + pos[pairs[:, 1]]) if len(pairs) else np.zeros((0, 3))
+        sd_m, n_m = self.dist(mids)
+        return self.vertex_clearance - sd_v, n_v, self.stitch_clearance - sd_m, n_m, mids
+
+
+def _arm_shifts(ctx: _Context, fit: _Clearances) -> dict:
+    """{arm kind: shift [m]}: sleeves slide out along the arm until they clear the shoulder (their caps
+    start beyond it), by the smallest shift that clears or, failing that, the best one."""
     arm_shift = {}
     for kind in ("arm_left", "arm_right"):
-        verts_k = np.nonzero(np.array([k == kind for k in kinds], dtype=bool)[vert_panel])[0]
+        verts_k = np.nonzero(np.array([k == kind for k in ctx.kinds], dtype=bool)[ctx.vert_panel])[0]
         if len(verts_k) == 0:
             continue
         best = (-np.inf, 0.0)
         for shift in np.arange(0.0, 0.151, 0.01):
-            trial = gc_pos.copy()
+            trial = ctx.gc_pos.copy()
             _wrap_arm(ctx, kind, trial, shift)
-            worst = dist(trial[verts_k])[0].min()
+            worst = fit.dist(trial[verts_k])[0].min()
             if worst > best[0] + 1e-4:
                 best = (worst, shift)
-            if worst >= vertex_clearance:
+            if worst >= fit.vertex_clearance:
                 break
         arm_shift[kind] = best[1]
+    return arm_shift
 
-    def wrap(lift: float) -> np.ndarray:
-        out = gc_pos.copy()
-        placed = np.zeros(len(out), dtype=bool)
-        for kind in ("torso", "leg_left", "leg_right"):
-            _wrap_torso_like(ctx, kind, lift, out)
-        for kind, shift in arm_shift.items():
-            _wrap_arm(ctx, kind, out, shift)
-        placed[:] = [k not in ("rigid", "attached") for k in np.array(kinds)[vert_panel]]
-        _place_attached(ctx, out, placed, dist, vertex_clearance)
-        _place_rigid(
-            ctx,
-            out,
-            placed,
-            [p for p, k in enumerate(kinds) if k == "rigid" and not placed[vert_panel == p].any()],
-        )
-        return out
 
-    def deficits(pos):
-        sd_v, n_v = dist(pos)
-        mids = 0.5 * (pos[pairs[:, 0]] + pos[pairs[:, 1]]) if len(pairs) else np.zeros((0, 3))
-        sd_m, n_m = dist(mids)
-        return vertex_clearance - sd_v, n_v, stitch_clearance - sd_m, n_m, mids
+def _wrap_all(ctx: _Context, fit: _Clearances, arm_shift: dict, lift: float) -> np.ndarray:
+    """(V, 3) every panel placed: torso and legs wrapped (tops lifted by ``lift`` [m]), sleeves wrapped,
+    attached panels hung from their partners, the remaining panels moved rigidly."""
+    kinds, vert_panel = ctx.kinds, ctx.vert_panel
+    out = ctx.gc_pos.copy()
+    placed = np.zeros(len(out), dtype=bool)
+    for kind in ("torso", "leg_left", "leg_right"):
+        _wrap_torso_like(ctx, kind, lift, out)
+    for kind, shift in arm_shift.items():
+        _wrap_arm(ctx, kind, out, shift)
+    placed[:] = [k not in ("rigid", "attached") for k in np.array(kinds)[vert_panel]]
+    _place_attached(ctx, out, placed, fit.dist, fit.vertex_clearance)
+    _place_rigid(
+        ctx,
+        out,
+        placed,
+        [p for p, k in enumerate(kinds) if k == "rigid" and not placed[vert_panel == p].any()],
+    )
+    return out
 
-    # 1. lift tops until nothing of the torso above the armpits is too close (shoulders), and widen the
-    #    torso / leg wraps until no vertex below is too close
-    vert_kind = np.array(kinds)[vert_panel]
+
+def _lift_and_widen(ctx: _Context, fit: _Clearances, arm_shift: dict, clearance: float, max_lift: float):
+    """Step 1 of the placement: lift tops until nothing of the torso above the armpits is too close (the
+    shoulders), and widen the torso / leg wraps (``ctx.clearance``) until no vertex below is too close.
+    Returns the positions (V, 3) [m]."""
+    pairs = fit.pairs
+    vert_kind = np.array(ctx.kinds)[ctx.vert_panel]
     pair_kind = np.where(vert_kind[pairs[:, 0]] == vert_kind[pairs[:, 1]], vert_kind[pairs[:, 0]], "")
-    lift, pos = 0.0, wrap(0.0)
+    upper_body = ctx.lm.armpit_y
+    lift, pos = 0.0, _wrap_all(ctx, fit, arm_shift, 0.0)
     for _ in range(12):
-        dv, _, dm, _, mids = deficits(pos)
+        dv, _, dm, _, mids = fit.deficits(pos)
         changed = False
         high_v, high_m = pos[:, 1] > upper_body, mids[:, 1] > upper_body
         high = max(
@@ -1373,14 +1446,21 @@ def place_garment(
                 changed = True
         if not changed:
             break
-        pos = wrap(lift)
-    # 2. local push along the body normal, spread smoothly over a ball (no spikes), until all clear
+        pos = _wrap_all(ctx, fit, arm_shift, lift)
+    return pos
+
+
+def _push_out(garment: GarmentMesh, fit: _Clearances, pos: np.ndarray, push_radius: float) -> np.ndarray:
+    """Step 2 of the placement: local pushes along the body normal, spread smoothly over a ball of
+    ``push_radius`` [m] (no spikes), until every vertex and stitch midpoint clears (a warning after 40
+    rounds). Returns the positions (V, 3) [m]."""
     from scipy.spatial import cKDTree
 
+    pairs = fit.pairs
     tris = garment.tri_vertices.cpu().numpy()
     rest_inv = _rest_inverse(garment)
     for attempt in range(41):
-        dv, nv, dm, nm, _ = deficits(pos)
+        dv, nv, dm, nm, _ = fit.deficits(pos)
         if dv.max(initial=0) <= 0 and dm.max(initial=0) <= 0:
             break
         if attempt == 40:
@@ -1388,7 +1468,7 @@ def place_garment(
                 f"place_garment: {int((dv > 0).sum())} vertices and {int((dm > 0).sum())} stitch midpoints "
                 "are still closer to the body than asked (largest shortfall "
                 f"{100 * max(dv.max(initial=0), dm.max(initial=0)):.1f} cm)",
-                stacklevel=2,
+                stacklevel=3,
             )
             break
         bad_v = np.nonzero(dv > 0)[0]
@@ -1409,8 +1489,7 @@ def place_garment(
         own = np.concatenate([bad_v, pairs[bad_m, 0], pairs[bad_m, 1]])
         disp[own] = push
         pos = _untear(pos, disp, tris, rest_inv, push_radius)
-    new_pos = torch.as_tensor(pos, dtype=garment.vert_pos.dtype, device=garment.vert_pos.device)
-    return replace(garment, vert_pos=new_pos)
+    return pos
 
 
 def a_pose_route(garment: GarmentMesh, body, **place_kwargs) -> PoseRoute | None:

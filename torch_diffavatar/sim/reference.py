@@ -43,13 +43,15 @@ Conventions shared with the C++ (test against these, not against the prose):
 * **max_abs_green_strain**: 0-dim tensor, the largest ``|C_k|`` of the stretch constraint vectors
   ``C = [E00, E11, E01]`` over all triangles (0 without triangles; NaN when any is NaN).
 * **xpbd_substeps_** (fused): ``substeps`` × [predict, ``iterations`` × (stretch, bend, attachments,
-  body contacts, stitches), friction, velocity update] in place on ``x`` and ``v``; the composition of
-  the kernels above, `attach_project_`, `stitch_project_` and `sim.collision`'s ``project_contacts`` /
-  ``apply_friction`` (see `xpbd_substeps_`). Multipliers start at 0 every substep.
+  body contacts, stitches), friction, velocity update] in place on ``x`` and ``v``; its arguments are
+  grouped by role (`sim/substep.py`, `SubstepInputs`). The maths is `xpbd_substeps`, the composition of
+  the kernels above, `attach_project_`, `stitch_project_` and `sim.contacts`' ``push_out`` /
+  ``apply_friction``. Multipliers start at 0 every substep.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from types import SimpleNamespace
 
 import torch
@@ -60,6 +62,8 @@ from torch_diffavatar.geometry import (
     closest_point_on_triangles,  # noqa: F401
     triangle_green_strain,
 )
+from torch_diffavatar.sim.contacts import Contacts, apply_friction, contact_frames, push_out
+from torch_diffavatar.sim.substep import SubstepInputs
 
 _BEND_EPS_LEN = 1e-12
 _BEND_EPS_N2 = 1e-24
@@ -206,7 +210,10 @@ def stretch_project_jacobi_(
 ) -> None:
     """One Jacobi pass of all stretch constraints (arguments as `stretch_project_`; ``omega`` the
     relaxation factor): ``x += omega * sum_dx / count`` per vertex, ``lam += dlam`` for all triangles."""
-    dlam, dx, active = _stretch_delta(x, lam, vert_inv_mass, tri_vertices, tri_rest_inv, tri_compliance, dt)
+    # lam.clone(): autograd saves the multipliers read here, and they are updated in place below
+    dlam, dx, active = _stretch_delta(
+        x, lam.clone(), vert_inv_mass, tri_vertices, tri_rest_inv, tri_compliance, dt
+    )
     lam += dlam
     _jacobi_apply(x, tri_vertices, dx, active, omega)
 
@@ -317,7 +324,10 @@ def bend_project_jacobi_(
     omega: float,
 ) -> None:
     """One Jacobi pass of all bending constraints (arguments as `bend_project_`, plus ``omega``)."""
-    dlam, dx, active = _bend_delta(x, lam, vert_inv_mass, edge_quads, edge_rest_angle, edge_compliance, dt)
+    # lam.clone(): as in `stretch_project_jacobi_`
+    dlam, dx, active = _bend_delta(
+        x, lam.clone(), vert_inv_mass, edge_quads, edge_rest_angle, edge_compliance, dt
+    )
     lam += dlam
     _jacobi_apply(x, edge_quads, dx, active, omega)
 
@@ -381,145 +391,175 @@ def xpbd_substeps_(
     x: torch.Tensor,
     v: torch.Tensor,
     vert_inv_mass: torch.Tensor,
-    tri_vertices: torch.Tensor,
-    tri_rest_inv: torch.Tensor,
-    tri_compliance: torch.Tensor,
-    tri_order: torch.Tensor,
-    tri_color_offsets: torch.Tensor,
-    edge_quads: torch.Tensor,
-    edge_rest_angle: torch.Tensor,
-    edge_compliance: torch.Tensor,
-    edge_order: torch.Tensor,
-    edge_color_offsets: torch.Tensor,
-    stitch_vertices: torch.Tensor,
-    attach_vertices: torch.Tensor,
-    attach_height: torch.Tensor,
-    body_verts: torch.Tensor,
-    body_faces: torch.Tensor,
-    contact_vert: torch.Tensor,
-    contact_tri: torch.Tensor,
-    contact_bary: torch.Tensor,
-    gravity: list[float],
-    velocity_decay: float,
-    dt: float,
+    stretch: list[torch.Tensor],
+    bend: list[torch.Tensor],
+    seams: list[torch.Tensor],
+    body: list[torch.Tensor],
+    coefficients: list[float],
     substeps: int,
     iterations: int,
-    stitch_compliance: float,
-    stitch_max_move: float,
-    stitch_snap: float,
-    attach_compliance: float,
-    thickness: float,
-    friction: float,
     jacobi: bool,
-    jacobi_omega: float,
     num_threads: int,
 ) -> None:
     """XPBD substeps of one frame, in place on ``x`` and ``v`` (twin of the fused C++ op).
 
-    Per substep: ``v = (v · velocity_decay + gravity · dt) · [w > 0]``, ``x_start = x``, ``x += v · dt``,
-    multipliers reset to 0; then ``iterations`` × (stretch pass, bend pass (Gauss–Seidel over the
-    colourings, or Jacobi with ``jacobi_omega`` when ``jacobi``), `attach_project_`,
-    ``collision.project_contacts`` against the contact set, `stitch_project_`); then
-    ``collision.apply_friction`` with the summed contact depths (when ``friction`` > 0 and there are
-    contacts); finally ``v = (x − x_start) / dt``.
-
     Args:
         x, v: (Vs, 3) positions [m] and velocities [m/s], updated in place.
-        vert_inv_mass: (Vs,) [1/kg] (0 = pinned).
-        tri_vertices, tri_rest_inv, tri_compliance, tri_order, tri_color_offsets: as `stretch_project_`.
-        edge_quads, edge_rest_angle, edge_compliance, edge_order, edge_color_offsets: as `bend_project_`.
-        stitch_vertices: (S, 2) int64; attach_vertices: (A,) int64; attach_height: (A,) [m].
-        body_verts: (Vb, 3) [m]; body_faces: (Fb, 3) int64 (may be empty without contacts).
-        contact_vert: (C,) int64 distinct cloth vertices; contact_tri: (C,) int64 body faces;
-        contact_bary: (C, 3) barycentric contact points on them.
-        gravity: 3 floats [m/s²]; velocity_decay: damping factor per substep; dt: substep [s].
-        substeps, iterations: counts. stitch_compliance [m/N], stitch_max_move [m], stitch_snap [m],
-        attach_compliance [m/N]: as `stitch_project_` / `attach_project_`. thickness [m]; friction: μ.
-        jacobi, jacobi_omega: the Jacobi scheme. num_threads: used by the C++ op only.
+        vert_inv_mass, stretch, bend, seams, body, coefficients, substeps, iterations, jacobi,
+        num_threads: `SubstepInputs.op_args` (the tensor lists and scalars by role, see `sim/substep.py`;
+        num_threads is used by the C++ op only).
+
+    The maths is `xpbd_substeps`, run out of place under ``no_grad`` and copied into x and v.
     """
-    compose_substeps(
-        _REFERENCE_KERNELS, x, v, vert_inv_mass, tri_vertices, tri_rest_inv, tri_compliance, tri_order,
-        tri_color_offsets, edge_quads, edge_rest_angle, edge_compliance, edge_order, edge_color_offsets,
-        stitch_vertices, attach_vertices, attach_height, body_verts, body_faces, contact_vert, contact_tri,
-        contact_bary, gravity, velocity_decay, dt, substeps, iterations, stitch_compliance, stitch_max_move,
-        stitch_snap, attach_compliance, thickness, friction, jacobi, jacobi_omega,
-    )  # fmt: skip
-
-
-def compose_substeps(
-    kernels, x, v, vert_inv_mass, tri_vertices, tri_rest_inv, tri_compliance, tri_order, tri_color_offsets,
-    edge_quads, edge_rest_angle, edge_compliance, edge_order, edge_color_offsets, stitch_vertices,
-    attach_vertices, attach_height, body_verts, body_faces, contact_vert, contact_tri, contact_bary, gravity,
-    velocity_decay, dt, substeps, iterations, stitch_compliance, stitch_max_move, stitch_snap,
-    attach_compliance, thickness, friction, jacobi, jacobi_omega,
-) -> None:  # fmt: skip
-    """`xpbd_substeps_` with the four projection passes taken from ``kernels`` (an object with
-    ``stretch_project_``, ``bend_project_``, ``stretch_project_jacobi_``, ``bend_project_jacobi_``).
-
-    The twin uses this module's kernels; the benchmark passes the per-constraint C++ ops to time the
-    solver's former (unfused) path.
-    """
-    from torch_diffavatar.sim import collision  # local: collision imports ops, which imports this module
-
-    w = vert_inv_mass
-    movable = (w > 0).to(x.dtype)[:, None]
-    g = x.new_tensor(list(gravity))
-    contacts = None
-    if contact_vert.numel():
-        contacts = collision.Contacts(contact_vert, contact_tri, contact_bary)
-    xs, vs = x.clone(), v.clone()
-    for _ in range(substeps):
-        x_start = xs
-        vs = (vs * velocity_decay + g * dt) * movable
-        xs = xs + vs * dt
-        lam_tri = xs.new_zeros(tri_vertices.shape[0], 3)
-        lam_edge = xs.new_zeros(edge_quads.shape[0])
-        lam_stitch = xs.new_zeros(stitch_vertices.shape[0], 3)
-        lam_attach = xs.new_zeros(attach_vertices.shape[0])
-        depth_sum = normal = None
-        for _ in range(iterations):
-            if jacobi:
-                kernels.stretch_project_jacobi_(
-                    xs, lam_tri, w, tri_vertices, tri_rest_inv, tri_compliance, dt, jacobi_omega
-                )
-                if lam_edge.numel():
-                    kernels.bend_project_jacobi_(
-                        xs, lam_edge, w, edge_quads, edge_rest_angle, edge_compliance, dt, jacobi_omega
-                    )
-            else:
-                kernels.stretch_project_(
-                    xs,
-                    lam_tri,
-                    w,
-                    tri_vertices,
-                    tri_rest_inv,
-                    tri_compliance,
-                    tri_order,
-                    tri_color_offsets,
-                    dt,
-                )
-                if lam_edge.numel():
-                    kernels.bend_project_(
-                        xs, lam_edge, w, edge_quads, edge_rest_angle, edge_compliance, edge_order,
-                        edge_color_offsets, dt,
-                    )  # fmt: skip
-            if lam_attach.numel():
-                attach_project_(xs, lam_attach, w, attach_vertices, attach_height, attach_compliance, dt)
-            if contacts is not None:
-                xs, depth, normal = collision.project_contacts(
-                    xs, w, body_verts, body_faces, contacts, thickness
-                )
-                depth_sum = depth if depth_sum is None else depth_sum + depth
-            # stitches last: a seam pressed onto the body still closes (the drape fixes contacts)
-            if lam_stitch.numel():
-                stitch_project_(
-                    xs, lam_stitch, w, stitch_vertices, stitch_compliance, dt, stitch_max_move, stitch_snap
-                )
-        if contacts is not None and friction > 0:
-            xs = collision.apply_friction(xs, x_start, contacts, normal, depth_sum, friction)
-        vs = (xs - x_start) / dt
+    inputs = SubstepInputs.from_op_args(
+        vert_inv_mass, stretch, bend, seams, body, coefficients, substeps, iterations, jacobi, num_threads
+    )
+    with torch.no_grad():
+        xs, vs = xpbd_substeps(x, v, inputs)
     x.copy_(xs)
     v.copy_(vs)
+
+
+class KernelMembrane:
+    """The stretch and bend passes of `xpbd_substeps` by the per-constraint kernels (in place, on a copy).
+
+    Args:
+        inputs: the call's `SubstepInputs`.
+        kernels: an object with ``stretch_project_``, ``bend_project_``, ``stretch_project_jacobi_`` and
+            ``bend_project_jacobi_``: this module's (default) or `sim.ops` (the C++ ops one at a time: the
+            benchmark's former, unfused path).
+    """
+
+    def __init__(self, inputs: SubstepInputs, kernels=None):
+        self.inputs = inputs
+        self.kernels = _REFERENCE_KERNELS if kernels is None else kernels
+
+    def start(self, x: torch.Tensor):
+        """The multipliers of a new substep: (F, 3) and (E,) zeros."""
+        face_count, edge_count = (
+            self.inputs.stretch.tri_vertices.shape[0],
+            self.inputs.bend.edge_quads.shape[0],
+        )
+        return x.new_zeros(face_count, 3), x.new_zeros(edge_count)
+
+    def project(self, x: torch.Tensor, lam):
+        """One stretch pass, then one bend pass; returns (x, lam) with x a new tensor (autograd may still
+        need the old one)."""
+        k, w, p = self.kernels, self.inputs.vert_inv_mass, self.inputs.params
+        tri, edge = self.inputs.stretch, self.inputs.bend
+        lam_tri, lam_edge = lam
+        x = x.clone()
+        if p.jacobi:
+            k.stretch_project_jacobi_(
+                x, lam_tri, w, tri.tri_vertices, tri.tri_rest_inv, tri.tri_compliance, p.dt, p.jacobi_omega
+            )
+            if lam_edge.numel():
+                k.bend_project_jacobi_(
+                    x, lam_edge, w, edge.edge_quads, edge.edge_rest_angle, edge.edge_compliance, p.dt,
+                    p.jacobi_omega,
+                )  # fmt: skip
+        else:
+            k.stretch_project_(
+                x, lam_tri, w, tri.tri_vertices, tri.tri_rest_inv, tri.tri_compliance, tri.tri_order,
+                tri.tri_color_offsets, p.dt,
+            )  # fmt: skip
+            if lam_edge.numel():
+                k.bend_project_(
+                    x, lam_edge, w, edge.edge_quads, edge.edge_rest_angle, edge.edge_compliance,
+                    edge.edge_order, edge.edge_color_offsets, p.dt,
+                )  # fmt: skip
+        return x, lam
+
+
+@dataclass(frozen=True)
+class _ContactResponse:
+    """A call's contact set with its frames, computed once per call (the body is static within it)."""
+
+    contacts: Contacts
+    point: torch.Tensor  # (C, 3) [m]
+    normal: torch.Tensor  # (C, 3)
+    movable: torch.Tensor  # (C,) 1 for free vertices, 0 for pinned ones
+    thickness: float
+
+    @staticmethod
+    def of(inputs: SubstepInputs, x: torch.Tensor) -> _ContactResponse | None:
+        contacts = inputs.body.contacts()
+        if contacts is None:
+            return None
+        point, normal = contact_frames(inputs.body.body_verts, inputs.body.body_faces, contacts)
+        movable = (inputs.vert_inv_mass.detach()[contacts.vert] > 0).to(x.dtype)
+        return _ContactResponse(contacts, point, normal, movable, inputs.params.thickness)
+
+    def project(self, x: torch.Tensor):
+        return push_out(x, self.contacts.vert, self.point, self.normal, self.movable, self.thickness)
+
+
+def xpbd_substeps(x: torch.Tensor, v: torch.Tensor, inputs: SubstepInputs, membrane=None):
+    """The XPBD substeps of `xpbd_substeps_`, out of place and differentiable in x, v and every tensor of
+    ``inputs`` (the one frame that the reference twin, `trajectory.replay_frame` and `ReplayPlan` share).
+
+    Per substep: ``v = (v · velocity_decay + gravity · dt) · [w > 0]``, ``x_start = x``, ``x += v · dt``,
+    multipliers reset to 0; then ``iterations`` × (``membrane``'s stretch and bend passes, `attach_project_`,
+    the contact projection (`contacts.push_out`, with the contact frames computed once per call), and
+    `stitch_project_` last, so that a seam pressed onto the body still closes); then `contacts.apply_friction`
+    with the summed contact depths (when ``friction`` > 0 and there are contacts); finally
+    ``v = (x − x_start) / dt``.
+
+    Args:
+        x, v: (Vs, 3) positions [m] and velocities [m/s] (not modified).
+        inputs: `SubstepInputs`.
+        membrane: the stretch and bend passes: an object with ``start(x) -> lam`` (a substep's multipliers)
+            and ``project(x, lam) -> (x, lam)`` (one pass of each, out of place); default
+            `KernelMembrane` (this module's kernels). `ReplayPlan.membrane` is the batched variant.
+
+    Returns:
+        (x, v) at the end, (Vs, 3) each.
+    """
+    p = inputs.params
+    membrane = KernelMembrane(inputs) if membrane is None else membrane
+    movable = (inputs.vert_inv_mass.detach() > 0).to(x.dtype)[:, None]
+    gravity_dt = x.new_tensor(p.gravity) * p.dt
+    contact = _ContactResponse.of(inputs, x)
+    for _ in range(p.substeps):
+        x_start = x
+        v = (v * p.velocity_decay + gravity_dt) * movable
+        x, depth_sum = _iterations(x + v * p.dt, inputs, membrane, contact)
+        if contact is not None and p.friction > 0:
+            x = apply_friction(x, x_start, contact.contacts, contact.normal, depth_sum, p.friction)
+        v = (x - x_start) / p.dt
+    return x, v
+
+
+def _iterations(x, inputs: SubstepInputs, membrane, contact: _ContactResponse | None):
+    """The constraint iterations of one substep; returns (x, summed contact depths (C,) or None)."""
+    p, seams, w = inputs.params, inputs.seams, inputs.vert_inv_mass
+    lam = membrane.start(x)
+    lam_attach = x.new_zeros(seams.attach_vertices.shape[0])
+    lam_stitch = x.new_zeros(seams.stitch_vertices.shape[0], 3)
+    depth_sum = None
+    for _ in range(p.iterations):
+        x, lam = membrane.project(x, lam)
+        if lam_attach.numel():
+            x = x.clone()
+            attach_project_(
+                x, lam_attach, w, seams.attach_vertices, seams.attach_height, p.attach_compliance, p.dt
+            )
+        if contact is not None:
+            x, depth = contact.project(x)
+            depth_sum = depth if depth_sum is None else depth_sum + depth
+        if lam_stitch.numel():  # stitches last: a seam pressed onto the body still closes
+            x = x.clone()
+            stitch_project_(
+                x,
+                lam_stitch,
+                w,
+                seams.stitch_vertices,
+                p.stitch_compliance,
+                p.dt,
+                p.stitch_max_move,
+                p.stitch_snap,
+            )
+    return x, depth_sum
 
 
 def max_abs_green_strain(

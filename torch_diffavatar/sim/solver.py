@@ -4,27 +4,39 @@ One `XPBDSolver.step` is one frame of ``dt`` seconds: body contacts are detected
 ``substeps`` times: predict (damping, gravity), reset multipliers, ``iterations`` × project all
 constraints (stretch, bending, attachments, body contacts, stitches), friction, update velocities.
 Constraint passes are Gauss–Seidel over a graph colouring (default) or Jacobi. The solver keeps no
-state; `step` returns a new `ClothState`. Blow-ups raise `SimulationError`.
+state; `step` returns a new `ClothState`, `advance` the state and the frame's contacts. Blow-ups raise
+`SimulationError`.
 
-All substeps of a frame run in one call of `ops.xpbd_substeps_`: the fused C++ op when the extension is
-built (about 0.5 ms of CPU per substep on the 64×64 benchmark sheet, `python -m
-torch_diffavatar.sim.benchmark`), else its PyTorch twin `reference.xpbd_substeps_`, which composes the
-per-constraint reference kernels, `reference.stitch_project_` / `attach_project_` and
-`collision.project_contacts` / `apply_friction` (the maths of record).
+All substeps of a frame run in one call of `ops.xpbd_substeps_` with the arguments `substep_inputs`
+builds (`sim/substep.py`): the fused C++ op when the extension is built (about 0.5 ms of CPU per substep
+on the 64×64 benchmark sheet, `python -m torch_diffavatar.sim.benchmark`), else its PyTorch twin
+`reference.xpbd_substeps_`, whose maths `reference.xpbd_substeps` (the per-constraint reference kernels,
+stitches, attachments, `sim.contacts`' projection and friction) is the maths of record, and also the
+frame that the trajectory adjoint replays.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
 import torch
 
 from torch_diffavatar.errors import SimulationError
-from torch_diffavatar.sim import collision, ops, reference
+from torch_diffavatar.sim import collision, ops
 from torch_diffavatar.sim.constraints import RestData
+from torch_diffavatar.sim.contacts import Contacts
 from torch_diffavatar.sim.model import ClothModel
 from torch_diffavatar.sim.state import ClothState
+from torch_diffavatar.sim.substep import (
+    BendInputs,
+    BodyInputs,
+    SeamInputs,
+    StretchInputs,
+    SubstepInputs,
+    SubstepParams,
+)
 
 SCHEMES = ("gauss_seidel", "jacobi")
 
@@ -94,12 +106,26 @@ class XPBDConfig:
             raise ValueError(f"XPBDConfig.num_threads must be >= 0, got {self.num_threads}")
 
 
-# positions of the body vertices and of the substep count in `ops.xpbd_substeps_`'s arguments
-_BODY_ARG, _SUBSTEPS_ARG = 16, 24
+@dataclass(frozen=True)
+class StepResult:
+    """One frame of `XPBDSolver.advance`.
+
+    Attributes:
+        state: the new `ClothState`.
+        contacts: the body contacts the frame projected against (detected once, at its start), or None
+            without a body or without a vertex in the contact band. The trajectory adjoint records them
+            to replay the frame against the same set.
+    """
+
+    state: ClothState
+    contacts: Contacts | None
 
 
 class XPBDSolver:
     """Steps a `ClothModel` (static data) from one `ClothState` to the next.
+
+    The solver keeps nothing that changes the results between frames: each frame's contacts are an
+    output of `advance`. (It caches the closest-point grid of a static body, which only saves time.)
 
     Args:
         model: the cloth model.
@@ -109,13 +135,15 @@ class XPBDSolver:
     def __init__(self, model: ClothModel, config: XPBDConfig | None = None):
         self.model = model
         self.config = XPBDConfig() if config is None else config
-        # closest-point grid of the last static body seen by `step` (rebuilt when the body changes)
+        # closest-point grid of the last static body seen by `advance` (rebuilt when the body changes)
         self._body_index: collision.BodyIndex | None = None
-        # the body contacts the last `step` projected against (None: no body, or none in its band); the
-        # trajectory adjoint records them for its replay instead of detecting them a second time
-        self.last_contacts: collision.Contacts | None = None
 
-    def step(
+    def step(self, state: ClothState, rest: RestData, dt: float, **kwargs) -> ClothState:
+        """Advance one frame and return the new `ClothState` (`advance` without the contacts; the same
+        keyword arguments)."""
+        return self.advance(state, rest, dt, **kwargs).state
+
+    def advance(
         self,
         state: ClothState,
         rest: RestData,
@@ -128,7 +156,7 @@ class XPBDSolver:
         velocity_scale: float = 1.0,
         friction_scale: float = 1.0,
         body_verts_end: torch.Tensor | None = None,
-    ) -> ClothState:
+    ) -> StepResult:
         """Advance one frame.
 
         Args:
@@ -149,107 +177,70 @@ class XPBDSolver:
                 in a band widened by the body's largest displacement.
 
         Returns:
-            the new `ClothState`.
+            `StepResult`: the new state and the frame's contacts.
 
         Raises:
             SimulationError: NaN/inf, a vertex faster than ``max_speed`` or strain beyond ``max_strain``.
         """
-        cfg, model = self.config, self.model
         if (body_verts is None) != (body_faces is None):
             raise ValueError("pass both body_verts and body_faces, or neither")
         if dt <= 0:
             raise ValueError(f"dt must be > 0, got {dt}")
-        h = dt / cfg.substeps
-        mat = rest.material
-        x = state.x.detach().clone().contiguous()
-        v = state.v.detach().clone().contiguous()
-        w = rest.vert_inv_mass.detach().contiguous()
-        alpha_stitch = cfg.stitch_compliance if stitch_compliance is None else stitch_compliance
         if body_verts_end is not None and (body_verts is None or body_verts_end.shape != body_verts.shape):
             raise ValueError("body_verts_end needs body_verts of the same (Vb, 3) shape")
+        x = state.x.detach().clone().contiguous()
+        v = state.v.detach().clone().contiguous()
         with torch.no_grad():
             contacts = None
             if body_verts is not None:
-                # the band also covers how far the fastest vertex (and the body) can travel in this frame
-                reach = 1.5 * float(v.norm(dim=-1).max()) * dt if v.numel() else 0.0
-                band = float(mat.thickness) + max(cfg.collision_band, reach)
-                if body_verts_end is not None:
-                    band += float((body_verts_end - body_verts).norm(dim=-1).max())
-                index = None
-                if body_verts_end is None:  # a static body: reuse its grid from frame to frame
-                    index = self._body_index
-                    if index is None or not index.matches(body_verts, body_faces):
-                        index = collision.BodyIndex(
-                            body_verts, body_faces, cell_size=_CONTACT_CELL, use_extension=cfg.use_extension
-                        )
-                        self._body_index = index
-                contacts = collision.detect_contacts(
-                    x, body_verts, body_faces, band, use_extension=cfg.use_extension, index=index
-                )
-            self.last_contacts = contacts if contacts is not None and contacts.count else None
-            moving = contacts is not None and contacts.count and body_verts_end is not None
-            if contacts is not None and contacts.count:
-                bv = body_verts.detach().to(x.dtype).contiguous()
-                bf = body_faces.contiguous()
-                cv, ct, cb = contacts.vert, contacts.tri, contacts.bary.to(x.dtype).contiguous()
-            else:  # no contact this frame
-                bv, bf = x.new_zeros(0, 3), model.tri_vertices.new_zeros(0, 3)
-                cv = ct = model.tri_vertices.new_zeros(0)
-                cb = x.new_zeros(0, 3)
-            tc, ec = model.tri_coloring, model.edge_coloring
-            args = [
-                x,
-                v,
-                w,
-                model.tri_vertices,
-                rest.tri_rest_inv.detach().contiguous(),
-                rest.tri_compliance.detach().contiguous(),
-                tc.order,
-                tc.color_offsets,
-                model.edge_quads,
-                rest.edge_rest_angle.detach().contiguous(),
-                rest.edge_compliance.detach().contiguous(),
-                ec.order,
-                ec.color_offsets,
-                model.stitch_vertices,
-                model.attach_vertices,
-                model.attach_height.detach(),
-                bv,
-                bf,
-                cv,
-                ct,
-                cb,
-                [gi * gravity_scale for gi in cfg.gravity],
-                math.exp(-float(mat.damping) * h),
-                h,
-                cfg.substeps,
-                cfg.iterations,
-                alpha_stitch,
-                cfg.stitch_max_speed * h / cfg.iterations,
-                cfg.stitch_snap,
-                cfg.attach_compliance,
-                float(mat.thickness),
-                float(mat.friction) * friction_scale,
-                cfg.scheme == "jacobi",
-                cfg.jacobi_omega,
-                cfg.num_threads,
-            ]
-            if not moving:
-                self._substeps(*args)
-            else:  # one substep per call, each against the body interpolated to its end
-                b1 = body_verts_end.detach().to(x.dtype)
-                args[_SUBSTEPS_ARG] = 1
-                for k in range(cfg.substeps):
-                    args[_BODY_ARG] = (bv + (k + 1) / cfg.substeps * (b1 - bv)).contiguous()
-                    self._substeps(*args)
+                contacts = self._detect(x, v, rest, dt, body_verts, body_faces, body_verts_end)
+            inputs = substep_inputs(
+                self.model, rest, self.config, dt, contacts=contacts, body_verts=body_verts,
+                body_faces=body_faces, gravity_scale=gravity_scale, stitch_compliance=stitch_compliance,
+                friction_scale=friction_scale,
+            )  # fmt: skip
+            if contacts is None or body_verts_end is None:
+                self._substeps(x, v, inputs)
+            else:
+                self._substeps_moving_body(x, v, inputs, body_verts_end)
             if velocity_scale != 1.0:
                 v = v * velocity_scale
             self._check(x, v, rest)
-        return ClothState(x, v)
+        return StepResult(ClothState(x, v), contacts)
 
-    def _substeps(self, *args) -> None:
-        """Run the frame's substeps in place on x and v: `ops.xpbd_substeps_` (arguments in its order)."""
-        ops.xpbd_substeps_(*args, use_extension=self.config.use_extension)
+    def _detect(self, x, v, rest, dt, body_verts, body_faces, body_verts_end) -> Contacts | None:
+        """The frame's contacts: cloth vertices within `contact_band` of the body (None when none)."""
+        band = contact_band(v, rest.material, self.config, dt)
+        if body_verts_end is not None:
+            band += float((body_verts_end - body_verts).norm(dim=-1).max())
+        index = None
+        if body_verts_end is None:  # a static body: reuse its grid from frame to frame
+            index = self._body_index
+            if index is None or not index.matches(body_verts, body_faces):
+                index = collision.BodyIndex(
+                    body_verts, body_faces, cell_size=_CONTACT_CELL, use_extension=self.config.use_extension
+                )
+                self._body_index = index
+        contacts = collision.detect_contacts(
+            x, body_verts, body_faces, band, use_extension=self.config.use_extension, index=index
+        )
+        return contacts if contacts.count else None
+
+    def _substeps(self, x: torch.Tensor, v: torch.Tensor, inputs: SubstepInputs) -> None:
+        """Run the frame's substeps in place on x and v (`ops.xpbd_substeps_`)."""
+        ops.xpbd_substeps_(x, v, inputs, use_extension=self.config.use_extension)
+
+    def _substeps_moving_body(self, x, v, inputs: SubstepInputs, body_verts_end: torch.Tensor) -> None:
+        """One substep per call, each against the body interpolated to the substep's end."""
+        start = inputs.body.body_verts
+        end = body_verts_end.detach().to(x.dtype)
+        substeps = inputs.params.substeps
+        one = dataclasses.replace(inputs.params, substeps=1)
+        for k in range(substeps):
+            body = dataclasses.replace(
+                inputs.body, body_verts=(start + (k + 1) / substeps * (end - start)).contiguous()
+            )
+            self._substeps(x, v, dataclasses.replace(inputs, body=body, params=one))
 
     def _check(self, x, v, rest):
         cfg = self.config
@@ -278,7 +269,85 @@ class XPBDSolver:
             )
 
 
-# The stitch and attachment projections live with the other PyTorch kernels (the fused op's twin
-# composes them); these names stay for callers that replay the solver's steps.
-_project_stitches = reference.stitch_project_
-_project_attach = reference.attach_project_
+def contact_band(v: torch.Tensor, material, config: XPBDConfig, dt: float) -> float:
+    """The contact-detection band [m] of a frame starting with velocities ``v`` (Vs, 3) [m/s]: the
+    thickness plus ``config.collision_band``, or how far the fastest vertex can travel in ``dt`` [s]
+    (× 1.5) when that is more (a moving body widens it further by its largest displacement)."""
+    reach = 1.5 * float(v.norm(dim=-1).max()) * dt if v.numel() else 0.0
+    return float(material.thickness) + max(config.collision_band, reach)
+
+
+def substep_inputs(
+    model: ClothModel,
+    rest: RestData,
+    config: XPBDConfig,
+    dt: float,
+    *,
+    contacts: Contacts | None = None,
+    body_verts: torch.Tensor | None = None,
+    body_faces: torch.Tensor | None = None,
+    gravity_scale: float = 1.0,
+    stitch_compliance: float | None = None,
+    friction_scale: float = 1.0,
+) -> SubstepInputs:
+    """The arguments of one frame's substeps (`ops.xpbd_substeps_`, `reference.xpbd_substeps`): the one
+    place that maps the model, its rest data and the options onto them (the solver and the trajectory
+    adjoint's replays both call it, so a replayed frame is the frame the solver ran).
+
+    Args:
+        model, rest, config: the cloth model, `ClothModel.rest_data` (its tensors may require grad: they
+            are passed as they are) and the stepping options.
+        dt: frame time [s]; contacts: the frame's contact set or None; body_verts: (Vb, 3) [m];
+        body_faces: (Fb, 3) int64 (read when ``contacts`` is given); gravity_scale, stitch_compliance,
+        friction_scale: as `XPBDSolver.advance`.
+    """
+    h = dt / config.substeps
+    mat = rest.material
+    w = rest.vert_inv_mass
+    if contacts is not None:
+        body = BodyInputs(
+            body_verts.to(w.dtype).contiguous(), body_faces.contiguous(), contacts.vert, contacts.tri,
+            contacts.bary.to(w.dtype).contiguous(),
+        )  # fmt: skip
+    else:
+        no_index = model.tri_vertices.new_zeros(0)
+        body = BodyInputs(
+            w.new_zeros(0, 3), model.tri_vertices.new_zeros(0, 3), no_index, no_index, w.new_zeros(0, 3)
+        )
+    tc, ec = model.tri_coloring, model.edge_coloring
+    params = SubstepParams(
+        gravity=tuple(gi * gravity_scale for gi in config.gravity),
+        velocity_decay=math.exp(-float(mat.damping) * h),
+        dt=h,
+        stitch_compliance=config.stitch_compliance if stitch_compliance is None else stitch_compliance,
+        stitch_max_move=config.stitch_max_speed * h / config.iterations,
+        stitch_snap=config.stitch_snap,
+        attach_compliance=config.attach_compliance,
+        thickness=float(mat.thickness),
+        friction=float(mat.friction) * friction_scale,
+        jacobi_omega=config.jacobi_omega,
+        substeps=config.substeps,
+        iterations=config.iterations,
+        jacobi=config.scheme == "jacobi",
+        num_threads=config.num_threads,
+    )
+    return SubstepInputs(
+        vert_inv_mass=w.contiguous(),
+        stretch=StretchInputs(
+            model.tri_vertices,
+            rest.tri_rest_inv.contiguous(),
+            rest.tri_compliance.contiguous(),
+            tc.order,
+            tc.color_offsets,
+        ),  # fmt: skip
+        bend=BendInputs(
+            model.edge_quads,
+            rest.edge_rest_angle.contiguous(),
+            rest.edge_compliance.contiguous(),
+            ec.order,
+            ec.color_offsets,
+        ),  # fmt: skip
+        seams=SeamInputs(model.stitch_vertices, model.attach_vertices, model.attach_height),
+        body=body,
+        params=params,
+    )

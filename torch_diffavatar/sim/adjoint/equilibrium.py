@@ -54,7 +54,9 @@ class EquilibriumOptions:
             adhesive contacts held cloth that XPBD's fixed point lifts 10–190 µm off (the body-gradient
             cosine to XPBD's N → ∞ limit was 0.985 with them, 0.9994 without; see bench_grad.py) [-].
         solve_method: adjoint solve method (`linsolve.SOLVE_METHODS`); newton_solve_method: the polish's.
-        solve_tol: relative residual accepted for the adjoint solve (a larger one warns; > 1e-3 raises).
+        solve_tol: relative residual the adjoint solve aims at; a solve whose backward error exceeds it
+            (or the gradient dtype's epsilon) warns, a relative residual beyond 1e-3 raises
+            (`linsolve.check_solve`).
         hessian: the adjoint system's matrix. ``"exact"``: ∇²ₓU, the exact implicit gradient at a
             converged minimiser (what the gradchecks test). ``"projected"``: every element Hessian
             projected to PSD plus ``regularization`` × its largest diagonal entry on the diagonal — an
@@ -318,10 +320,11 @@ def equilibrium_backward(
         adjoint_solve_method=info.method,
         adjoint_solve_iterations=info.iterations,
         adjoint_solve_residual=info.residual,
+        adjoint_solve_backward_error=info.backward_error,
         adjoint_hessian_indefinite=info.indefinite,
         adjoint_dofs=nfree,
     )
-    check_solve(info, opts.solve_tol, "equilibrium adjoint")
+    check_solve(info, opts.solve_tol, "equilibrium adjoint", x.dtype)
     lam = x.new_zeros(3 * model.vert_count)
     lam[free_dof] = lam_free
     lam = lam.reshape(-1, 3)

@@ -16,22 +16,24 @@ ops per colour, so that autograd records few nodes:
 * the multipliers of the first iteration are zero and are not materialised (one iteration per substep
   is the default).
 
-Same order as `reference.compose_substeps` (the C++ op's twin): per substep predict, then per iteration
-stretch colours, bend colours, attachments, contacts, stitches; friction; velocities. Gauss–Seidel only:
-the Jacobi scheme replays through `trajectory.replay_frame` (the reference kernels).
+The frame itself is `reference.xpbd_substeps` (the C++ op's twin: per substep predict, then per iteration
+stretch colours, bend colours, attachments, contacts, stitches; friction; velocities) with this plan's
+batched stretch and bend passes as its ``membrane``, and its arguments come from `solver.substep_inputs`,
+as the solver's do. Gauss–Seidel only: the Jacobi scheme replays through `trajectory.replay_frame` (the
+reference kernels).
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
 
-from torch_diffavatar.sim import collision, reference
-from torch_diffavatar.sim.collision import Contacts
+from torch_diffavatar.sim import reference
+from torch_diffavatar.sim.contacts import Contacts
 from torch_diffavatar.sim.model import ClothModel
-from torch_diffavatar.sim.solver import XPBDConfig
+from torch_diffavatar.sim.solver import XPBDConfig, substep_inputs
+from torch_diffavatar.sim.substep import SubstepInputs
 
 # adjugate of a symmetric 3x3 stored as (a00, a01, a02, a11, a12, a22): cof_k = A[i] A[j] - A[l] A[m]
 _ADJ = torch.tensor([[3, 2, 1, 0, 1, 0], [5, 4, 4, 5, 2, 3], [4, 1, 2, 2, 0, 1], [4, 5, 3, 2, 4, 1]]).reshape(
@@ -62,7 +64,25 @@ class _FrameData:
 
     tri: list  # per colour (rest_inv^T (K,2,2), L (K,3,6), al6 (K,6), al (K,3,3), P (K,3,6))
     edge: list  # per colour (w (K,4), rest angle (K,), alpha~ (K,))
-    movable: torch.Tensor  # (Vs, 1)
+
+
+class _PlanMembrane:
+    """`ReplayPlan`'s stretch and bend passes for `reference.xpbd_substeps` (its ``membrane``)."""
+
+    def __init__(self, plan: ReplayPlan, data: _FrameData):
+        self.plan, self.data = plan, data
+
+    def start(self, x: torch.Tensor):
+        """Per colour, the substep's multipliers: None until the first pass (they start at 0)."""
+        return [None] * len(self.plan.tri_colours), [None] * len(self.plan.edge_colours)
+
+    def project(self, x: torch.Tensor, lam):
+        lam_tri, lam_edge = lam
+        for k, (c, td) in enumerate(zip(self.plan.tri_colours, self.data.tri)):
+            x, lam_tri[k] = self.plan._stretch(x, c, td, lam_tri[k])
+        for k, (c, ed) in enumerate(zip(self.plan.edge_colours, self.data.edge)):
+            x, lam_edge[k] = self.plan._bend(x, c, ed, lam_edge[k])
+        return x, (lam_tri, lam_edge)
 
 
 class ReplayPlan:
@@ -100,38 +120,54 @@ class ReplayPlan:
 
     def frame_data(self, tri_rest_inv, tri_compliance, edge_rest_angle, edge_compliance, vert_inv_mass, h):
         """Fold the rest data into the per-colour matrices (differentiable)."""
-        tri = []
-        for c in self.tri_colours:
-            r = tri_rest_inv[c.ids]  # (K, 2, 2) [[a, b], [c, d]]
-            w = vert_inv_mass[c.tri]  # (K, 3)
-            a, b, cc, d = r.reshape(-1, 4).unbind(1)
-            p = torch.stack((a, cc, -a - cc), 1)  # per corner: F = [f0 f1], dC/dx_i from (p_i, q_i)
-            q = torch.stack((b, d, -b - d), 1)
-            wpp, wqq, wpq = (w * p * p).sum(1), (w * q * q).sum(1), (w * p * q).sum(1)
-            z = torch.zeros_like(wpp)
-            # A6 = (s00, s11, s01) @ L, entries (a00, a01, a02, a11, a12, a22) of reference._stretch_delta
-            L = torch.stack(
-                (
-                    torch.stack((wpp, z, 0.5 * wpq, z, z, 0.25 * wqq), 1),
-                    torch.stack((z, z, z, wqq, 0.5 * wpq, 0.25 * wpp), 1),
-                    torch.stack((z, wpq, 0.5 * wpp, z, 0.5 * wqq, 0.5 * wpq), 1),
-                ),
-                1,
-            )  # (K, 3, 6)
-            al = tri_compliance[c.ids] / (h * h)  # (K, 3, 3)
-            al6 = al.reshape(-1, 9)[:, self._upper]
-            # corrections: cf (K, 3 corners, 2) = dlam @ P; x_i += cf_i0 f0 + cf_i1 f1
-            wp, wq = w * p, w * q
-            zc = torch.zeros_like(wp)
-            P = torch.stack(
-                (torch.stack((wp, zc), 2), torch.stack((zc, wq), 2), torch.stack((0.5 * wq, 0.5 * wp), 2)), 1
-            ).reshape(-1, 3, 6)
-            tri.append((r.mT, L, al6, al, P))
+        tri = [
+            self._tri_colour_data(c, tri_rest_inv, tri_compliance, vert_inv_mass, h) for c in self.tri_colours
+        ]
         edge = []
         for c in self.edge_colours:
             edge.append((vert_inv_mass[c.quads], edge_rest_angle[c.ids], edge_compliance[c.ids] / (h * h)))
-        movable = (vert_inv_mass.detach() > 0).to(vert_inv_mass.dtype)[:, None]
-        return _FrameData(tri, edge, movable)
+        return _FrameData(tri, edge)
+
+    def _tri_colour_data(self, c: _TriColour, tri_rest_inv, tri_compliance, vert_inv_mass, h):
+        """(rest_inv^T (K,2,2), L (K,3,6), al6 (K,6), al (K,3,3), P (K,3,6)) of one colour of triangles."""
+        r = tri_rest_inv[c.ids]  # (K, 2, 2) [[a, b], [c, d]]
+        w = vert_inv_mass[c.tri]  # (K, 3)
+        a, b, cc, d = r.reshape(-1, 4).unbind(1)
+        p = torch.stack((a, cc, -a - cc), 1)  # per corner: F = [f0 f1], dC/dx_i from (p_i, q_i)
+        q = torch.stack((b, d, -b - d), 1)
+        wpp, wqq, wpq = (w * p * p).sum(1), (w * q * q).sum(1), (w * p * q).sum(1)
+        z = torch.zeros_like(wpp)
+        # A6 = (s00, s11, s01) @ L, entries (a00, a01, a02, a11, a12, a22) of reference._stretch_delta
+        L = torch.stack(
+            (
+                torch.stack((wpp, z, 0.5 * wpq, z, z, 0.25 * wqq), 1),
+                torch.stack((z, z, z, wqq, 0.5 * wpq, 0.25 * wpp), 1),
+                torch.stack((z, wpq, 0.5 * wpp, z, 0.5 * wqq, 0.5 * wpq), 1),
+            ),
+            1,
+        )  # (K, 3, 6)
+        al = tri_compliance[c.ids] / (h * h)  # (K, 3, 3)
+        al6 = al.reshape(-1, 9)[:, self._upper]
+        # corrections: cf (K, 3 corners, 2) = dlam @ P; x_i += cf_i0 f0 + cf_i1 f1
+        wp, wq = w * p, w * q
+        zc = torch.zeros_like(wp)
+        P = torch.stack(
+            (torch.stack((wp, zc), 2), torch.stack((zc, wq), 2), torch.stack((0.5 * wq, 0.5 * wp), 2)), 1
+        ).reshape(-1, 3, 6)
+        return r.mT, L, al6, al, P
+
+    def membrane(self, inputs: SubstepInputs) -> _PlanMembrane:
+        """The stretch and bend passes of `reference.xpbd_substeps` for one call with ``inputs`` (whose
+        topology and colouring are the plan's model's), batched per colour."""
+        data = self.frame_data(
+            inputs.stretch.tri_rest_inv,
+            inputs.stretch.tri_compliance,
+            inputs.bend.edge_rest_angle,
+            inputs.bend.edge_compliance,
+            inputs.vert_inv_mass,
+            inputs.params.dt,
+        )
+        return _PlanMembrane(self, data)
 
     def frame(
         self,
@@ -144,83 +180,24 @@ class ReplayPlan:
         body_verts: torch.Tensor | None = None,
         body_faces: torch.Tensor | None = None,
         velocity_scale: float = 1.0,
-        vert_inv_mass: torch.Tensor | None = None,
-        tri_rest_inv: torch.Tensor | None = None,
-        tri_compliance: torch.Tensor | None = None,
-        edge_compliance: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """One frame of `XPBDSolver.step` (drape phase), differentiable in every tensor argument.
+        """One frame of `XPBDSolver.advance` (drape phase), differentiable in every tensor argument.
 
         Args:
             x, v: (Vs, 3) state at the frame start [m], [m/s].
-            rest: `RestData` (its material gives damping, friction, thickness; its tensors are used unless
-                overridden by the keyword tensors, e.g. detached leaves of the adjoint).
+            rest: `RestData` (its tensors may require grad; its material gives damping, friction and
+                thickness).
             dt: frame time [s]; contacts: the frame's contact set or None; body_verts: (Vb, 3) [m];
             body_faces: (Fb, 3) int64; velocity_scale: factor on v at the end of the frame.
 
         Returns:
             (x, v) at the frame end, (Vs, 3) each.
         """
-        cfg, model = self.xpbd, self.model
-        h = dt / cfg.substeps
-        w = rest.vert_inv_mass if vert_inv_mass is None else vert_inv_mass
-        data = self.frame_data(
-            rest.tri_rest_inv if tri_rest_inv is None else tri_rest_inv,
-            rest.tri_compliance if tri_compliance is None else tri_compliance,
-            rest.edge_rest_angle,
-            rest.edge_compliance if edge_compliance is None else edge_compliance,
-            w,
-            h,
+        inputs = substep_inputs(
+            self.model, rest, self.xpbd, dt, contacts=contacts, body_verts=body_verts, body_faces=body_faces
         )
-        mat = rest.material
-        damp = math.exp(-float(mat.damping) * h)
-        g = x.new_tensor(cfg.gravity) * h
-        movable = data.movable
-        contact = None
-        if contacts is not None and contacts.count:
-            point, normal = collision.contact_frames(body_verts, body_faces, contacts)
-            cmov = (w.detach()[contacts.vert] > 0).to(x.dtype)
-            contact = (contacts.vert, point, normal, cmov, float(mat.thickness))
-        friction = float(mat.friction)
-        stitched = model.stitch_vertices.shape[0] > 0
-        attached = model.attach_vertices.shape[0] > 0
-        for _ in range(cfg.substeps):
-            x_start = x
-            v = (v * damp + g) * movable
-            x = x + v * h
-            lam_tri = [None] * len(self.tri_colours)
-            lam_edge = [None] * len(self.edge_colours)
-            lam_stitch = x.new_zeros(model.stitch_vertices.shape[0], 3) if stitched else None
-            lam_attach = x.new_zeros(model.attach_vertices.shape[0]) if attached else None
-            depth_sum = None
-            for _ in range(cfg.iterations):
-                for k, (c, td) in enumerate(zip(self.tri_colours, data.tri)):
-                    x, lam_tri[k] = self._stretch(x, c, td, lam_tri[k])
-                for k, (c, ed) in enumerate(zip(self.edge_colours, data.edge)):
-                    x, lam_edge[k] = self._bend(x, c, ed, lam_edge[k])
-                if attached:
-                    x = x.clone()
-                    reference.attach_project_(
-                        x, lam_attach, w, model.attach_vertices, model.attach_height, cfg.attach_compliance, h
-                    )
-                if contact is not None:
-                    cv, point, normal, cmov, thick = contact
-                    s = ((x[cv] - point) * normal).sum(-1) - thick
-                    depth = (-s).clamp_min(0.0) * cmov
-                    x = x.index_add(0, cv, normal * depth[:, None])
-                    depth_sum = depth if depth_sum is None else depth_sum + depth
-                if stitched:
-                    x = x.clone()
-                    reference.stitch_project_(
-                        x, lam_stitch, w, model.stitch_vertices, cfg.stitch_compliance, h,
-                        cfg.stitch_max_speed * h / cfg.iterations, cfg.stitch_snap,
-                    )  # fmt: skip
-            if contact is not None and friction > 0:
-                x = collision.apply_friction(x, x_start, contacts, contact[2], depth_sum, friction)
-            v = (x - x_start) / h
-        if velocity_scale != 1.0:
-            v = v * velocity_scale
-        return x, v
+        x, v = reference.xpbd_substeps(x, v, inputs, self.membrane(inputs))
+        return x, (v * velocity_scale if velocity_scale != 1.0 else v)
 
     # ---------------------------------------------------------------------------------- one colour
 

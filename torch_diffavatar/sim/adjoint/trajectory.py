@@ -34,13 +34,13 @@ from dataclasses import dataclass
 
 import torch
 
-from torch_diffavatar.sim import collision, reference
+from torch_diffavatar.sim import reference
 from torch_diffavatar.sim.adjoint.common import DrapeSetup, Gradients, material_with
 from torch_diffavatar.sim.adjoint.replay import ReplayPlan
-from torch_diffavatar.sim.collision import Contacts
 from torch_diffavatar.sim.constraints import RestData
+from torch_diffavatar.sim.contacts import Contacts
 from torch_diffavatar.sim.model import ClothModel
-from torch_diffavatar.sim.solver import XPBDConfig, XPBDSolver, _project_attach, _project_stitches
+from torch_diffavatar.sim.solver import XPBDConfig, XPBDSolver, substep_inputs
 from torch_diffavatar.sim.state import ClothState
 
 
@@ -78,11 +78,11 @@ def replay_frame(
     body_faces: torch.Tensor | None = None,
     velocity_scale: float = 1.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """One frame of `XPBDSolver.step`, differentiable (autograd) in x, v, rest data and body vertices.
+    """One frame of `XPBDSolver.advance`, differentiable (autograd) in x, v, rest data and body vertices.
 
-    Same maths and order as `XPBDSolver.step` (drape phase: gravity on, ``config.stitch_compliance``),
-    with the PyTorch reference kernels applied in place to tensors created inside this function, and
-    the contact set given instead of detected.
+    The solver's frame (drape phase: gravity on, ``config.stitch_compliance``): its arguments from
+    `solver.substep_inputs`, its maths `reference.xpbd_substeps` with the reference kernels, and the
+    contact set given instead of detected.
 
     Args:
         x, v: (Vs, 3) state at the frame start [m], [m/s].
@@ -94,65 +94,11 @@ def replay_frame(
     Returns:
         (x, v) at the frame end, (Vs, 3) each.
     """
-    h = dt / xpbd.substeps
-    mat = rest.material
-    w = rest.vert_inv_mass
-    movable = (w.detach() > 0).to(x.dtype)[:, None]
-    g = x.new_tensor(xpbd.gravity)
-    damp = math.exp(-float(mat.damping) * h)
-    tc, ec = model.tri_coloring, model.edge_coloring
-    depth_sum = normal = None
-    for _ in range(xpbd.substeps):
-        x_start = x
-        v = (v * damp + g * h) * movable
-        x = x + v * h
-        lam_tri = x.new_zeros(model.tri_count, 3)
-        lam_edge = x.new_zeros(model.edge_count)
-        lam_stitch = x.new_zeros(model.stitch_vertices.shape[0], 3)
-        lam_attach = x.new_zeros(model.attach_vertices.shape[0])
-        depth_sum = None
-        for _ in range(xpbd.iterations):
-            x = x.clone()
-            if xpbd.scheme == "gauss_seidel":
-                reference.stretch_project_(
-                    x, lam_tri, w, model.tri_vertices, rest.tri_rest_inv, rest.tri_compliance,
-                    tc.order, tc.color_offsets, h,
-                )  # fmt: skip
-                if model.edge_count:
-                    reference.bend_project_(
-                        x, lam_edge, w, model.edge_quads, rest.edge_rest_angle, rest.edge_compliance,
-                        ec.order, ec.color_offsets, h,
-                    )  # fmt: skip
-            else:
-                om = xpbd.jacobi_omega
-                reference.stretch_project_jacobi_(
-                    x, lam_tri, w, model.tri_vertices, rest.tri_rest_inv, rest.tri_compliance, h, om
-                )
-                if model.edge_count:
-                    reference.bend_project_jacobi_(
-                        x, lam_edge, w, model.edge_quads, rest.edge_rest_angle, rest.edge_compliance, h, om
-                    )
-            if lam_attach.numel():
-                _project_attach(
-                    x, lam_attach, w, model.attach_vertices, model.attach_height, xpbd.attach_compliance, h
-                )
-            if contacts is not None:
-                x, depth, normal = collision.project_contacts(
-                    x, w, body_verts, body_faces, contacts, mat.thickness
-                )
-                depth_sum = depth if depth_sum is None else depth_sum + depth
-            if lam_stitch.numel():  # stitches last, as in `reference.compose_substeps`
-                x = x.clone()
-                _project_stitches(
-                    x, lam_stitch, w, model.stitch_vertices, xpbd.stitch_compliance, h,
-                    xpbd.stitch_max_speed * h / xpbd.iterations, xpbd.stitch_snap,
-                )  # fmt: skip
-        if contacts is not None and float(mat.friction) > 0:
-            x = collision.apply_friction(x, x_start, contacts, normal, depth_sum, mat.friction)
-        v = (x - x_start) / h
-    if velocity_scale != 1.0:
-        v = v * velocity_scale
-    return x, v
+    inputs = substep_inputs(
+        model, rest, xpbd, dt, contacts=contacts, body_verts=body_verts, body_faces=body_faces
+    )
+    x, v = reference.xpbd_substeps(x, v, inputs)
+    return x, (v * velocity_scale if velocity_scale != 1.0 else v)
 
 
 @dataclass
@@ -175,16 +121,6 @@ class Rollout:
     converged: bool
 
 
-def step_band(v: torch.Tensor, rest: RestData, xpbd: XPBDConfig, dt: float) -> float:
-    """The contact-detection band [m] of `XPBDSolver.step` for a frame starting with velocities ``v``.
-
-    The step detects its own contacts, and the rollout records them (`XPBDSolver.last_contacts`); this
-    reproduces them outside the solver (same positions, same band), for checks and tools.
-    """
-    reach = 1.5 * float(v.norm(dim=-1).max()) * dt if v.numel() else 0.0
-    return float(rest.material.thickness) + max(xpbd.collision_band, reach)
-
-
 def rollout(
     setup: DrapeSetup, rest: RestData, body_verts: torch.Tensor | None, options: TrajectoryOptions
 ) -> Rollout:
@@ -198,7 +134,7 @@ def rollout(
     settled, steps, speed = 0, 0, math.inf
     with torch.no_grad():
         while steps < cfg.max_steps:
-            state = solver.step(
+            result = solver.advance(
                 state,
                 rest,
                 cfg.dt,
@@ -206,8 +142,9 @@ def rollout(
                 body_faces=setup.body_faces,
                 velocity_scale=cfg.drape_velocity_scale,
             )
+            state = result.state
             # the replay projects against exactly the contacts this step detected and used
-            contacts_per_frame.append(solver.last_contacts)
+            contacts_per_frame.append(result.contacts)
             steps += 1
             if steps % options.checkpoint_every == 0:
                 checkpoints[steps] = (state.x, state.v)
@@ -272,37 +209,98 @@ def trajectory_backward(
     segment end and the forward's state there (rounding of the C++ forward vs the replay; a larger value
     means the replay does not reproduce the forward and the gradient is not that of the forward).
     """
+    leaves = _ReplayLeaves.build(setup, rest_uv, body_verts, material_values, needs)
+    acc, deviation = _reverse_sweep(setup, leaves, grad_x, grad_frames)
+    setup.record(replay_max_deviation_m=deviation)
+    return leaves.gradients(acc)
+
+
+@dataclass
+class _ReplayLeaves:
+    """The backward's leaves: the rest data as detached leaves (``_REST_LEAVES``) of the graph
+    ``rest_uv``, material → rest data, and the body vertices.
+
+    Attributes:
+        needs: as `trajectory_backward`; uv, materials: leaves of ``rest_uv`` and the material tensors;
+        rest_graph: `RestData` computed from them (with grad); rest: the replay's `RestData`, its
+        ``_REST_LEAVES`` detached leaves; body: (Vb, 3) leaf or None; inputs: the tensors whose gradients
+        the sweep accumulates (the rest leaves when needed, then the body when needed).
+    """
+
+    needs: tuple
+    uv: torch.Tensor
+    materials: tuple[torch.Tensor, ...]
+    rest_graph: RestData
+    rest: RestData
+    body: torch.Tensor | None
+    inputs: list[torch.Tensor]
+
+    @staticmethod
+    def build(setup: DrapeSetup, rest_uv, body_verts, material_values, needs) -> _ReplayLeaves:
+        need_uv, need_body, need_mat = needs
+        need_rest = need_uv or any(need_mat)
+        with torch.enable_grad():
+            uv_leaf = rest_uv.detach().requires_grad_(need_uv)
+            mat_leaves = tuple(m.detach().requires_grad_(n) for m, n in zip(material_values, need_mat))
+            material = material_with(setup.material, setup.material_names, mat_leaves)
+            rest_graph = setup.model.rest_data(uv_leaf, material)
+        leaves = {name: getattr(rest_graph, name).detach().requires_grad_(need_rest) for name in _REST_LEAVES}
+        rest = dataclasses.replace(rest_graph, material=_floats(material), **leaves)
+        body = body_verts.detach().requires_grad_(need_body) if body_verts is not None else None
+        inputs = [leaves[n] for n in _REST_LEAVES] if need_rest else []
+        if need_body and body is not None:
+            inputs.append(body)
+        return _ReplayLeaves(needs, uv_leaf, mat_leaves, rest_graph, rest, body, inputs)
+
+    def gradients(self, acc: list[torch.Tensor]) -> Gradients:
+        """`Gradients` from the accumulated gradients ``acc`` of ``inputs``: the body's as they are, the
+        rest data's pulled back to ``rest_uv`` and the material through ``rest_graph``."""
+        need_uv, need_body, need_mat = self.needs
+        out = Gradients(body_verts=None, material=tuple(None for _ in need_mat))
+        if need_body and self.body is not None:
+            out.body_verts = acc[-1]
+        if not (need_uv or any(need_mat)):
+            return out
+        wrt = ([self.uv] if need_uv else []) + [m for m, n in zip(self.materials, need_mat) if n]
+        pairs = [
+            (getattr(self.rest_graph, name), acc[i])
+            for i, name in enumerate(_REST_LEAVES)
+            if getattr(self.rest_graph, name).requires_grad
+        ]
+        with torch.enable_grad():
+            grads = torch.autograd.grad([p[0] for p in pairs], wrt, [p[1] for p in pairs], allow_unused=True)
+        grads = [_zero_if_none(gr, t) for gr, t in zip(grads, wrt)]
+        if need_uv:
+            out.rest_uv = grads.pop(0)
+        out.material = tuple(grads.pop(0) if n else None for n in need_mat)
+        return out
+
+
+def _reverse_sweep(setup: DrapeSetup, leaves: _ReplayLeaves, grad_x, grad_frames):
+    """The adjoint state pulled back through every frame, last first, segment by segment.
+
+    Returns:
+        (acc, deviation): the summed gradients of ``leaves.inputs``, and the largest difference [m]
+        between a replayed segment end and the forward's state there.
+    """
     ro: Rollout = setup.saved["rollout"]
     model, cfg = setup.model, setup.config
-    need_uv, need_body, need_mat = needs
-    need_rest = need_uv or any(need_mat)
-    with torch.enable_grad():
-        uv_leaf = rest_uv.detach().requires_grad_(need_uv)
-        mat_leaves = tuple(m.detach().requires_grad_(n) for m, n in zip(material_values, need_mat))
-        material = material_with(setup.material, setup.material_names, mat_leaves)
-        rest_graph = model.rest_data(uv_leaf, material)
-    leaves = {name: getattr(rest_graph, name).detach().requires_grad_(need_rest) for name in _REST_LEAVES}
-    rest = dataclasses.replace(rest_graph, material=_floats(material), **leaves)
-    body = body_verts.detach().requires_grad_(need_body) if body_verts is not None else None
-    plan = None
-    if cfg.xpbd.scheme == "gauss_seidel":
-        plan = ReplayPlan(model, cfg.xpbd, rest.vert_inv_mass)
+    plan = (
+        ReplayPlan(model, cfg.xpbd, leaves.rest.vert_inv_mass) if cfg.xpbd.scheme == "gauss_seidel" else None
+    )
 
     def frame(n, x, v):
         kw = dict(
             contacts=ro.contacts[n],
-            body_verts=body,
+            body_verts=leaves.body,
             body_faces=setup.body_faces,
             velocity_scale=cfg.drape_velocity_scale,
         )
         if plan is not None:
-            return plan.frame(x, v, rest, cfg.dt, **kw)
-        return replay_frame(model, cfg.xpbd, x, v, rest, cfg.dt, **kw)
+            return plan.frame(x, v, leaves.rest, cfg.dt, **kw)
+        return replay_frame(model, cfg.xpbd, x, v, leaves.rest, cfg.dt, **kw)
 
-    inputs = [leaves[n] for n in _REST_LEAVES] if need_rest else []
-    if need_body and body is not None:
-        inputs.append(body)
-    acc = [torch.zeros_like(t) for t in inputs]
+    acc = [torch.zeros_like(t) for t in leaves.inputs]
     a_x, a_v = grad_x, torch.zeros_like(grad_x)
     if grad_frames is not None:
         a_x = a_x + grad_frames[ro.steps]
@@ -322,31 +320,14 @@ def trajectory_backward(
                 if n == end - 1:
                     target = ro.checkpoints[end][0] if end in ro.checkpoints else ro.x
                     deviation = max(deviation, float((xe.detach() - target.detach()).abs().max()))
-                grads = torch.autograd.grad((xe, ve), [x, v, *inputs], (a_x, a_v), allow_unused=True)
+                grads = torch.autograd.grad((xe, ve), [x, v, *leaves.inputs], (a_x, a_v), allow_unused=True)
             a_x, a_v = _zero_if_none(grads[0], x), _zero_if_none(grads[1], v)
             if grad_frames is not None:
                 a_x = a_x + grad_frames[n]
             for a, gr in zip(acc, grads[2:]):
                 if gr is not None:
                     a += gr
-    setup.record(replay_max_deviation_m=deviation)
-    out = Gradients(body_verts=None, material=tuple(None for _ in need_mat))
-    if need_body and body is not None:
-        out.body_verts = acc[-1]
-    if need_rest:
-        wrt = ([uv_leaf] if need_uv else []) + [m for m, n in zip(mat_leaves, need_mat) if n]
-        pairs = [
-            (getattr(rest_graph, name), acc[i])
-            for i, name in enumerate(_REST_LEAVES)
-            if getattr(rest_graph, name).requires_grad
-        ]
-        with torch.enable_grad():
-            grads = torch.autograd.grad([p[0] for p in pairs], wrt, [p[1] for p in pairs], allow_unused=True)
-        grads = [_zero_if_none(gr, t) for gr, t in zip(grads, wrt)]
-        if need_uv:
-            out.rest_uv = grads.pop(0)
-        out.material = tuple(grads.pop(0) if n else None for n in need_mat)
-    return out
+    return acc, deviation
 
 
 def _segment(starts: list[int], k: int) -> int:

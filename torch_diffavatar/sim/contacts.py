@@ -1,0 +1,108 @@
+"""Cloth–body contacts and their differentiable response (paper eq. 6), below the kernels that use them.
+
+A contact pairs a cloth vertex with a body triangle and a barycentric point on it; `sim/collision.py`
+detects them (no autograd). The response here is plain, out-of-place torch that recomputes the contact
+point and the face normal from the CURRENT ``body_verts``, so projected positions are a differentiable
+function of the body vertices. The XPBD frame (`reference.xpbd_frame`), the energy of the equilibrium
+adjoint and the detection all share these functions; this module imports only torch, so the kernels
+below `sim/ops.py` can use it without an import cycle.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+
+@dataclass(frozen=True)
+class Contacts:
+    """Cloth vertices near the body and their closest body triangle.
+
+    Attributes:
+        vert: (C,) int64 cloth (simulated) vertex ids.
+        tri: (C,) int64 body face ids.
+        bary: (C, 3) barycentric coordinates of the closest point on ``tri`` at detection time.
+    """
+
+    vert: torch.Tensor
+    tri: torch.Tensor
+    bary: torch.Tensor
+
+    @property
+    def count(self) -> int:
+        return int(self.vert.shape[0])
+
+
+def contact_frames(body_verts: torch.Tensor, body_faces: torch.Tensor, contacts: Contacts):
+    """Contact points and unit outward face normals from the current body (differentiable).
+
+    Returns:
+        point: (C, 3) [m]; normal: (C, 3) unit right-hand normal of the contact triangle.
+    """
+    corners = body_verts[body_faces[contacts.tri]]  # (C, 3, 3)
+    point = (contacts.bary[:, :, None] * corners).sum(1)
+    n = torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    return point, n / n.norm(dim=-1, keepdim=True).clamp_min(1e-20)
+
+
+def project_contacts(
+    x: torch.Tensor,
+    vert_inv_mass: torch.Tensor,
+    body_verts: torch.Tensor,
+    body_faces: torch.Tensor,
+    contacts: Contacts,
+    thickness,
+):
+    """Push contact vertices to ``thickness`` outside the body along the face normal (out of place).
+
+    Args:
+        x: (Vs, 3) [m]; vert_inv_mass: (Vs,) (pinned vertices do not move); thickness: [m].
+
+    Returns:
+        x: (Vs, 3) projected positions; depth: (C,) correction applied [m] (0 where none);
+        normal: (C, 3) contact normals.
+    """
+    point, normal = contact_frames(body_verts, body_faces, contacts)
+    movable = (vert_inv_mass.detach()[contacts.vert] > 0).to(x.dtype)
+    x, depth = push_out(x, contacts.vert, point, normal, movable, thickness)
+    return x, depth, normal
+
+
+def push_out(x, vert, point, normal, movable, thickness) -> tuple[torch.Tensor, torch.Tensor]:
+    """`project_contacts` with the contact frames given (the XPBD frame computes them once per call).
+
+    Args:
+        x: (Vs, 3) [m]; vert: (C,) int64; point, normal: (C, 3) from `contact_frames`; movable: (C,)
+            1 for a free vertex, 0 for a pinned one; thickness: [m].
+
+    Returns:
+        x: (Vs, 3) projected positions (out of place); depth: (C,) correction applied [m].
+    """
+    s = ((x[vert] - point) * normal).sum(-1) - thickness
+    depth = (-s).clamp_min(0.0) * movable
+    return x.index_add(0, vert, normal * depth[:, None]), depth
+
+
+def apply_friction(
+    x: torch.Tensor, x_start: torch.Tensor, contacts: Contacts, normal: torch.Tensor, depth: torch.Tensor, mu
+) -> torch.Tensor:
+    """Position-based Coulomb friction (Macklin et al. 2014, §6.1) on the step's tangential motion.
+
+    For each contact with a normal correction ``depth`` > 0 in this substep, the tangential displacement
+    ``dt = P_t (x − x_start)`` is cancelled when ``|dt| < mu·depth`` (static) and reduced by ``mu·depth``
+    otherwise (kinetic). Returns the new (Vs, 3) positions (out of place).
+    """
+    d = x[contacts.vert] - x_start[contacts.vert]
+    dt_ = d - (d * normal).sum(-1, keepdim=True) * normal
+    length = dt_.norm(dim=-1)
+    limit = mu * depth
+    scale = torch.where(length <= limit, torch.ones_like(length), limit / length.clamp_min(1e-20))
+    scale = torch.where(depth > 0, scale, torch.zeros_like(scale))
+    return x.index_add(0, contacts.vert, -dt_ * scale[:, None])
+
+
+def signed_distance_along_normal(x: torch.Tensor, body_verts, body_faces, contacts: Contacts) -> torch.Tensor:
+    """(C,) signed distance [m] of each contact vertex above its contact triangle's plane."""
+    point, normal = contact_frames(body_verts, body_faces, contacts)
+    return ((x[contacts.vert] - point) * normal).sum(-1)
