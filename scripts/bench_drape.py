@@ -252,7 +252,7 @@ def bench_spacing(spacing: float, args, body_verts, body_faces) -> dict:
     from torch_diffavatar.errors import SimulationError
     from torch_diffavatar.pattern.library import load_template
     from torch_diffavatar.pattern.mesher import mesh_pattern
-    from torch_diffavatar.sim.drape import DrapeConfig, drape_to_equilibrium, sew
+    from torch_diffavatar.sim.forward_drape import DrapeConfig, drape_to_equilibrium, sew
     from torch_diffavatar.sim.model import ClothModelBuilder
     from torch_diffavatar.sim.placement import place_garment
 

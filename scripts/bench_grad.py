@@ -180,7 +180,7 @@ def main() -> int:
     from torch_diffavatar.pattern.mesher import mesh_pattern
     from torch_diffavatar.sim.adjoint import EquilibriumOptions, TrajectoryOptions
     from torch_diffavatar.sim.differentiable import drape
-    from torch_diffavatar.sim.drape import DrapeConfig, drape_to_equilibrium, sew
+    from torch_diffavatar.sim.forward_drape import DrapeConfig, drape_to_equilibrium, sew
     from torch_diffavatar.sim.material import ClothMaterial
     from torch_diffavatar.sim.model import ClothModelBuilder
     from torch_diffavatar.sim.placement import place_garment

@@ -118,7 +118,7 @@ class _TrueDrape:
         from torch_diffavatar.mesh_io import read_obj
         from torch_diffavatar.pattern import load_pattern, mesh_pattern
         from torch_diffavatar.pattern.library import resolve_pattern
-        from torch_diffavatar.sim.drape import DrapeConfig
+        from torch_diffavatar.sim.forward_drape import DrapeConfig
         from torch_diffavatar.sim.material import ClothMaterial
         from torch_diffavatar.synthetic_scans import changed_pattern
 
@@ -151,7 +151,7 @@ class _TrueDrape:
 
     def sewn(self, garment, body_verts=None):
         """``garment`` placed and sewn like the scan was, on the true body or on ``body_verts`` (V, 3) [m]."""
-        from torch_diffavatar.sim.drape import sew_and_drape
+        from torch_diffavatar.sim.forward_drape import sew_and_drape
         from torch_diffavatar.sim.placement import place_garment
 
         body_verts = self.body_verts if body_verts is None else body_verts
@@ -166,7 +166,7 @@ class _TrueDrape:
 
 def spacing(args) -> dict:
     from torch_diffavatar.pattern import mesh_pattern
-    from torch_diffavatar.sim.drape import drape_to_equilibrium
+    from torch_diffavatar.sim.forward_drape import drape_to_equilibrium
     from torch_diffavatar.sim.model import ClothModelBuilder
     from torch_diffavatar.sim.placement import place_from_drape
 

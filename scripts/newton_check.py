@@ -11,7 +11,7 @@ material (material.json, SI) and the body (body.obj). It then runs this same fil
 interpreter (``--newton-python``, default /tmp/newton_venv/bin/python, which has no torch) with
 ``--newton-side DIR``, which imports only numpy, warp and newton, builds the cloth and drapes it, and
 writes the final positions back. Our side then measures the result with our own tools: penetration
-(cloth vertices behind the body surface, `sim.drape.penetration_diagnostics`), the surface Chamfer
+(cloth vertices behind the body surface, `sim.forward_drape.penetration_diagnostics`), the surface Chamfer
 distance to our drape (draped.obj) and the seam gaps.
 
 The Newton model, built from the exported files only:
@@ -216,7 +216,7 @@ def measure(assets, q: np.ndarray) -> dict:
     import torch
 
     from torch_diffavatar.chamfer import sample_surface, surface_chamfer_m
-    from torch_diffavatar.sim.drape import penetration_diagnostics
+    from torch_diffavatar.sim.forward_drape import penetration_diagnostics
 
     g = assets.garment
     qt = torch.from_numpy(np.asarray(q, dtype=np.float64))

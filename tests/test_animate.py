@@ -14,7 +14,7 @@ from torch_diffavatar.assets import load_assets, write_assets
 from torch_diffavatar.body.model import POSE_BONES
 from torch_diffavatar.errors import InputError
 from torch_diffavatar.motion import Keyframe, KeyframeMotion, WalkCycle, keyframes_from_dict, load_motion
-from torch_diffavatar.sim.drape import DrapeConfig, drape_to_equilibrium, sew
+from torch_diffavatar.sim.forward_drape import DrapeConfig, drape_to_equilibrium, sew
 from torch_diffavatar.sim.model import ClothModelBuilder
 from torch_diffavatar.sim.solver import XPBDSolver
 from torch_diffavatar.sim.testing import rectangle_garment

@@ -24,7 +24,7 @@ def skirt_problem():
     """(garment, start state, target): the skirt template at 10 cm spacing, sewn without a body, and the
     drape of the same skirt 20 % longer (its points and hem are the target)."""
     from torch_diffavatar.pattern import load_template, mesh_pattern
-    from torch_diffavatar.sim.drape import DrapeConfig, drape_to_equilibrium, sew_and_drape
+    from torch_diffavatar.sim.forward_drape import DrapeConfig, drape_to_equilibrium, sew_and_drape
 
     garment = mesh_pattern(load_template("skirt"), spacing=0.1)
     cfg = DrapeConfig(max_steps=80, min_steps=80, sew_max_steps=120, sew_ramp_steps=60)

@@ -313,7 +313,7 @@ def _simulate(
     """Step the cloth from ``state`` through the body frames ``bodies`` (T + 1, Vb, 3) [m] (faces
     (Fb, 3)), ``dt`` [s] per frame, calling ``emit(k, x, body)`` on every ``per_out``-th frame (and the
     first, as k = 0)."""
-    from torch_diffavatar.sim.drape import penetration_diagnostics
+    from torch_diffavatar.sim.forward_drape import penetration_diagnostics
 
     model = solver.model
 
@@ -364,7 +364,7 @@ def template_assets(
     from torch_diffavatar.assets import write_assets
     from torch_diffavatar.body.model import BodyModel
     from torch_diffavatar.pattern import load_template, mesh_pattern
-    from torch_diffavatar.sim.drape import sew_and_drape
+    from torch_diffavatar.sim.forward_drape import sew_and_drape
     from torch_diffavatar.sim.material import medium_cotton
     from torch_diffavatar.sim.placement import place_garment
 

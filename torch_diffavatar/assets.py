@@ -420,7 +420,7 @@ def seams_dict(garment: GarmentMesh) -> dict:
 
 def manifest_dict(garment: GarmentMesh, material: ClothMaterial, body_verts, body_faces, files: dict) -> dict:
     """The ``asset.json`` manifest: format, frame, units, files, counts, material with meanings."""
-    from torch_diffavatar.sim.drape import DrapeConfig
+    from torch_diffavatar.sim.forward_drape import DrapeConfig
 
     cfg = DrapeConfig()
     mat = material_dict(material)

@@ -64,7 +64,7 @@ from torch_diffavatar.fit_start import Start, first_states, race
 from torch_diffavatar.losses import rest_area_ratio
 from torch_diffavatar.objective import FitObjective, FitParameters, FitVariables, ObjectiveOutput, ScanTarget
 from torch_diffavatar.pattern.garment_mesh import GarmentMesh
-from torch_diffavatar.sim.drape import PoseRoute
+from torch_diffavatar.sim.forward_drape import PoseRoute
 from torch_diffavatar.sim.material import ClothMaterial
 from torch_diffavatar.sim.state import ClothState
 

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from torch_diffavatar.chamfer import ROBUST_KERNELS
 from torch_diffavatar.errors import InputError
-from torch_diffavatar.sim.drape import SEW_MAX_STRAIN, DrapeConfig
+from torch_diffavatar.sim.forward_drape import SEW_MAX_STRAIN, DrapeConfig
 from torch_diffavatar.sim.solver import XPBDConfig
 
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"  # shipped in the package (wheel included)

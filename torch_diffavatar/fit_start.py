@@ -34,7 +34,7 @@ def settled(
 ) -> ClothState:
     """``state`` draped to rest with the fit's own substeps (at least 10 frames, ``first_max_steps`` at
     most), its velocities zeroed. ``rest_uv``: (V, 2) [m]; ``body_verts``: (Vb, 3) [m] or None."""
-    from torch_diffavatar.sim.drape import drape_to_equilibrium
+    from torch_diffavatar.sim.forward_drape import drape_to_equilibrium
 
     config = objective.config
     res = drape_to_equilibrium(
@@ -75,7 +75,7 @@ def first_states(
     Raises:
         SimulationError: the sewing or the drape blew up (of every candidate, when there are several).
     """
-    from torch_diffavatar.sim.drape import sew_and_drape
+    from torch_diffavatar.sim.forward_drape import sew_and_drape
 
     rest_uv, bend_stiffness = variables.rest_uv, variables.bend_stiffness
     body_verts = objective.body_or_fixed(variables.body_verts)

@@ -310,7 +310,7 @@ def _drape_on_body(pattern, body, out, spacing: float, bend_stiffness: float):
     """Mesh ``pattern`` at ``spacing`` [m], place it on the posed ``body`` (``out``: its output), sew and
     drape it with ``bend_stiffness`` [N·m]. Returns (the placed `GarmentMesh`, the drape's result)."""
     from torch_diffavatar.pattern import mesh_pattern
-    from torch_diffavatar.sim.drape import sew_and_drape
+    from torch_diffavatar.sim.forward_drape import sew_and_drape
     from torch_diffavatar.sim.material import ClothMaterial
     from torch_diffavatar.sim.placement import a_pose_route, place_garment
 

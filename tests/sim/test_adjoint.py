@@ -15,7 +15,7 @@ from torch_diffavatar.sim.adjoint import EquilibriumOptions, TrajectoryOptions
 from torch_diffavatar.sim.adjoint.linsolve import residual, solve_op, solve_reference, solve_symmetric
 from torch_diffavatar.sim.adjoint.trajectory import replay_frame
 from torch_diffavatar.sim.differentiable import drape
-from torch_diffavatar.sim.drape import DrapeConfig
+from torch_diffavatar.sim.forward_drape import DrapeConfig
 from torch_diffavatar.sim.material import ClothMaterial
 from torch_diffavatar.sim.model import ClothModelBuilder
 from torch_diffavatar.sim.solver import XPBDConfig, XPBDSolver

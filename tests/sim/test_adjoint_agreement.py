@@ -16,7 +16,7 @@ from test_adjoint import DT, KB, KUU, material, sheet_on_sphere
 from torch_diffavatar.sim import collision
 from torch_diffavatar.sim.adjoint import EquilibriumOptions, TrajectoryOptions
 from torch_diffavatar.sim.differentiable import drape
-from torch_diffavatar.sim.drape import DrapeConfig
+from torch_diffavatar.sim.forward_drape import DrapeConfig
 from torch_diffavatar.sim.solver import XPBDConfig, XPBDSolver
 from torch_diffavatar.sim.state import ClothState
 

@@ -10,7 +10,7 @@ import torch
 
 from torch_diffavatar.sim.adjoint import EquilibriumOptions
 from torch_diffavatar.sim.differentiable import drape
-from torch_diffavatar.sim.drape import DrapeConfig
+from torch_diffavatar.sim.forward_drape import DrapeConfig
 from torch_diffavatar.sim.material import ClothMaterial
 from torch_diffavatar.sim.model import ClothModelBuilder
 from torch_diffavatar.sim.solver import XPBDConfig

@@ -87,7 +87,7 @@ def test_sewing_finishes_with_an_unbounded_pull(monkeypatch):
     """After the stiffness ramp, gaps under ``sew_finish_snap`` close without the bounded stitch pull."""
     from torch_diffavatar.pattern.library import load_template
     from torch_diffavatar.pattern.mesher import mesh_pattern
-    from torch_diffavatar.sim import drape
+    from torch_diffavatar.sim import forward_drape as drape
     from torch_diffavatar.sim.model import ClothModelBuilder
 
     snaps = []

@@ -79,7 +79,7 @@ def test_a_pose_arm_axis_is_the_horizontal_sections_one(anny_model):
 def test_long_sleeve_sews_on_posed_bodies(seed, anny_model):
     """The bodies and poses of `make-scan --seed N --pose random`, at the fit's long-sleeve spacing and
     bending stiffness. Without the joints these four failed to sew (70-107 mm open; 6 of 10 seeds)."""
-    from torch_diffavatar.sim.drape import DrapeConfig, sew_and_drape
+    from torch_diffavatar.sim.forward_drape import DrapeConfig, sew_and_drape
     from torch_diffavatar.sim.material import ClothMaterial
     from torch_diffavatar.synthetic_scans import DEFAULT_PHENOTYPE_RANGE
 

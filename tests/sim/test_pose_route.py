@@ -11,7 +11,7 @@ import torch
 import trimesh
 
 from torch_diffavatar.errors import SimulationError
-from torch_diffavatar.sim.drape import (
+from torch_diffavatar.sim.forward_drape import (
     DrapeConfig,
     PoseRoute,
     follow_body,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from torch_diffavatar.sim.drape import DrapeConfig, max_stitch_gap, sew
+from torch_diffavatar.sim.forward_drape import DrapeConfig, max_stitch_gap, sew
 from torch_diffavatar.sim.model import ClothModelBuilder
 from torch_diffavatar.sim.solver import XPBDConfig
 from torch_diffavatar.sim.testing import tube_garment

@@ -9,7 +9,13 @@ import torch
 
 from torch_diffavatar.errors import SimulationError
 from torch_diffavatar.sim.constraints import green_strain
-from torch_diffavatar.sim.drape import DrapeConfig, drape_to_equilibrium, max_stitch_gap, sew, sew_and_drape
+from torch_diffavatar.sim.forward_drape import (
+    DrapeConfig,
+    drape_to_equilibrium,
+    max_stitch_gap,
+    sew,
+    sew_and_drape,
+)
 from torch_diffavatar.sim.material import ClothMaterial
 from torch_diffavatar.sim.model import ClothModelBuilder
 from torch_diffavatar.sim.solver import XPBDConfig, XPBDSolver

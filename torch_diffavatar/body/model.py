@@ -281,7 +281,7 @@ class BodyModel(nn.Module):
     @torch.no_grad()
     def pose_path(self, keys: int = 4, tol: float = 1e-3) -> BodyOutput | None:
         """The first body of the batch on its way from the A-pose to its own pose, for sewing a garment
-        in the A-pose and then posing the body under it (`sim.drape.sew_and_drape`'s ``body_path``).
+        in the A-pose and then posing the body under it (`sim.forward_drape.sew_and_drape`'s ``body_path``).
 
         Args:
             keys: poses on the way: the pose scaled by 0, 1/keys, ..., (keys − 1)/keys (each bone turns

@@ -115,7 +115,7 @@ def _check_args(args) -> None:
 def _drape_config(args):
     """The `DrapeConfig` with ``--max-steps`` / ``--sew-steps`` applied (the sewing ramp no longer than
     the sewing phase)."""
-    from torch_diffavatar.sim.drape import DrapeConfig
+    from torch_diffavatar.sim.forward_drape import DrapeConfig
 
     overrides = {}
     if args.max_steps is not None:
@@ -128,7 +128,7 @@ def _drape_config(args):
 
 def _sew_and_drape(garment, body_verts: torch.Tensor, body_faces: torch.Tensor, config):
     """`sew_and_drape` on the body (float32), with a progress bar on stderr when it reports frames."""
-    from torch_diffavatar.sim.drape import sew_and_drape
+    from torch_diffavatar.sim.forward_drape import sew_and_drape
 
     kwargs = {}
     bar = None

@@ -29,7 +29,7 @@ from torch.autograd.function import once_differentiable
 from torch_diffavatar.pattern.garment_mesh import GarmentMesh
 from torch_diffavatar.sim.adjoint import ADJOINTS
 from torch_diffavatar.sim.adjoint.common import DrapeSetup, material_tensor_fields, material_with
-from torch_diffavatar.sim.drape import DrapeConfig
+from torch_diffavatar.sim.forward_drape import DrapeConfig
 from torch_diffavatar.sim.material import ClothMaterial
 from torch_diffavatar.sim.model import ClothModel, ClothModelBuilder
 from torch_diffavatar.sim.state import ClothState

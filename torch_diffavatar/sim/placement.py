@@ -60,7 +60,7 @@ import torch
 from torch_diffavatar.geometry import closest_point_on_triangles, green_strain
 from torch_diffavatar.pattern.garment_mesh import GarmentMesh
 from torch_diffavatar.pattern.garmentcode import GC_BODY
-from torch_diffavatar.sim.drape import PoseRoute
+from torch_diffavatar.sim.forward_drape import PoseRoute
 
 __all__ = [
     "GC_BODY",

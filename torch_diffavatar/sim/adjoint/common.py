@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import torch
 
 from torch_diffavatar.sim.collision import Contacts
-from torch_diffavatar.sim.drape import DrapeConfig
+from torch_diffavatar.sim.forward_drape import DrapeConfig
 from torch_diffavatar.sim.material import ClothMaterial
 from torch_diffavatar.sim.model import ClothModel
 

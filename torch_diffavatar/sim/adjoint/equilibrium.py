@@ -28,8 +28,8 @@ from torch_diffavatar.sim import collision
 from torch_diffavatar.sim.adjoint.common import DrapeSetup, Gradients, contacts_subset, material_with
 from torch_diffavatar.sim.adjoint.linsolve import SOLVE_METHODS, check_solve, solve_symmetric
 from torch_diffavatar.sim.collision import Contacts
-from torch_diffavatar.sim.drape import drape_to_equilibrium
 from torch_diffavatar.sim.energy import EnergyParams, drape_energy, hessian_blocks, hessian_pattern
+from torch_diffavatar.sim.forward_drape import drape_to_equilibrium
 from torch_diffavatar.sim.state import ClothState
 
 HESSIANS = ("exact", "projected")

@@ -1,4 +1,5 @@
-"""Drape to quasi-equilibrium, warm-started or from the pattern's placement, and sew-then-drape.
+"""The forward-only drapes (no gradients; `sim.differentiable.drape` is the differentiable one): drape to
+quasi-equilibrium, warm-started or from the pattern's placement, and sew-then-drape.
 
 `drape_to_equilibrium` steps a `ClothModel` until the largest vertex speed stays under a tolerance
 (paper §3.2: the drapes end at quasi-equilibrium); pass ``state=`` (e.g. a previous `DrapeResult.state`)
