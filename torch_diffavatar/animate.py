@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from torch_diffavatar.errors import InputError
+from torch_diffavatar.mesh_io import write_ply
 from torch_diffavatar.sim import ops
 from torch_diffavatar.sim.solver import XPBDConfig, XPBDSolver
 
@@ -78,21 +79,6 @@ def body_sequence(assets, motion, times: torch.Tensor, *, anny_model=None) -> to
             out = body(pose=pose[i : i + 1], translation=body.translation + transl_off[i : i + 1].float())
             frames.append(out.vertices[0])
     return torch.stack(frames) + shift.to(torch.float32)
-
-
-def _write_ply(path: Path, verts: np.ndarray, faces: np.ndarray) -> None:
-    """Binary little-endian PLY (float32 vertices, uint8-count int32 faces)."""
-    header = (
-        "ply\nformat binary_little_endian 1.0\n"
-        f"element vertex {len(verts)}\nproperty float x\nproperty float y\nproperty float z\n"
-        f"element face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n"
-    )
-    face_rec = np.zeros(len(faces), dtype=[("n", "u1"), ("i", "<i4", (3,))])
-    face_rec["n"], face_rec["i"] = 3, faces
-    with open(path, "wb") as fh:
-        fh.write(header.encode("ascii"))
-        fh.write(np.ascontiguousarray(verts, dtype="<f4").tobytes())
-        fh.write(face_rec.tobytes())
 
 
 def animate(
@@ -232,7 +218,7 @@ class _FrameWriter:
             uv_faces=garment.tri_vertices,
         )
         if self.write_body:
-            _write_ply(self.frames_dir / f"body_{k:04d}.ply", bv.numpy(), self.body_faces.numpy())
+            write_ply(self.frames_dir / f"body_{k:04d}.ply", bv.numpy(), self.body_faces.numpy())
         if self.gif:
             self.images.append(self._picture(x, bv))
 

@@ -153,3 +153,19 @@ def write_garment_obj(path, garment: GarmentMesh, sim_positions: torch.Tensor | 
     if tuple(pos.shape) != (garment.sim_vert_count, 3):
         raise ValueError(f"sim_positions must be ({garment.sim_vert_count}, 3), got {tuple(pos.shape)}")
     write_obj(path, pos, garment.sim_faces, uv=garment.vert_uv, uv_faces=garment.tri_vertices)
+
+
+def write_ply(path, verts: np.ndarray, faces: np.ndarray) -> None:
+    """Write a triangle mesh as binary little-endian PLY (float32 vertices, uint8-count int32 faces): half
+    the size of float64, for meshes written every frame (`animate`'s body)."""
+    header = (
+        "ply\nformat binary_little_endian 1.0\n"
+        f"element vertex {len(verts)}\nproperty float x\nproperty float y\nproperty float z\n"
+        f"element face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n"
+    )
+    face_rec = np.zeros(len(faces), dtype=[("n", "u1"), ("i", "<i4", (3,))])
+    face_rec["n"], face_rec["i"] = 3, faces
+    with open(path, "wb") as fh:
+        fh.write(header.encode("ascii"))
+        fh.write(np.ascontiguousarray(verts, dtype="<f4").tobytes())
+        fh.write(face_rec.tobytes())

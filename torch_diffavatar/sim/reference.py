@@ -60,6 +60,7 @@ import torch
 from torch_diffavatar.geometry import closest_point_on_mesh_torch as closest_point_on_mesh  # noqa: F401
 from torch_diffavatar.geometry import (
     closest_point_on_triangles,  # noqa: F401
+    green_strain,
     triangle_green_strain,
 )
 from torch_diffavatar.sim.contacts import Contacts, apply_friction, contact_frames, push_out
@@ -575,15 +576,7 @@ def max_abs_green_strain(
     """
     if tri_vertices.shape[0] == 0:
         return x.new_zeros(())
-    xt = x[tri_vertices]
-    d0, d1 = xt[:, 0] - xt[:, 2], xt[:, 1] - xt[:, 2]
-    r = tri_rest_inv.reshape(-1, 4)
-    f0 = d0 * r[:, 0:1] + d1 * r[:, 2:3]
-    f1 = d0 * r[:, 1:2] + d1 * r[:, 3:4]
-    c = torch.stack(
-        (0.5 * ((f0 * f0).sum(-1) - 1.0), 0.5 * ((f1 * f1).sum(-1) - 1.0), 0.5 * (f0 * f1).sum(-1))
-    )
-    return c.abs().max()
+    return green_strain(x, tri_vertices, tri_rest_inv).abs().max()
 
 
 _REFERENCE_KERNELS = SimpleNamespace(
