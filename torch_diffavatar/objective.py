@@ -167,7 +167,7 @@ class FitObjective(nn.Module):
 
     Attributes (not moved by ``.to()``): ``garment`` (`GarmentMesh`), ``config`` (`FitConfig`: robust
     kernels, samples, drape and adjoint options), ``material`` (`ClothMaterial`; k_b is the variable's),
-    ``cloth_model`` (the `ClothModel`, rebuilt for the buffers' dtype and device when they move).
+    ``cloth_model`` (the `ClothModel` on the CPU, rebuilt for the buffers' dtype when it changes).
 
     Args:
         garment: the meshed and placed template.
@@ -290,11 +290,11 @@ class FitObjective(nn.Module):
 
     @property
     def cloth_model(self) -> ClothModel:
-        """The garment's `ClothModel` in the buffers' dtype and device."""
-        uv = self.template_uv
-        if self._model.dtype != uv.dtype or self._model.device != uv.device:
+        """The garment's `ClothModel` in the buffers' dtype, on the CPU: the simulator runs there whatever
+        the buffers' device (`drape` returns the drape on the variables' device)."""
+        if self._model.dtype != self.template_uv.dtype:
             builder = ClothModelBuilder(self.material).add_garment(self.garment)
-            self._model = builder.finalize(device=uv.device, dtype=uv.dtype)
+            self._model = builder.finalize(device="cpu", dtype=self.template_uv.dtype)
         return self._model
 
     def body_or_fixed(self, body_verts: torch.Tensor | None) -> torch.Tensor | None:
