@@ -257,12 +257,13 @@ def fd(args) -> dict:
     from torch_diffavatar.body.anny_model import load_anny
     from torch_diffavatar.body.model import BodyModel
     from torch_diffavatar.fit import SETUP, Fitter
+    from torch_diffavatar.fit_checkpoint import safe_load
     from torch_diffavatar.sim.material import ClothMaterial
 
     torch.set_num_threads(1)
     fit_dir = Path(args.fit_dir)
     config = _config(fit_dir / "config.yaml", args.set)
-    setup = torch.load(fit_dir / SETUP, weights_only=False)
+    setup = safe_load(fit_dir / SETUP)
     body = BodyModel(anny_model=load_anny(dtype=torch.float32))
     body.load_parameters_dict(setup["body_params"])
     material = ClothMaterial(bend_stiffness=config.initial_bend_stiffness)

@@ -38,7 +38,14 @@ import torch
 from torch import nn
 
 from torch_diffavatar.errors import SimulationError
-from torch_diffavatar.fit_checkpoint import CHECKPOINT, SETUP, atomic_save, load_progress, progress_state
+from torch_diffavatar.fit_checkpoint import (
+    CHECKPOINT,
+    SETUP,
+    atomic_save,
+    load_progress,
+    progress_state,
+    safe_load,
+)
 from torch_diffavatar.fit_config import (
     CONFIG_DIR,
     FIT_MAX_STRAIN,
@@ -461,7 +468,7 @@ class Fitter:
         t0 = time.perf_counter()
         start, starts, path = None, None, None if self.out_dir is None else self.out_dir / CHECKPOINT
         if resume and path is not None and path.is_file():
-            start = self.load_state_dict(torch.load(path, weights_only=False))
+            start = self.load_state_dict(safe_load(path))
         else:
             starts = self._first_states()
             start = starts[0][1]

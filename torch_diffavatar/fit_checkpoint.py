@@ -4,9 +4,17 @@
 from __future__ import annotations
 
 import os
+import pickle
 from pathlib import Path
 
+import numpy as np
 import torch
+
+from torch_diffavatar.errors import InputError
+from torch_diffavatar.objective import ScanTarget
+from torch_diffavatar.pattern.garment_mesh import BoundaryLoop, GarmentMesh
+from torch_diffavatar.pattern.spec import Edge, EdgeRef, Panel, Pattern, Stitch
+from torch_diffavatar.sim.forward_drape import PoseRoute
 
 CHECKPOINT = "checkpoint.pt"
 SETUP = "setup.pt"
@@ -34,6 +42,30 @@ def atomic_save(obj, path: Path) -> None:
     tmp = path.with_name(path.name + ".tmp")
     torch.save(obj, tmp)
     os.replace(tmp, path)
+
+
+def _data_classes() -> list:
+    """The plain data a fit's files hold besides tensors and Python containers: the set-up's pattern,
+    garment mesh, scan target and pose route, and the numpy arrays inside them. Nothing that runs code."""
+    numpy_core = getattr(np, "_core", None) or np.core  # numpy 2 / 1
+    dtypes = [type(np.dtype(t)) for t in (np.float64, np.float32, np.int64, np.int32, np.bool_, np.uint8)]
+    ours = [ScanTarget, BoundaryLoop, GarmentMesh, Edge, EdgeRef, Panel, Pattern, Stitch, PoseRoute]
+    return [*ours, np.ndarray, np.dtype, numpy_core.multiarray._reconstruct, *dtypes]
+
+
+def safe_load(path: str | os.PathLike):
+    """``torch.load`` of a fit's own file (``setup.pt``, ``checkpoint.pt``) with ``weights_only=True``: it
+    unpickles tensors, containers and `_data_classes` only, so a crafted file cannot run code.
+
+    Raises:
+        InputError: the file holds anything else, or is not a torch file.
+    """
+    try:
+        with torch.serialization.safe_globals(_data_classes()):
+            return torch.load(path, weights_only=True)
+    except (pickle.UnpicklingError, RuntimeError, EOFError, AttributeError, ModuleNotFoundError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise InputError(f"{path}: not a fit file this version reads safely ({first})") from exc
 
 
 def progress_state(driver) -> dict:

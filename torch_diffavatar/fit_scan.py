@@ -19,12 +19,12 @@ import torch
 def load_setup(scan_path, config, out: Path, *, resume: bool, anny_model, **prepare_kw) -> dict:
     """The fit's set-up: ``out/setup.pt`` with ``resume`` when it is there, else `fit_setup.prepare` of the
     scan (``prepare_kw``: its options), saved there."""
-    from torch_diffavatar.fit_checkpoint import SETUP, atomic_save
+    from torch_diffavatar.fit_checkpoint import SETUP, atomic_save, safe_load
     from torch_diffavatar.fit_setup import prepare
 
     setup_path = out / SETUP
     if resume and setup_path.is_file():
-        return torch.load(setup_path, weights_only=False)
+        return safe_load(setup_path)
     setup = prepare(scan_path, config, anny_model=anny_model, **prepare_kw)
     atomic_save(setup, setup_path)
     return setup
