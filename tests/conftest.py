@@ -49,3 +49,11 @@ def skirt_scan(anny_model):
         noise=0.002,
         hole_fraction=0.1,
     )
+
+
+@pytest.fixture(scope="module")
+def skirt_problem():
+    """`helpers_fit.skirt_problem`: a coarse float64 skirt, sewn, and the drape of a longer one as target."""
+    from helpers_fit import skirt_problem
+
+    return skirt_problem()

@@ -10,36 +10,14 @@ from pathlib import Path
 
 import pytest
 import torch
+from helpers_fit import DT
+from helpers_fit import fit_config as _config
 
-from torch_diffavatar.fit import FitConfig, Fitter, ScanTarget
+from torch_diffavatar.fit import Fitter
 from torch_diffavatar.fit_config import LossWeights
 from torch_diffavatar.objective import TERM_NAMES, FitObjective, FitParameters, FitVariables
 
-DT = torch.float64
 ROOT = Path(__file__).resolve().parents[1]
-
-
-@pytest.fixture(scope="module")
-def skirt_problem():
-    """(garment, start state, target): the skirt template at 10 cm spacing, sewn without a body, and the
-    drape of the same skirt 20 % longer (its points and hem are the target)."""
-    from torch_diffavatar.pattern import load_template, mesh_pattern
-    from torch_diffavatar.sim.forward_drape import DrapeConfig, drape_to_equilibrium, sew_and_drape
-
-    garment = mesh_pattern(load_template("skirt"), spacing=0.1)
-    cfg = DrapeConfig(max_steps=80, min_steps=80, sew_max_steps=120, sew_ramp_steps=60)
-    base = sew_and_drape(garment, config=cfg, dtype=DT)
-    truth_uv = garment.vert_uv.to(DT) * torch.tensor([1.0, 1.2], dtype=DT)
-    truth = drape_to_equilibrium(base.model, truth_uv, config=cfg, state=base.state)
-    hem = next(lp for lp in garment.boundary_loops if lp.name == "hem")
-    target = ScanTarget(truth.x, {"hem": truth.x[hem.vertices]})
-    return garment, base.state, target
-
-
-def _config(**kw) -> FitConfig:
-    base = dict(template="skirt", iterations=3, lr_cage=0.01, lr_log_bend_stiffness=0.05, image_every=0)
-    base.update(kw)
-    return FitConfig(**base)
 
 
 def _moved(params: FitParameters) -> FitParameters:
