@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import torch
 
+from torch_diffavatar import geometry
 from torch_diffavatar._ext import has_extension
 from torch_diffavatar.sim import reference
 from torch_diffavatar.sim.substep import SubstepInputs
@@ -182,12 +183,15 @@ def closest_point_on_mesh(
     *,
     use_extension: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Closest triangle, barycentrics and distance per point (see `reference.closest_point_on_mesh`).
+    """Closest triangle, barycentrics and distance per point: `geometry.closest_point_on_mesh`, the one
+    place that picks between the op and its twin for this query (body fit and losses call it too).
 
     Returns:
         tri (N,) int64 (-1 when farther than ``max_dist``), bary (N, 3), dist (N,) [m] (inf when -1).
     """
-    return _pick("closest_point_on_mesh", points, use_extension)(points, verts, faces, float(max_dist))
+    if use_extension:
+        extension_op("closest_point_on_mesh")  # registers its fake kernel, as for every op picked here
+    return geometry.closest_point_on_mesh(points, verts, faces, max_dist, use_extension=use_extension)
 
 
 def _index_op(name: str):
