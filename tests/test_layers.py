@@ -19,6 +19,7 @@ LAYERS = {
     "metrics": (0, "base"),
     "render": (0, "base"),
     "chamfer": (0, "base"),
+    "json_io": (0, "base"),
     "pattern": (1, "pattern"),
     "mesh_io": (2, "io"),
     "scan": (2, "io"),

@@ -18,7 +18,6 @@ contact picks up the body's velocity instead of an impulse of a frame's motion.
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import dataclass
@@ -28,6 +27,7 @@ import numpy as np
 import torch
 
 from torch_diffavatar.errors import InputError
+from torch_diffavatar.json_io import write_json
 from torch_diffavatar.mesh_io import write_ply
 from torch_diffavatar.sim import ops
 from torch_diffavatar.sim.solver import XPBDConfig, XPBDSolver
@@ -148,7 +148,7 @@ def animate(
         summary["frames_dir"] = str(writer.frames_dir)
         if gif and writer.images:
             summary["gif"] = str(writer.save_gif(out / "animation.gif", fps))
-        (out / "animation.json").write_text(json.dumps(summary, indent=1))
+        write_json(out / "animation.json", summary)
     return summary
 
 

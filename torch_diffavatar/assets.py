@@ -27,7 +27,6 @@ Files written by `write_assets` (names in `ASSET_FILES`):
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -35,6 +34,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torch_diffavatar.json_io import write_json
 from torch_diffavatar.mesh_io import write_garment_obj, write_obj
 from torch_diffavatar.pattern.garment_mesh import GarmentMesh
 from torch_diffavatar.pattern.garmentcode import save_pattern
@@ -244,12 +244,6 @@ def material_from_dict(data: dict) -> ClothMaterial:
     return ClothMaterial(**values)
 
 
-def _write_json(path: Path, data: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1))
-    os.replace(tmp, path)
-
-
 def render_before_after(
     before: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor],
     after: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor],
@@ -318,9 +312,9 @@ def write_assets(
     fitted_garment = replace(garment, vert_uv=uv)
     write_garment_obj(paths["draped_obj"], fitted_garment, sim_positions=draped_x.detach().cpu().double())
     write_obj(paths["body_obj"], body_verts.detach().cpu().double(), body_faces.cpu())
-    _write_json(paths["body_json"], body_params)
-    _write_json(paths["material_json"], material_dict(material))
-    _write_json(paths["seams_json"], seams_dict(garment))
+    write_json(paths["body_json"], body_params)
+    write_json(paths["material_json"], material_dict(material))
+    write_json(paths["seams_json"], seams_dict(garment))
     optional = ("report_json", "before_after_png", "draped_initial_obj", "manifest_json")
     written = [k for k in ASSET_FILES if k not in optional]
     if before is not None:
@@ -336,8 +330,8 @@ def write_assets(
     report = dict(report)
     report["pattern_export_max_deviation_m"] = pattern_deviation(fitted, garment, uv)
     report["files"] = {k: str(paths[k]) for k in written}
-    _write_json(paths["report_json"], report)
-    _write_json(
+    write_json(paths["report_json"], report)
+    write_json(
         paths["manifest_json"],
         manifest_dict(garment, material, body_verts, body_faces, {k: ASSET_FILES[k] for k in written}),
     )

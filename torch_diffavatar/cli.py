@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import json
 import sys
 
 from torch_diffavatar.errors import InputError, SimulationError
+from torch_diffavatar.json_io import dumps_json
 
 # Each module defines `register(subparsers)`; its sub-commands set `func(args) -> int | dict`.
 _COMMAND_MODULES = tuple(
@@ -34,8 +34,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def emit_json(obj) -> None:
-    """Print one JSON object on one line (the CLI contract for `--json`)."""
-    print(json.dumps(obj, sort_keys=False))
+    """Print one JSON object on one line (the CLI contract for `--json`).
+
+    Raises:
+        ValueError: ``obj`` holds a non-finite number (`json_io.dumps_json`); nothing is printed.
+    """
+    print(dumps_json(obj, sort_keys=False))
 
 
 # options whose values may start with "-" (``--up -y``), which argparse would take for an option
@@ -66,7 +70,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if isinstance(result, dict):
         if getattr(args, "json", False):
-            emit_json(result)
+            try:
+                emit_json(result)
+            except ValueError as exc:  # NaN or inf: refused rather than printed as non-JSON
+                print(f"diffavatar {args.command}: error: {exc}", file=sys.stderr)
+                return 2
         return 0
     return int(result or 0)
 

@@ -21,6 +21,8 @@ from torch_diffavatar.sim.solver import XPBDConfig
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"  # shipped in the package (wheel included)
 # strain limit of every drape of a fit, the sewing's (see `drape_config` for why it is above the solver's 3)
 FIT_MAX_STRAIN = SEW_MAX_STRAIN
+# guards that ``inf`` switches off; every other number of a config must be finite
+INFINITY_MEANS_OFF = ("max_drape_jump", "max_loss_rise")
 
 
 @dataclass(frozen=True)
@@ -260,6 +262,21 @@ class FitConfig:
         for name in ("lr_cage", "lr_phenotypes", "lr_translation", "lr_pose", "lr_log_bend_stiffness"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"FitConfig.{name} must be >= 0 (0 freezes the parameter)")
+        self._check_numbers()
+
+    def _check_numbers(self) -> None:
+        """ValueError for a NaN, an infinity where it means nothing, or a negative count."""
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if not isinstance(value, float):
+                continue
+            if math.isnan(value) or (math.isinf(value) and f.name not in INFINITY_MEANS_OFF):
+                off = f" (inf only for {', '.join(INFINITY_MEANS_OFF)}: no check)"
+                raise ValueError(f"FitConfig.{f.name} must be a finite number{off}, got {value}")
+        for name in ("max_retries", "image_every", "seed"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+                raise ValueError(f"FitConfig.{name} must be an integer >= 0, got {value!r}")
 
 
 def with_fit_strain_limit(config: DrapeConfig) -> DrapeConfig:
@@ -274,6 +291,42 @@ def with_fit_strain_limit(config: DrapeConfig) -> DrapeConfig:
 
 def _field_names(cls) -> list[str]:
     return [f.name for f in dataclasses.fields(cls)]
+
+
+def _typed(name: str, kind: str, value, source: str):
+    """``value`` of the config field ``name`` as its declared type ``kind`` ("bool", "int", "float",
+    "float | None", "str", ...; other kinds pass unchanged to the dataclass's own checks).
+
+    Strict where YAML is loose: a boolean is ``true`` or ``false`` (the string ``"no"`` is not false), an
+    integer is not a float or a boolean, and a number may be a string that parses as one (YAML 1.1 reads
+    ``1e-3`` as a string).
+
+    Raises:
+        InputError: the value is not of the field's type.
+    """
+    if value is None and kind.endswith("| None"):
+        return None
+    kind = kind.removesuffix(" | None")
+    if kind == "bool":
+        if isinstance(value, bool):
+            return value
+        raise InputError(f"{source}: {name} must be true or false, got {value!r}")
+    if kind == "int":
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        raise InputError(f"{source}: {name} must be an integer, got {value!r}")
+    if kind == "float":
+        if isinstance(value, int | float) and not isinstance(value, bool):
+            return float(value)
+        if isinstance(value, str):
+            try:
+                return float(value)
+            except ValueError:
+                pass
+        raise InputError(f"{source}: {name} must be a number, got {value!r}")
+    if kind == "str" and not isinstance(value, str):
+        raise InputError(f"{source}: {name} must be a string, got {value!r}")
+    return value
 
 
 def config_from_dict(data: dict, base: FitConfig | None = None, source: str = "config") -> FitConfig:
@@ -298,14 +351,14 @@ def config_from_dict(data: dict, base: FitConfig | None = None, source: str = "c
             raise InputError(
                 f"{source}: unknown weights key(s) {bad}; valid keys: {_field_names(LossWeights)}"
             )
+        w = {k: _typed(f"weights.{k}", "float", v, source) for k, v in w.items()}
         try:
-            values["weights"] = replace(base.weights, **{k: float(v) for k, v in w.items()})
+            values["weights"] = replace(base.weights, **w)
         except (TypeError, ValueError) as exc:
             raise InputError(f"{source}: {exc}") from exc
-    for f in dataclasses.fields(FitConfig):  # YAML gives ints for floats like 1; keep the field's type
-        if f.name in values and f.name != "weights" and isinstance(getattr(base, f.name), float):
-            if isinstance(values[f.name], int | float) and not isinstance(values[f.name], bool):
-                values[f.name] = float(values[f.name])
+    for f in dataclasses.fields(FitConfig):
+        if f.name in values and f.name != "weights":
+            values[f.name] = _typed(f.name, str(f.type), values[f.name], source)
     try:
         return replace(base, **values)
     except (TypeError, ValueError) as exc:

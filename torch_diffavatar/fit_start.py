@@ -105,7 +105,9 @@ def first_states(
             state = settled(objective, res.state, rest_uv, body_verts, material)
             if len(scales) == 1:  # nothing to choose; the fit evaluates it anyway
                 return [(math.nan, state, candidate)]
-            loss = candidate["loss"] = float(evaluate(state).loss)
+            loss = float(evaluate(state).loss)
+            # report.json is strict JSON: a non-finite loss is recorded as an error, not as NaN
+            candidate.update({"loss": loss} if math.isfinite(loss) else {"error": f"loss {loss}"})
         except SimulationError as exc:
             if len(scales) == 1:
                 raise

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from torch_diffavatar.errors import InputError, ScanError
+from torch_diffavatar.json_io import write_json
 from torch_diffavatar.mesh_io import write_obj
 from torch_diffavatar.scan import UP_AXES
 
@@ -101,7 +102,7 @@ def fit_body_command(args) -> dict:
     # `BodyModel.load_parameters_dict` (fit --body, segment --body) reads back
     params = dict(summary, scan=str(args.scan), units=args.units, up=args.up, **body.parameters_dict())
     params["phenotypes_by_name"] = phenotypes
-    (out / BODY_JSON).write_text(json.dumps(params, indent=1))
+    write_json(out / BODY_JSON, params)
     return summary
 
 
@@ -168,7 +169,7 @@ def segment_command(args) -> dict:
     colors = None if scan.colors is None else scan.colors[seg.garment_indices]
     save_ply(out, scan.points[seg.garment_indices], colors=colors, int_properties={"boundary_loop": loop_id})
     loops_json = [{"name": loop.name, "point_indices": loop.point_indices.tolist()} for loop in seg.loops]
-    out.with_suffix(".boundaries.json").write_text(json.dumps({"garment": kind, "loops": loops_json}))
+    write_json(out.with_suffix(".boundaries.json"), {"garment": kind, "loops": loops_json}, indent=None)
     return {
         "points": scan.point_count,
         "garment_points": int(len(seg.garment_indices)),

@@ -60,12 +60,12 @@ def run_demo(args) -> dict:
         report = fit_scan(DEMO_SCAN, config, args.out, resume=args.resume, progress=not args.no_progress)
     truth = json.loads(DEMO_TRUTH.read_text()) if DEMO_TRUTH.is_file() else {}
     if DEMO_TRUTH_PATTERN.is_file():
-        from torch_diffavatar.assets import _write_json
         from torch_diffavatar.evaluation import compare_with_truth
+        from torch_diffavatar.json_io import write_json
 
         true_kb = truth.get("material", {}).get("bend_stiffness")
         report.update(compare_with_truth(args.out, DEMO_TRUTH_PATTERN, true_kb))
-        _write_json(Path(args.out) / "report.json", report)
+        write_json(Path(args.out) / "report.json", report)
     summary = dict(report)
     summary["truth"] = truth
     if not args.json:

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from torch_diffavatar.errors import PatternError
+from torch_diffavatar.json_io import write_json
 from torch_diffavatar.pattern.spec import (
     GARMENT_TYPES,
     Edge,
@@ -79,7 +80,7 @@ def load_pattern(path: str | os.PathLike) -> Pattern:
 
 def save_pattern(pattern: Pattern, path: str | os.PathLike) -> None:
     """Write a `Pattern` as GarmentCode JSON (units from ``pattern.properties``, cm by default)."""
-    Path(path).write_text(json.dumps(pattern_to_dict(pattern), indent=1))
+    write_json(path, pattern_to_dict(pattern))
 
 
 def _fail(source: str | None, msg: str):

@@ -13,12 +13,12 @@ what the load did). Frame 0 (warm-up) is not timed.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import time
 
 import torch
 
+from torch_diffavatar.json_io import dumps_json
 from torch_diffavatar.sim import ops, reference
 from torch_diffavatar.sim.material import ClothMaterial
 from torch_diffavatar.sim.model import ClothModelBuilder
@@ -139,7 +139,7 @@ def main(argv=None):
         num_threads=args.threads,
         fused=not args.unfused,
     )
-    print(json.dumps(out))
+    print(dumps_json(out))
 
 
 if __name__ == "__main__":

@@ -1,0 +1,59 @@
+"""A fit config read strictly (issue #33): YAML's loose types never turn into a wrong setting."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from torch_diffavatar.errors import InputError
+from torch_diffavatar.fit_config import FitConfig, load_config
+
+
+def _load(tmp_path, text: str) -> FitConfig:
+    path = tmp_path / "c.yaml"
+    path.write_text(text)
+    return load_config(path)
+
+
+def test_numbers_that_yaml_reads_as_strings_parse(tmp_path):
+    # YAML 1.1 (PyYAML) reads 1e-3 as the string "1e-3": it failed deep in the fit with a TypeError
+    config = _load(tmp_path, "lr_cage: 1e-3\nweights: {boundary: 2e3}\niterations: 7\n")
+    assert config.lr_cage == 0.001 and isinstance(config.lr_cage, float)
+    assert config.weights.boundary == 2000.0
+    assert config.iterations == 7
+
+
+@pytest.mark.parametrize(
+    "line, message",
+    [
+        ('cage: "no"', "cage must be true or false"),  # a non-empty string read as true before
+        ('keep_best: "false"', "keep_best must be true or false"),
+        ("tie_seams: 0", "tie_seams must be true or false"),
+        ("iterations: 2.5", "iterations must be an integer"),
+        ("iterations: true", "iterations must be an integer"),
+        ("max_retries: -5", "max_retries must be an integer >= 0"),  # skipped every step before
+        ("max_drape_jump: .nan", "max_drape_jump must be a finite number"),  # switched the guard off
+        ("lr_cage: .inf", "lr_cage must be a finite number"),
+        ("initial_bend_stiffness: .inf", "initial_bend_stiffness must be a finite number"),
+        ("lr_cage: fast", "lr_cage must be a number"),
+        ("weights: {boundary: true}", "weights.boundary must be a number"),
+        ("weights: {boundary: .nan}", "LossWeights.boundary must be a finite number"),
+        ("template: 3", "template must be a string"),
+    ],
+)
+def test_values_of_the_wrong_type_or_range_are_refused(tmp_path, line, message):
+    with pytest.raises(InputError, match=message):
+        _load(tmp_path, line + "\n")
+
+
+def test_infinity_switches_a_guard_off_and_nothing_else(tmp_path):
+    config = _load(tmp_path, "max_loss_rise: .inf\nmax_drape_jump: .inf\n")
+    assert math.isinf(config.max_loss_rise) and math.isinf(config.max_drape_jump)
+    with pytest.raises(ValueError, match="robust_scale must be a finite number"):
+        FitConfig(robust_scale=math.inf)
+
+
+def test_a_null_where_a_length_or_nothing_is_allowed(tmp_path):
+    assert _load(tmp_path, "arms_low_spacing: null\n").arms_low_spacing is None
+    assert _load(tmp_path, "arms_low_spacing: '0.03'\n").arms_low_spacing == 0.03
