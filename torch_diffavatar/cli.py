@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import sys
 
@@ -60,13 +61,31 @@ def _join_signed_values(argv: list[str]) -> list[str]:
     return out
 
 
+def _os_error_line(exc: OSError) -> str:
+    """One line for an `OSError`: what failed and on which path, with the remedy for the common ones."""
+    if exc.strerror is None:
+        return str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    where = f": {exc.filename}" if exc.filename else ""
+    hint = {
+        errno.ENOSPC: " (free some space, or choose another --out)",
+        errno.ENOTDIR: " (a part of this path is a file, not a folder)",
+        errno.EEXIST: " (a file is in the way of a folder)",
+        errno.EACCES: " (not writable: choose another --out)",
+        errno.EROFS: " (a read-only file system: choose another --out)",
+    }.get(exc.errno, "")
+    return f"{exc.strerror}{where}{hint}"
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(_join_signed_values(sys.argv[1:] if argv is None else list(argv)))
     try:
         result = args.func(args)
-    except (InputError, FileNotFoundError, IsADirectoryError, PermissionError, SimulationError) as exc:
+    except (InputError, SimulationError) as exc:
         print(f"diffavatar {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # a path or the disk (not found, a file where a folder goes, full, read-only)
+        print(f"diffavatar {args.command}: error: {_os_error_line(exc)}", file=sys.stderr)
         return 2
     if isinstance(result, dict):
         if getattr(args, "json", False):

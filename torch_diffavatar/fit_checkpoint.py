@@ -38,10 +38,24 @@ PROGRESS = {
 
 
 def atomic_save(obj, path: Path) -> None:
-    """``torch.save`` to a temporary file, then rename it to ``path``: a crash never leaves half a file."""
+    """``torch.save`` to a temporary file, flushed to the disk, then renamed to ``path``: a crash or a full
+    disk never leaves half a file, and the old file stays until the new one is whole.
+
+    Raises:
+        OSError: the file could not be written (no space, not writable); no temporary is left behind.
+    """
     tmp = path.with_name(path.name + ".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as f:
+            try:
+                torch.save(obj, f)
+            except RuntimeError as exc:  # torch reports a failed write (ENOSPC) as an enforce failure
+                raise OSError(f"could not write {path}: {str(exc).splitlines()[0]}") from exc
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def _data_classes() -> list:
