@@ -45,7 +45,7 @@ def _fit_and_eval(scan_dir: Path, out: Path, config, anny) -> dict:
     from torch_diffavatar.fit_scan import fit_scan
 
     t0 = time.perf_counter()
-    report = fit_scan(scan_dir / "scan.ply", config, out, progress=False, anny_model=anny)
+    report = fit_scan(scan_dir / "scan.ply", config, out, progress=False, anny_model=anny, force=True)
     seconds = time.perf_counter() - t0
     ev = evaluate_assets(out, scan_dir)
     return {"report": report, "eval": ev, "seconds": seconds}

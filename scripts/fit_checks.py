@@ -84,7 +84,13 @@ def oracle(args) -> dict:
     pattern = load_pattern(scan_dir / "truth" / "pattern.json")
     body_params = json.loads((scan_dir / "truth" / "body.json").read_text()) if args.true_body else None
     report = fit_scan(
-        scan_dir / "scan.ply", config, out, progress=False, pattern=pattern, body_params=body_params
+        scan_dir / "scan.ply",
+        config,
+        out,
+        progress=False,
+        pattern=pattern,
+        body_params=body_params,
+        force=True,
     )
     ev = evaluate_assets(out, scan_dir)
     mm = {

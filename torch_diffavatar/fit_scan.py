@@ -3,11 +3,18 @@
 `fit_scan` runs the set-up (`torch_diffavatar.fit_setup.prepare`, saved in ``DIR/setup.pt`` so that a resumed
 run reuses it), the fit loop (`torch_diffavatar.fit.Fitter`, resumable from ``DIR/checkpoint.pt``) and writes
 the assets (`torch_diffavatar.assets.write_assets`) with ``report.json``.
+
+A folder is never a mix of two fits: while a fit runs, ``DIR/INCOMPLETE`` says so (it goes once the last
+file is written); a new fit into a folder that holds another refuses unless ``force``, which first removes
+the earlier fit's files; a resumed fit checks that the scan, the garment and the settings are the ones its
+``setup.pt`` was made from (`fit_fingerprint`).
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
+import shutil
 import sys
 import time
 from dataclasses import replace
@@ -15,17 +22,110 @@ from pathlib import Path
 
 import torch
 
+from torch_diffavatar.errors import InputError
+
+INCOMPLETE = "INCOMPLETE"  # marker file of a fit folder whose fit has not finished writing
+# what a fit writes besides `assets.ASSET_FILES` (a forced rerun removes these, and nothing else)
+RUN_FILES = ("setup.pt", "checkpoint.pt", "config.yaml", "eval_drapes.png", INCOMPLETE)
+
+
+def _file_sha256(path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def fit_fingerprint(scan_path, config, **prepare_kw) -> dict:
+    """What a fit's set-up was made from: the scan file's SHA-256, the config (its ``iterations`` aside: a
+    resumed fit may run longer) and the set-up options ``prepare_kw`` (`fit_setup.prepare`'s), as plain
+    data. The pattern and the body parameters enter as their JSON-like dicts."""
+    from torch_diffavatar.fit_config import config_to_dict
+    from torch_diffavatar.pattern.garmentcode import pattern_to_dict
+
+    settings = config_to_dict(config)
+    settings.pop("iterations")
+    options = dict(prepare_kw)
+    if options.get("pattern") is not None:
+        options["pattern"] = pattern_to_dict(options["pattern"])
+    return {"scan_sha256": _file_sha256(scan_path), "config": settings, "options": options}
+
+
+def _check_fingerprint(setup: dict, expected: dict, setup_path: Path) -> None:
+    """InputError when the resumed set-up was made from another scan, garment or settings."""
+    found = setup.get("fingerprint")
+    if found is None:
+        print(
+            f"diffavatar fit: warning: {setup_path} predates the scan check; resuming it unchecked",
+            file=sys.stderr,
+        )
+        return
+    if found == expected:
+        return
+    if found["scan_sha256"] != expected["scan_sha256"]:
+        what = "another scan file"
+    else:
+        keys = sorted(
+            k
+            for k in {**found["config"], **expected["config"]}
+            if found["config"].get(k) != expected["config"].get(k)
+        )
+        keys += sorted(
+            k
+            for k in {**found["options"], **expected["options"]}
+            if found["options"].get(k) != expected["options"].get(k)
+        )
+        what = f"other settings ({', '.join(keys)})"
+    raise InputError(
+        f"--resume: {setup_path.parent} was made from {what}; resume with the same scan, garment and "
+        "config, or start a new fit (another --out, or --force to replace it)"
+    )
+
+
+def prepare_out_folder(out: Path, *, resume: bool, force: bool) -> None:
+    """Make ``out`` ready for a fit and mark it `INCOMPLETE`.
+
+    Raises:
+        InputError: ``out`` holds another fit (finished or not) and neither ``resume`` nor ``force``.
+    """
+    from torch_diffavatar.assets import ASSET_FILES
+
+    ours = [*ASSET_FILES.values(), *RUN_FILES]
+    earlier = [name for name in ours if (out / name).exists()]
+    if earlier and not resume:
+        if not force:
+            state = "an unfinished fit" if (out / INCOMPLETE).exists() else "a fit"
+            raise InputError(
+                f"--out {out} holds {state} ({', '.join(earlier[:3])}…); pass --resume to continue it, "
+                "--force to replace it, or choose another folder"
+            )
+        for name in earlier:  # only the files a fit writes: anything else of the user's stays
+            (out / name).unlink()
+        shutil.rmtree(out / "tb", ignore_errors=True)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / INCOMPLETE).write_text("a fit is writing into this folder; it is not a finished asset folder\n")
+
 
 def load_setup(scan_path, config, out: Path, *, resume: bool, anny_model, **prepare_kw) -> dict:
-    """The fit's set-up: ``out/setup.pt`` with ``resume`` when it is there, else `fit_setup.prepare` of the
-    scan (``prepare_kw``: its options), saved there."""
+    """The fit's set-up: ``out/setup.pt`` with ``resume`` when it is there (made from the same scan and
+    settings, `fit_fingerprint`), else `fit_setup.prepare` of the scan (``prepare_kw``: its options), saved
+    there with its fingerprint.
+
+    Raises:
+        InputError: the set-up to resume was made from another scan, garment or settings.
+    """
     from torch_diffavatar.fit_checkpoint import SETUP, atomic_save, safe_load
     from torch_diffavatar.fit_setup import prepare
 
     setup_path = out / SETUP
+    fingerprint = fit_fingerprint(scan_path, config, **prepare_kw)
     if resume and setup_path.is_file():
-        return safe_load(setup_path)
+        setup = safe_load(setup_path)
+        _check_fingerprint(setup, fingerprint, setup_path)
+        return setup
     setup = prepare(scan_path, config, anny_model=anny_model, **prepare_kw)
+    setup["fingerprint"] = fingerprint
     atomic_save(setup, setup_path)
     return setup
 
@@ -36,6 +136,7 @@ def fit_scan(
     out_dir,
     *,
     resume=False,
+    force=False,
     units="m",
     up="y",
     progress=True,
@@ -47,7 +148,8 @@ def fit_scan(
     """Run the whole job (see the module docstring); returns the report (also ``out_dir/report.json``).
 
     ``pattern``: start from this `Pattern` instead of ``config.template``; ``garment_type`` and
-    ``body_params`` (start from this body instead of fitting one): see `fit_setup.prepare`."""
+    ``body_params`` (start from this body instead of fitting one): see `fit_setup.prepare`. ``force``:
+    replace another fit in ``out_dir`` (else that is an error, `prepare_out_folder`)."""
     from torch_diffavatar.body.anny_model import load_anny
     from torch_diffavatar.body.model import BodyModel
     from torch_diffavatar.fit import Fitter
@@ -57,7 +159,7 @@ def fit_scan(
     torch.set_num_threads(1)
     t0 = time.perf_counter()
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    prepare_out_folder(out, resume=resume, force=force)
     write_resolved_config(config, out)
     anny_model = load_anny(dtype=torch.float32) if anny_model is None else anny_model
     prepare_kw = dict(units=units, up=up, pattern=pattern, garment_type=garment_type, body_params=body_params)
@@ -125,6 +227,7 @@ def write_fit_assets(out: Path, setup: dict, fitter, result, report: dict) -> di
         report=report,
         before=before,
     )
+    (out / INCOMPLETE).unlink(missing_ok=True)  # every file is whole now
     for message in report["warnings"]:
         print(f"diffavatar fit: warning: {message}", file=sys.stderr)
     return json.loads(Path(files["report_json"]).read_text())

@@ -32,6 +32,7 @@ def register(subparsers) -> None:
     p.add_argument("--out", default="demo_out", help="output folder (default: demo_out)")
     p.add_argument("--iters", type=int, default=None, help="fit iterations (default: configs/dress.yaml)")
     p.add_argument("--resume", action="store_true", help="continue a previous demo run in --out")
+    p.add_argument("--force", action="store_true", help="replace a previous demo run in --out")
     p.add_argument("--no-fit", action="store_true", help="only mesh, preview and drape the template")
     p.add_argument("--garment", default="dress", help="template for --no-fit (default: dress)")
     p.add_argument("--spacing", type=float, default=0.02, help="mesh spacing [m] for --no-fit (default 0.02)")
@@ -57,7 +58,9 @@ def run_demo(args) -> dict:
         raise InputError(f"--iters must be >= 0, got {args.iters}")
     config = load_config(garment="dress", iterations=args.iters)
     with contextlib.redirect_stdout(sys.stderr):
-        report = fit_scan(DEMO_SCAN, config, args.out, resume=args.resume, progress=not args.no_progress)
+        report = fit_scan(
+            DEMO_SCAN, config, args.out, resume=args.resume, force=args.force, progress=not args.no_progress
+        )
     truth = json.loads(DEMO_TRUTH.read_text()) if DEMO_TRUTH.is_file() else {}
     if DEMO_TRUTH_PATTERN.is_file():
         from torch_diffavatar.evaluation import compare_with_truth

@@ -64,6 +64,7 @@ def register(subparsers) -> None:
         help="mesh spacing [m] (overrides the config's, and its arms_low_spacing for arms held low)",
     )
     p.add_argument("--resume", action="store_true", help="continue from --out's checkpoint")
+    p.add_argument("--force", action="store_true", help="replace another fit in --out (its files only)")
     p.add_argument("--units", default="m", choices=("m", "cm", "mm"), help="length unit of the scan file")
     p.add_argument("--up", default="y", choices=("y", "-y", "z", "-z"), help="up axis of the scan file")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -105,6 +106,7 @@ def fit_command(args) -> dict:
             config,
             out,
             resume=args.resume,
+            force=args.force,
             units=args.units,
             up=args.up,
             progress=not args.no_progress,
