@@ -75,6 +75,8 @@ def load_pattern(path: str | os.PathLike) -> Pattern:
         raise PatternError(f"{path}: malformed JSON: {exc}") from exc
     except UnicodeDecodeError as exc:
         raise PatternError(f"{path}: not a text JSON file ({exc})") from exc
+    except RecursionError as exc:
+        raise PatternError(f"{path}: JSON nested too deeply to be a sewing pattern") from exc
     return pattern_from_dict(data, source=str(path))
 
 

@@ -332,6 +332,37 @@ def _check_mesh_args(spacing, min_angle) -> None:
         )
 
 
+# More vertices than any garment of this project needs (a fit runs ~2-20k; a drape at 5 mm about 100k):
+# a pattern beyond it is in the wrong units or asks for a spacing far too fine, and Triangle would take
+# minutes and gigabytes before failing.
+MAX_MESH_VERTICES = 1_000_000
+
+
+def _check_mesh_budget(pattern: Pattern, spacing: float) -> None:
+    """PatternError, before any meshing, for a panel smaller than ``spacing`` [m] or a pattern whose mesh
+    would exceed `MAX_MESH_VERTICES` (estimated from the panels' corner polygons: an equilateral mesh of
+    edge ``spacing`` holds 2/√3 vertices per spacing², plus one per spacing of outline)."""
+    estimate, area = 0.0, 0.0
+    for name, panel in pattern.panels.items():
+        corners = np.asarray(panel.vertices, dtype=np.float64)
+        extent = float(np.linalg.norm(corners.max(0) - corners.min(0)))
+        if extent < spacing:
+            raise PatternError(
+                f"panel {name!r} is {extent:.3g} m across, less than the mesh spacing {spacing:g} m: is the "
+                "pattern in the right units? (else choose a smaller spacing)"
+            )
+        panel_area = abs(polygon_signed_area(corners))
+        perimeter = float(np.linalg.norm(corners - np.roll(corners, 1, axis=0), axis=1).sum())
+        area += panel_area
+        estimate += 2.0 / math.sqrt(3.0) * panel_area / spacing**2 + perimeter / spacing
+    if estimate > MAX_MESH_VERTICES:
+        raise PatternError(
+            f"the pattern ({len(pattern.panels)} panels, {area:.3g} m²) meshes to about {estimate:,.0f} "
+            f"vertices at spacing {spacing:g} m, more than the {MAX_MESH_VERTICES:,} meshed here: choose a "
+            "larger spacing, or check the pattern's units"
+        )
+
+
 def _orient_like_loop(verts: np.ndarray, tris: np.ndarray, boundary: np.ndarray) -> None:
     """Flip in place the triangles (f, 3) of ``verts`` (n, 2) that turn against the outline (Lp, 2)."""
     loop_sign = np.sign(polygon_signed_area(boundary))
@@ -456,6 +487,7 @@ def mesh_pattern(pattern: Pattern, spacing: float = 0.015, min_angle: float = 25
             collapse a triangle when merged.
     """
     _check_mesh_args(spacing, min_angle)
+    _check_mesh_budget(pattern, spacing)
     pattern.validate()
     meshes = _mesh_panels(pattern, edge_sample_fractions(pattern, spacing), spacing, min_angle)
     stitch_pairs = _pattern_stitch_pairs(pattern, meshes.edge_vertices)
