@@ -12,12 +12,20 @@ import torch
 
 from torch_diffavatar.chamfer import nearest_indices, surface_chamfer_m
 from torch_diffavatar.losses import rest_area_ratio
-from torch_diffavatar.metrics import triangle_quality
+from torch_diffavatar.metrics import scan_noise_sigma_m, triangle_quality
 from torch_diffavatar.objective import FitObjective, ObjectiveOutput
 
 # a draped triangle below this quality (`metrics.triangle_quality`) is flagged in the fit's report: the
 # evaluation's target for a simulation-ready drape (docs/RESULTS.md)
 DRAPED_QUALITY_FLOOR = 0.3
+# A fit whose surface Chamfer ends above max(this × the scan's noise (`metrics.scan_noise_sigma_m`), the
+# floor below) is flagged. Measured on fits of our synthetic scans (σ = 3 mm, read as 2.2 mm): 6-14 mm in
+# docs/RESULTS.md, 17 mm for short trouser fits; fits that went wrong on real captures ended at 23 mm.
+FAR_FROM_SCAN_NOISE = 8.0
+FAR_FROM_SCAN_FLOOR_M = 0.02
+# An opening whose boundary Chamfer ends above this is flagged. Matched openings of fits of our synthetic
+# scans end at 1-5 cm (hems the widest); a hem segmented 20-30 cm low on a real capture pulled its pattern.
+FAR_OPENING_M = 0.08
 
 CHAMFER_DEFINITION = (
     "symmetric mean surface distance, not squared: (mean distance of the scan "
@@ -139,4 +147,30 @@ def result_warnings(
     inverted = int((area_ratio <= 0).sum())
     if inverted:
         warnings.append(f"{inverted} rest triangles are inverted: the pattern cannot be cut as it is")
+    return warnings
+
+
+def scan_warnings(report: dict, garment_points: torch.Tensor) -> list[str]:
+    """What a fit's result says about the scan it was fitted to (empty when nothing): the fit ends far
+    above the scan's own noise, or an opening ends far from the scan's opening.
+
+    Args:
+        report: `fit_report`'s (``chamfer_final``, ``boundary_chamfer_final``) [m].
+        garment_points: (P, 3) the scan's garment points [m].
+    """
+    warnings = []
+    sigma = scan_noise_sigma_m(garment_points) if len(garment_points) > 16 else 0.0
+    limit = max(FAR_FROM_SCAN_NOISE * sigma, FAR_FROM_SCAN_FLOOR_M)
+    if report["chamfer_final"] > limit:
+        warnings.append(
+            f"the fitted garment ends {1e3 * report['chamfer_final']:.1f} mm from the scan, far above the "
+            f"scan's own noise (about {1e3 * sigma:.1f} mm): the body fit, the scan's segmentation or the "
+            "garment type is probably wrong; look at before_after.png"
+        )
+    far = {k: v for k, v in report["boundary_chamfer_final"].items() if v > FAR_OPENING_M}
+    for name, distance in far.items():
+        warnings.append(
+            f"the {name} opening ends {1e2 * distance:.1f} cm from the scan's {name}: that scan opening is "
+            "probably misplaced (segmentation) and has pulled the pattern toward it"
+        )
     return warnings

@@ -154,6 +154,7 @@ def fit_scan(
     from torch_diffavatar.body.model import BodyModel
     from torch_diffavatar.fit import Fitter
     from torch_diffavatar.fit_config import write_resolved_config
+    from torch_diffavatar.fit_report import scan_warnings
     from torch_diffavatar.sim.material import ClothMaterial
 
     torch.set_num_threads(1)
@@ -182,6 +183,7 @@ def fit_scan(
     )
     result = fitter.run(resume=resume)
     report = dict(result.report)
+    report["warnings"] = report["warnings"] + scan_warnings(report, setup["target"].garment_points)
     report.update(
         scan=str(scan_path),
         scan_points=setup["scan_points"],

@@ -166,3 +166,28 @@ def pattern_outline_errors(result, truth) -> dict[str, dict[str, float]]:
         mean, worst = outline_distance(panel.outline(), truth.panels[name].outline())
         out[name] = {"mean_m": float(mean), "max_m": float(worst)}
     return out
+
+
+def scan_noise_sigma_m(points, neighbors: int = 16, max_points: int = 20000, seed: int = 0) -> float:
+    """The noise of a scanned surface [m], estimated from the points alone.
+
+    Each point's ``neighbors`` nearest points (itself included) get a least-squares plane; the smallest
+    eigenvalue of their covariance is the variance off that plane. The estimate is the square root of the
+    median of those variances (the median ignores edges, folds and outliers). On our synthetic scans with a
+    Gaussian noise of σ = 3 mm it reads 2.2 mm: the plane absorbs part of the noise, so it is a floor.
+
+    Args:
+        points: (N, 3) surface points [m] (a NumPy array or a tensor), N > ``neighbors``.
+        max_points: a seeded random subset this large is used (the estimate is a median).
+    """
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points.detach().cpu() if isinstance(points, torch.Tensor) else points, np.float64)
+    if len(pts) <= neighbors:
+        raise ValueError(f"need more than {neighbors} points to estimate the noise, got {len(pts)}")
+    if len(pts) > max_points:
+        pts = pts[np.random.default_rng(seed).choice(len(pts), max_points, replace=False)]
+    _, idx = cKDTree(pts).query(pts, k=neighbors)
+    local = pts[idx] - pts[idx].mean(axis=1, keepdims=True)
+    cov = np.einsum("nki,nkj->nij", local, local) / neighbors
+    return float(np.sqrt(max(float(np.median(np.linalg.eigvalsh(cov)[:, 0])), 0.0)))
