@@ -67,3 +67,16 @@ def test_resume_refuses_another_scan_or_other_settings(tmp_path, monkeypatch):
             up="y",
         )
     assert len(calls) == 1
+
+
+def test_a_failed_first_sewing_says_which_stage_to_doubt():
+    from torch_diffavatar.fit_scan import first_sewing_advice
+    from torch_diffavatar.pattern import load_template, mesh_pattern
+
+    garment = mesh_pattern(load_template("skirt"), spacing=0.08)
+    sound = {"garment": garment, "scan_boundaries": ["hem", "waist"], "body_fit_chamfer_m": 0.016}
+    assert "the template's placement" in first_sewing_advice(sound)
+    assert "no hem opening" in first_sewing_advice(dict(sound, scan_boundaries=["waist"]))
+    body = first_sewing_advice(dict(sound, body_fit_chamfer_m=0.075))
+    assert "the body fit, which ended 7.5 cm from the scan" in body and "--up" in body
+    assert "placement" in first_sewing_advice(dict(sound, body_fit_chamfer_m=None))  # a given body

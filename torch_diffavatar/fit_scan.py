@@ -22,7 +22,7 @@ from pathlib import Path
 
 import torch
 
-from torch_diffavatar.errors import InputError
+from torch_diffavatar.errors import InputError, SimulationError
 
 INCOMPLETE = "INCOMPLETE"  # marker file of a fit folder whose fit has not finished writing
 # what a fit writes besides `assets.ASSET_FILES` (a forced rerun removes these, and nothing else)
@@ -130,6 +130,35 @@ def load_setup(scan_path, config, out: Path, *, resume: bool, anny_model, **prep
     return setup
 
 
+# a body fit this far from the scan (`fit_body`'s Chamfer, garment included) is a wrong body, not a loose
+# garment: on our synthetic clothed scans body fits end 1.4-2.0 cm from the scan; on real captures the
+# wrong-facing and floor-reaching ones ended at 3.3-7.5 cm
+BODY_FIT_DOUBT_M = 0.03
+
+
+def first_sewing_advice(setup: dict) -> str:
+    """What was likely wrong when a fit's first sewing failed (the body, the scan's openings or the
+    template's placement), and what to try, from `fit_setup.prepare`'s ``setup``; one line."""
+    garment = setup["garment"]
+    missing = sorted({lp.name for lp in garment.boundary_loops} - set(setup["scan_boundaries"]))
+    chamfer = setup.get("body_fit_chamfer_m")
+    if chamfer is not None and chamfer > BODY_FIT_DOUBT_M:
+        return (
+            f"likely cause: the body fit, which ended {1e2 * chamfer:.1f} cm from the scan (good ones end "
+            "within 2 cm): check --up and --units, remove the floor or clutter from the scan, or give "
+            "a body with --body"
+        )
+    if missing:
+        return (
+            f"likely cause: the scan's segmentation, which found no {', '.join(missing)} opening: check "
+            "--garment (or --garment-type) against the scan, or label the scan's garment points"
+        )
+    return (
+        "likely cause: the template's placement on this body (the body fit and the openings look "
+        "sound): try another --spacing, or a template closer to the garment (--garment)"
+    )
+
+
 def fit_scan(
     scan_path,
     config,
@@ -181,7 +210,12 @@ def fit_scan(
         out_dir=out,
         progress=progress,
     )
-    result = fitter.run(resume=resume)
+    try:
+        result = fitter.run(resume=resume)
+    except SimulationError as exc:
+        if fitter.first is not None:  # failed after the fit had started: the message says where
+            raise
+        raise SimulationError(f"{exc}; {first_sewing_advice(setup)}") from exc
     report = dict(result.report)
     report["warnings"] = report["warnings"] + scan_warnings(report, setup["target"].garment_points)
     report.update(
