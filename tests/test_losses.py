@@ -533,3 +533,32 @@ def test_folded_collar_loop_is_the_fold_over_a_collar_and_the_loop_otherwise(col
     upright = x[:, [0, 2, 1]] * torch.tensor([1.0, 1.0, -1.0], dtype=F64)
     assert folded_collar_loop(upright, loop) is loop
     assert folded_collar_loop(upright, loop, max_tilt_deg=90.0) is not loop
+
+
+def test_pattern_change_is_robust_translation_free_and_its_gradient_checks():
+    from torch_diffavatar.losses import pattern_change_loss
+
+    gen = torch.Generator().manual_seed(0)
+    template = torch.rand(12, 2, dtype=torch.float64, generator=gen)
+    panel = torch.tensor([0] * 5 + [1] * 7)
+    assert pattern_change_loss(template, template, panel) == 0
+    moved = template + torch.where(panel[:, None] == 0, torch.tensor([0.3, -0.1]), torch.tensor([0.0, 0.2]))
+    assert pattern_change_loss(moved.double(), template, panel) < 1e-15  # each panel moved whole
+    # one vertex of panel 1 moved by 10 cm: about 10 cm × 6/7 (its own share of the panel mean removed)
+    # over 12 vertices, plus the others' share of the mean
+    bent = template.clone()
+    bent[8, 0] += 0.1
+    value = float(pattern_change_loss(bent, template, panel))
+    assert 0.1 * 6 / 7 / 12 < value < 0.1 * (6 / 7 + 6 / 7) / 12
+    # L1-like: the gradient's size stays bounded however far the vertex went
+    far = template.clone()
+    far[8, 0] += 10.0
+    far.requires_grad_(True)
+    (grad,) = torch.autograd.grad(pattern_change_loss(far, template, panel), far)
+    assert grad.abs().max() < 2.0 / 12
+    rest = (template + 0.01 * torch.randn(12, 2, dtype=torch.float64, generator=gen)).requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda r: pattern_change_loss(r, template, panel), (rest,))
+    batch = torch.stack([bent, template])
+    torch.testing.assert_close(
+        pattern_change_loss(batch, template, panel), torch.tensor([value, 0.0]).double()
+    )

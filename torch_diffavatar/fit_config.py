@@ -41,6 +41,9 @@ class LossWeights:
             when the body is optimized and the target has skin points.
         rest_area: [-], times `rest_area_loss` (rest triangles shrinking below half their template
             area).
+        pattern_change: [1/m], times `pattern_change_loss` (the robust mean distance of the pattern from
+            the template, panels' own moves aside): the fit changes the design only where the scan's
+            evidence outweighs it. 0: off.
     """
 
     boundary: float = 1.0e4
@@ -51,6 +54,7 @@ class LossWeights:
     rest_area: float = 1.0e3
     rest_shape: float = 100.0
     skin: float = 3.0e5
+    pattern_change: float = 0.0
 
     def __post_init__(self):
         for f in dataclasses.fields(self):

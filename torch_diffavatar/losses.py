@@ -474,6 +474,36 @@ def rest_area_loss(
     return _reduce(torch.relu(threshold - ratio) ** 2, None, reduction)
 
 
+def pattern_change_loss(
+    rest_uv: torch.Tensor, template_uv: torch.Tensor, vert_panel: torch.Tensor, *, scale: float = 1.0e-3
+) -> torch.Tensor:
+    """How far the pattern has moved from the template, as a robust (L1-like) distance [m].
+
+    Per panel, the rest coordinates' displacement from the template less its panel mean (a panel moved
+    whole in its own plane is the same panel); the term is the mean over vertices of the Charbonnier
+    distance ``sqrt(|δ|² + scale²) − scale``. Its gradient has a bounded size: a weight on it sets how
+    strong the scan's evidence must be before the fit changes the design, not how far it may go once the
+    evidence is there (a quadratic prior would hold a true 10 cm change back as hard as 1 cm of drift).
+
+    Args:
+        rest_uv: (V, 2) or (B, V, 2) rest coordinates [m]; template_uv: (V, 2) [m].
+        vert_panel: (V,) int64 panel index of each vertex.
+        scale: below this displacement [m] the term is quadratic (smooth at the template).
+
+    Returns:
+        () or (B,) [m].
+    """
+    if not scale > 0:
+        raise ValueError(f"scale must be > 0 [m], got {scale}")
+    delta = rest_uv - template_uv
+    panels = int(vert_panel.max()) + 1
+    counts = torch.bincount(vert_panel, minlength=panels).to(delta.dtype).clamp(min=1)
+    sums = torch.zeros(*delta.shape[:-2], panels, 2, dtype=delta.dtype, device=delta.device)
+    means = sums.index_add(-2, vert_panel, delta) / counts[:, None]
+    delta = delta - means.index_select(-2, vert_panel)
+    return (torch.sqrt((delta**2).sum(-1) + scale**2) - scale).mean(-1)
+
+
 def rest_distortion_loss(
     rest_uv: torch.Tensor,
     template_uv: torch.Tensor,

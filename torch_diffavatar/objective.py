@@ -26,6 +26,7 @@ from torch_diffavatar.losses import (
     curvature_loss,
     folded_collar_loop,
     interior_loss,
+    pattern_change_loss,
     rest_area_loss,
     rest_distortion_loss,
     seam_length_loss,
@@ -322,6 +323,8 @@ class FitObjective(nn.Module):
             terms["rest_shape"] = rest_distortion_loss(
                 rest_uv, self.template_uv, tri, template_inverse=self.template_inverse
             )
+        if self.weight_pattern_change > 0:
+            terms["pattern_change"] = pattern_change_loss(rest_uv, self.template_uv, self.garment.vert_panel)
         return terms
 
     def rest_loss(self, rest_uv: torch.Tensor) -> torch.Tensor:
