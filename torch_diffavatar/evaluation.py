@@ -169,8 +169,7 @@ def evaluate_assets(assets_dir, gt_dir) -> dict:
         ``body_mean_vertex_error_m``, ``bending_stiffness_ratio``, ``rest_quality`` and
         ``draped_quality`` (min, mean), ``inverted_rest_triangles`` (from the fit's report); when the
         folder holds the fit's first drape (``draped_initial.obj``), also ``chamfer_scan_initial_m`` and
-        ``chamfer_truth_drape_initial_m``, the same two distances before
-        the fit.
+        ``chamfer_truth_drape_initial_m``, the same two distances before the fit.
     """
     from torch_diffavatar.assets import material_from_dict
     from torch_diffavatar.chamfer import surface_chamfer_m
