@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -167,4 +168,5 @@ def test_eval_report_leads_with_the_truth(tmp_path):
     where = [text.index(s) for s in order]
     assert where == sorted(where), text
     assert "-5.00" in text.split("garment_length")[1].splitlines()[0]
-    assert "pattern_outline_error_m" not in text and "pattern_outline_errors" in text  # per panel: the rest
+    assert "pattern_outline_error" not in text  # shown in cm, not again in metres
+    assert re.search(r"per panel \[cm, mean / max\]: skirt_front \d\.\d\d / \d\.\d\d, skirt_back", text)

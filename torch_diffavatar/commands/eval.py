@@ -11,6 +11,7 @@ _SHOWN = (
     "units",
     "pattern_outline_error_m",
     "pattern_outline_hausdorff_m",
+    "pattern_outline_errors",
     "garment_measurements",
     "garment_measurement_max_error_cm",
     "garment_area_m2",
@@ -59,6 +60,11 @@ def report_lines(out: dict) -> list[str]:
     lines = [
         "pattern vs the true pattern:",
         f"  outline error (worst panel, rigidly aligned): {outline:.2f} cm mean, {outline_max:.2f} cm max",
+        "  per panel [cm, mean / max]: "
+        + ", ".join(
+            f"{name} {100 * e['mean_m']:.2f} / {100 * e['max_m']:.2f}"
+            for name, e in out["pattern_outline_errors"].items()
+        ),
     ]
     lines += _measurement_lines(out)
     mm = lambda key: f"{1000 * out[key]:.2f} mm"  # noqa: E731
@@ -68,7 +74,7 @@ def report_lines(out: dict) -> list[str]:
         f"  Chamfer to the true drape: {mm('chamfer_truth_drape_m')}{first('chamfer_truth_drape_initial_m')}",
         f"  Chamfer to the scan: {mm('chamfer_scan_m')}{first('chamfer_scan_initial_m')}; the true drape's "
         f"own, the floor: {mm('chamfer_scan_truth_m')}",
-        "the rest [m]:",
+        "the rest (lengths in m):",
     ]
     lines += [f"  {key}: {value}" for key, value in out.items() if key not in _SHOWN]
     return lines
