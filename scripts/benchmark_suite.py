@@ -53,13 +53,14 @@ def _fit_and_eval(scan_dir: Path, out: Path, config, anny) -> dict:
 
 def _initial(template: str, scan_dir: Path, first: dict) -> dict:
     """Measures of the starting point: the template (pattern, material) and the fit's first drape."""
+    from torch_diffavatar.evaluation import garment_measurement_errors
     from torch_diffavatar.metrics import pattern_outline_errors
     from torch_diffavatar.pattern import load_pattern, load_template
 
     truth = json.loads((scan_dir / "truth" / "truth.json").read_text())
-    errors = pattern_outline_errors(
-        load_template(template), load_pattern(scan_dir / "truth" / "pattern.json")
-    )
+    true_pattern = load_pattern(scan_dir / "truth" / "pattern.json")
+    errors = pattern_outline_errors(load_template(template), true_pattern)
+    measured = garment_measurement_errors(load_template(template), true_pattern)
     return {
         # measured as the final one (`evaluate_assets` on the first drape); the fit's own figure uses its
         # outlier-filtered scan and differs by up to ~0.2 mm
@@ -67,6 +68,7 @@ def _initial(template: str, scan_dir: Path, first: dict) -> dict:
         "chamfer_truth_drape_m": first["eval"].get("chamfer_truth_drape_initial_m"),
         "pattern_outline_error_m": max(e["mean_m"] for e in errors.values()),
         "pattern_outline_hausdorff_m": max(e["max_m"] for e in errors.values()),
+        "garment_measurement_max_error_cm": measured["garment_measurement_max_error_cm"],
         "bending_stiffness_ratio": first["report"]["material"]["bend_stiffness_initial"]
         / truth["material"]["bend_stiffness"],
     }
@@ -92,6 +94,11 @@ def _cm(v) -> str:
 
 def _mm(v) -> str:
     return "—" if v is None else f"{1000 * v:.2f}"
+
+
+def _given_cm(v) -> str:
+    """A length already in cm, or '—' when missing (results from before the measure existed)."""
+    return "—" if v is None else f"{v:.2f}"
 
 
 def _change_mm(initial, final) -> str:
@@ -170,6 +177,68 @@ def main() -> int:
     return 0
 
 
+def _table1_lines(rows: list) -> list[str]:
+    """Table 1, truth first: pattern outline and measurement errors [cm], Chamfer to the true drape, then
+    to the scan beside its floor [mm], then material, body, mesh and time."""
+    lines = [
+        "## Table 1: initial (template) vs ours",
+        "",
+        "| garment | outline mean, initial → ours [cm] | outline max, initial → ours [cm] | largest "
+        "measurement error, initial → ours [cm] | Chamfer to true drape, initial → ours [mm] | Chamfer to "
+        "scan, initial → ours [mm] | the true drape's Chamfer to scan [mm] | bending stiffness ratio, "
+        "initial → ours | body height error [cm] | draped quality min | inverted rest triangles | fit "
+        "time [s] |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        if "error" in r:
+            lines.append(f"| {r['garment']} | failed: {r['error'][:160]} | | | | | | | | | | |")
+            continue
+        i, f = r["initial"], r["final"]
+        measured = (
+            f"{_given_cm(i.get('garment_measurement_max_error_cm'))} → "
+            f"{_given_cm(f.get('garment_measurement_max_error_cm'))}"
+        )
+        lines.append(
+            f"| {r['garment']} | "
+            f"{_cm(i['pattern_outline_error_m'])} → {_cm(f['pattern_outline_error_m'])} | "
+            f"{_cm(i['pattern_outline_hausdorff_m'])} → {_cm(f['pattern_outline_hausdorff_m'])} | "
+            f"{measured} | "
+            f"{_change_mm(i.get('chamfer_truth_drape_m'), f['chamfer_truth_drape_m'])} | "
+            f"{_change_mm(i['chamfer_scan_m'], f['chamfer_scan_m'])} | "
+            f"{_mm(f.get('chamfer_scan_truth_m'))} | "
+            f"{i['bending_stiffness_ratio']:.2f} → {f['bending_stiffness_ratio']:.2f} | "
+            f"{_cm(f['body_height_error_m'])} | {f['draped_quality']['min']:.2f} | "
+            f"{f.get('inverted_rest_triangles')} | {r['seconds']:.0f} |"
+        )
+    return lines
+
+
+def _table2_lines(ablations: list) -> list[str]:
+    """Table 2 (ablations), truth first like Table 1."""
+    lines = [
+        "",
+        "## Table 2: ablations",
+        "",
+        "| garment | variant | outline mean [cm] | outline max [cm] | largest measurement error [cm] | "
+        "Chamfer to true drape [mm] | Chamfer to scan [mm] | rest quality min | inverted rest triangles | "
+        "seam length mismatch max [mm] |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for a in ablations:
+        e = a["eval"]
+        rest_min = e.get("rest_quality", {}).get("min", float("nan"))
+        lines.append(
+            f"| {a['garment']} | {a['name']} | "
+            f"{_cm(e['pattern_outline_error_m'])} | {_cm(e['pattern_outline_hausdorff_m'])} | "
+            f"{_given_cm(e.get('garment_measurement_max_error_cm'))} | "
+            f"{_mm(e['chamfer_truth_drape_m'])} | {_mm(e['chamfer_scan_m'])} | "
+            f"{rest_min:.2f} | "
+            f"{e.get('inverted_rest_triangles')} | {_mm(e['seam_length_mismatch']['max_m'])} |"
+        )
+    return lines
+
+
 def _write_results(path: Path, rows: list, ablations: list, args, started: str) -> None:
     cmd = "PYTHONPATH=. python scripts/benchmark_suite.py " + " ".join(sys.argv[1:])
     lines = [
@@ -186,53 +255,16 @@ def _write_results(path: Path, rows: list, ablations: list, args, started: str) 
         "plain "
         "template with `configs/<garment>.yaml`; `diffavatar eval` measures it.",
         "",
-        "Units: Chamfer distances are symmetric mean surface distances in mm, not squared "
-        "(`chamfer.surface_chamfer_m`); the true drape's own Chamfer to the scan is the floor that the "
-        "scan's noise and holes put under any fit's; pattern outline errors in cm after a rigid alignment "
-        "of each panel (`metrics.outline_distance`: the worst panel's mean distance, and its largest "
-        "distance).",
+        "The truth comes first: the pattern is the product. Pattern outline errors in cm after a rigid "
+        "alignment of each panel (`metrics.outline_distance`: the worst panel's mean distance, and its "
+        "largest distance); the largest garment measurement error in cm (`pattern.measurements`: opening "
+        "circumferences, garment, panel and sleeve lengths, hem widths, fitted − true). Then Chamfer "
+        "distances, symmetric mean surface distances in mm, not squared (`chamfer.surface_chamfer_m`): to "
+        "the true drape, then to the scan beside the true drape's own Chamfer to the scan, the floor that "
+        "the scan's noise and holes put under any fit's.",
         "",
-        "## Table 1: initial (template) vs ours",
-        "",
-        "| garment | Chamfer to scan, initial → ours [mm] | the true drape's Chamfer to scan [mm] | "
-        "Chamfer to true drape, initial → ours [mm] | outline mean, initial → ours [cm] | outline max, "
-        "initial → ours [cm] | bending stiffness ratio, initial → ours | body height error [cm] | "
-        "draped quality min | inverted rest triangles | fit time [s] |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for r in rows:
-        if "error" in r:
-            lines.append(f"| {r['garment']} | failed: {r['error'][:160]} | | | | | | | | | |")
-            continue
-        i, f = r["initial"], r["final"]
-        lines.append(
-            f"| {r['garment']} | {_change_mm(i['chamfer_scan_m'], f['chamfer_scan_m'])} | "
-            f"{_mm(f.get('chamfer_scan_truth_m'))} | "
-            f"{_change_mm(i.get('chamfer_truth_drape_m'), f['chamfer_truth_drape_m'])} | "
-            f"{_cm(i['pattern_outline_error_m'])} → {_cm(f['pattern_outline_error_m'])} | "
-            f"{_cm(i['pattern_outline_hausdorff_m'])} → {_cm(f['pattern_outline_hausdorff_m'])} | "
-            f"{i['bending_stiffness_ratio']:.2f} → {f['bending_stiffness_ratio']:.2f} | "
-            f"{_cm(f['body_height_error_m'])} | {f['draped_quality']['min']:.2f} | "
-            f"{f.get('inverted_rest_triangles')} | {r['seconds']:.0f} |"
-        )
-    lines += [
-        "",
-        "## Table 2: ablations",
-        "",
-        "| garment | variant | Chamfer to scan [mm] | Chamfer to true drape [mm] | outline mean [cm] | "
-        "outline max [cm] | rest quality min | inverted rest triangles | seam length mismatch max [mm] |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
-    for a in ablations:
-        e = a["eval"]
-        rest_min = e.get("rest_quality", {}).get("min", float("nan"))
-        lines.append(
-            f"| {a['garment']} | {a['name']} | {_mm(e['chamfer_scan_m'])} | "
-            f"{_mm(e['chamfer_truth_drape_m'])} | "
-            f"{_cm(e['pattern_outline_error_m'])} | {_cm(e['pattern_outline_hausdorff_m'])} | "
-            f"{rest_min:.2f} | "
-            f"{e.get('inverted_rest_triangles')} | {_mm(e['seam_length_mismatch']['max_m'])} |"
-        )
+    lines += _table1_lines(rows) + _table2_lines(ablations)
     lines += ["", "## Pictures", ""]
     for r in rows:
         if "error" not in r:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -114,3 +115,58 @@ def test_pattern_overlay_gives_narrow_panels_room_for_their_names(tmp_path):
     assert square_columns.max() > 12 + label + 12 + 0.9 * SIDE * 400.0
     for colour in OVERLAY_COLOURS.values():
         assert (image == colour).all(-1).any()
+
+
+def test_garment_measurements_of_a_changed_hem(tmp_path):
+    """A fit whose skirt hem is 10 cm too high and 20 % too wide: the hem reads 20 % long, every
+    length 10 cm short, the waist exact; the largest error is the hem's."""
+    from torch_diffavatar.pattern.library import load_template
+    from torch_diffavatar.synthetic_scans import changed_pattern
+
+    truth = load_template("skirt")
+    folder = _write_assets(tmp_path / "fit", changed_pattern(truth, hem_up=0.1, hem_widen=0.2))
+    out = compare_with_truth(folder, truth)
+    table = out["garment_measurements"]
+    assert table["waist_circumference"]["error_cm"] == pytest.approx(0.0, abs=1e-9)
+    hem = table["hem_circumference"]
+    assert hem["error_cm"] == pytest.approx(0.2 * hem["true_cm"]) and hem["true_cm"] > 100
+    for name in ("garment_length", "length_skirt_front", "length_skirt_back"):
+        assert table[name]["error_cm"] == pytest.approx(-10.0), name
+        assert table[name]["fitted_cm"] - table[name]["true_cm"] == table[name]["error_cm"]
+    assert out["garment_measurement_max_error_cm"] == hem["error_cm"]
+    area = out["garment_area_m2"]
+    assert area["fitted_m2"] < area["true_m2"] and area["error_m2"] == area["fitted_m2"] - area["true_m2"]
+    # the template against itself: nothing to report
+    same = compare_with_truth(_write_assets(tmp_path / "same", truth), truth)
+    assert same["garment_measurement_max_error_cm"] < 1e-9
+
+
+def test_eval_report_leads_with_the_truth(tmp_path):
+    """The text report: the outline error and the measurements table (cm) first, then the Chamfer to the
+    true drape, then to the scan beside its floor (mm), then the rest."""
+    from torch_diffavatar.commands.eval import report_lines
+    from torch_diffavatar.pattern.library import load_template
+    from torch_diffavatar.synthetic_scans import changed_pattern
+
+    truth = load_template("skirt")
+    folder = _write_assets(tmp_path / "fit", changed_pattern(truth, hem_up=0.05, hem_widen=0.0))
+    out = {"units": "m", "chamfer_scan_m": 0.0042, "chamfer_truth_drape_m": 0.0061}
+    out["chamfer_scan_truth_m"] = 0.0031
+    out.update(compare_with_truth(folder, truth))
+    out["body_height_error_m"] = 0.012
+    text = "\n".join(report_lines(out))
+    order = [
+        "outline error",
+        "garment measurements [cm]",
+        "waist_circumference",
+        "garment_length",
+        "largest measurement error: 5.00 cm",
+        "Chamfer to the true drape: 6.10 mm",
+        "Chamfer to the scan: 4.20 mm; the true drape's own, the floor: 3.10 mm",
+        "body_height_error_m: 0.012",
+    ]
+    where = [text.index(s) for s in order]
+    assert where == sorted(where), text
+    assert "-5.00" in text.split("garment_length")[1].splitlines()[0]
+    assert "pattern_outline_error" not in text  # shown in cm, not again in metres
+    assert re.search(r"per panel \[cm, mean / max\]: skirt_front \d\.\d\d / \d\.\d\d, skirt_back", text)

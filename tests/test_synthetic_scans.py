@@ -86,7 +86,7 @@ def test_draped_scan_is_labelled_noisy_and_holey(skirt_scan):
 
 @pytest.mark.anny
 @pytest.mark.slow
-def test_eval_of_the_truth_itself_is_exact(skirt_scan, tmp_path):
+def test_eval_of_the_truth_itself_is_exact(skirt_scan, tmp_path, capsys):
     """Assets that *are* the truth: every error is ~0 and the scan Chamfer is at the noise level."""
     from torch_diffavatar.assets import write_assets
     from torch_diffavatar.sim.material import ClothMaterial
@@ -125,6 +125,14 @@ def test_eval_of_the_truth_itself_is_exact(skirt_scan, tmp_path):
     assert out["draped_quality"]["min"] > 0.2 and out["rest_quality"]["min"] > 0.4
     seams, true_seams = out["seam_length_mismatch"], out["seam_length_mismatch_truth"]
     assert true_seams["per_seam_m"] == pytest.approx(seams["per_seam_m"], abs=1e-9)
+    measured = out["garment_measurements"]
+    assert {"waist_circumference", "hem_circumference", "garment_length"} <= set(measured)
+    assert out["garment_measurement_max_error_cm"] < 1e-6
+    # the text report leads with the truth: the pattern, then the true drape, then the scan
+    assert main(["eval", str(tmp_path / "fit"), "--gt", str(tmp_path / "gt"), "--no-picture"]) == 0
+    text = capsys.readouterr().out
+    heads = ("outline error", "garment measurements [cm]", "Chamfer to the true drape", "Chamfer to the scan")
+    assert [text.index(h) for h in heads] == sorted(text.index(h) for h in heads)
     # the command prints the same as one JSON line; a missing truth folder is one error line, exit 2
     assert main(["eval", str(tmp_path / "fit"), "--gt", str(tmp_path / "gt"), "--json"]) == 0
     assert main(["eval", str(tmp_path / "fit"), "--gt", str(tmp_path / "nowhere"), "--json"]) == 2

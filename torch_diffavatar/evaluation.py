@@ -9,6 +9,11 @@ material:
   a rigid alignment of the panel (`metrics.outline_distance`); the value is the worst panel's [m];
 * ``pattern_outline_hausdorff_m``: the same with the largest distance (dart tips and corners dominate);
 * ``pattern_outline_errors``: both per panel;
+* ``garment_measurements``: what a tailor checks (`pattern.measurements`: opening circumferences, garment,
+  panel and sleeve lengths, hem widths), fitted and true, both measured on the truth's openings:
+  ``{name: {"fitted_cm", "true_cm", "error_cm"}}`` (error = fitted − true) [cm], and
+  ``garment_measurement_max_error_cm``, the largest absolute error [cm];
+* ``garment_area_m2``: the total panel area ``{"fitted_m2", "true_m2", "error_m2"}`` [m²];
 * ``bending_stiffness_ratio``: fitted / true bending stiffness [-] (1 is exact).
 
 `save_drape_comparison` draws the fit's first drape, its result and the true drape side by side, front
@@ -45,8 +50,9 @@ def compare_with_truth(assets_dir, truth_pattern, truth_bend_stiffness: float | 
     if not fitted_path.is_file():
         raise InputError(f"{fitted_path} is missing: is {folder} the output folder of a fit?")
     truth = load_pattern(truth_pattern) if isinstance(truth_pattern, str | Path) else truth_pattern
+    fitted = load_pattern(fitted_path)
     try:
-        errors = pattern_outline_errors(load_pattern(fitted_path), truth)
+        errors = pattern_outline_errors(fitted, truth)
     except ValueError as exc:
         raise InputError(f"{fitted_path} vs the true pattern: {exc}") from exc
     out = {
@@ -54,6 +60,7 @@ def compare_with_truth(assets_dir, truth_pattern, truth_bend_stiffness: float | 
         "pattern_outline_hausdorff_m": max(e["max_m"] for e in errors.values()),
         "pattern_outline_errors": errors,
     }
+    out.update(garment_measurement_errors(fitted, truth))
     if truth_bend_stiffness is not None:
         from torch_diffavatar.assets import material_from_dict
 
@@ -63,6 +70,44 @@ def compare_with_truth(assets_dir, truth_pattern, truth_bend_stiffness: float | 
         material = material_from_dict(json.loads(material_path.read_text()))
         out["bending_stiffness_ratio"] = float(material.bend_stiffness) / float(truth_bend_stiffness)
     return out
+
+
+def garment_measurement_errors(fitted, truth) -> dict:
+    """Garment measurements of a fitted pattern against the true one (`pattern.measurements`).
+
+    Both are measured with the edges of the truth's openings (the fit keeps the template's panels and
+    edges), so both have the same measurements.
+
+    Args:
+        fitted, truth: `Pattern` s with the same panels and edges [m].
+
+    Returns:
+        ``garment_measurements``: name -> ``{"fitted_cm", "true_cm", "error_cm"}`` (error = fitted −
+        true) [cm]; ``garment_measurement_max_error_cm``: the largest absolute error [cm] (0 without
+        measurements); ``garment_area_m2``: ``{"fitted_m2", "true_m2", "error_m2"}`` [m²].
+
+    Raises:
+        InputError: the true pattern cannot be meshed, or the fitted one lacks its panels or edges.
+    """
+    from torch_diffavatar.errors import PatternError
+    from torch_diffavatar.pattern.measurements import measure_pattern, pattern_openings
+
+    try:
+        openings = pattern_openings(truth)
+        true, fit = measure_pattern(truth, openings), measure_pattern(fitted, openings)  # [m], [m²]
+    except PatternError as exc:
+        raise InputError(f"garment measurements of the fitted vs the true pattern: {exc}") from exc
+    table = {
+        name: {"fitted_cm": 100 * fit.lengths[name], "true_cm": 100 * value}
+        for name, value in true.lengths.items()
+    }
+    for row in table.values():
+        row["error_cm"] = row["fitted_cm"] - row["true_cm"]
+    return {
+        "garment_measurements": table,
+        "garment_measurement_max_error_cm": max((abs(r["error_cm"]) for r in table.values()), default=0.0),
+        "garment_area_m2": {"fitted_m2": fit.area, "true_m2": true.area, "error_m2": fit.area - true.area},
+    }
 
 
 def seam_length_mismatch(pattern) -> dict:
@@ -116,14 +161,15 @@ def evaluate_assets(assets_dir, gt_dir) -> dict:
         a dict: ``units`` ("m"), ``chamfer_scan_m`` (scan garment points ↔ fitted drape, on the surface,
         `chamfer.surface_chamfer_m`, not squared), ``chamfer_truth_drape_m`` (fitted ↔ true drape,
         symmetric mean surface-to-surface distance), ``chamfer_scan_truth_m`` (the true drape's own
-        ``chamfer_scan_m``: the floor the scan's noise and holes put under it), the pattern errors of
-        `compare_with_truth`, ``seam_length_mismatch`` (fitted pattern, `seam_length_mismatch`),
-        ``seam_length_mismatch_truth`` (the true pattern's: the mismatch a design has on purpose, ease),
-        ``body_height_error_m`` (fitted − true), ``body_mean_vertex_error_m``, ``bending_stiffness_ratio``,
-        ``rest_quality`` and ``draped_quality`` (min, mean), ``inverted_rest_triangles`` (from the fit's
-        report); when the folder holds the fit's first drape (``draped_initial.obj``), also
-        ``chamfer_scan_initial_m`` and ``chamfer_truth_drape_initial_m``, the same two distances before
-        the fit.
+        ``chamfer_scan_m``: the floor the scan's noise and holes put under it), the pattern errors and
+        garment measurements of `compare_with_truth` (``garment_measurements`` [cm],
+        ``garment_measurement_max_error_cm``, ``garment_area_m2``), ``seam_length_mismatch`` (fitted
+        pattern, `seam_length_mismatch`), ``seam_length_mismatch_truth`` (the true pattern's: the
+        mismatch a design has on purpose, ease), ``body_height_error_m`` (fitted − true),
+        ``body_mean_vertex_error_m``, ``bending_stiffness_ratio``, ``rest_quality`` and
+        ``draped_quality`` (min, mean), ``inverted_rest_triangles`` (from the fit's report); when the
+        folder holds the fit's first drape (``draped_initial.obj``), also ``chamfer_scan_initial_m`` and
+        ``chamfer_truth_drape_initial_m``, the same two distances before the fit.
     """
     from torch_diffavatar.assets import material_from_dict
     from torch_diffavatar.chamfer import surface_chamfer_m

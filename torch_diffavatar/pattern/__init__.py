@@ -8,6 +8,7 @@ from torch_diffavatar.pattern.garmentcode import (
     save_pattern,
 )
 from torch_diffavatar.pattern.library import list_templates, load_template, resolve_pattern
+from torch_diffavatar.pattern.measurements import GarmentMeasurements, measure_pattern, pattern_openings
 from torch_diffavatar.pattern.mesher import MeshReport, mesh_pattern, mesh_report
 from torch_diffavatar.pattern.spec import Edge, EdgeRef, Panel, Pattern, Stitch
 
@@ -15,6 +16,7 @@ __all__ = [
     "BoundaryLoop",
     "Edge",
     "EdgeRef",
+    "GarmentMeasurements",
     "GarmentMesh",
     "MeshReport",
     "Panel",
@@ -23,9 +25,11 @@ __all__ = [
     "list_templates",
     "load_pattern",
     "load_template",
+    "measure_pattern",
     "mesh_pattern",
     "mesh_report",
     "pattern_from_dict",
+    "pattern_openings",
     "pattern_to_dict",
     "resolve_pattern",
     "save_pattern",
