@@ -42,8 +42,8 @@ class LossWeights:
         rest_area: [-], times `rest_area_loss` (rest triangles shrinking below half their template
             area).
         pattern_change: [1/m], times `pattern_change_loss` (the robust mean distance of the pattern from
-            the template, panels' own moves aside): the fit changes the design only where the scan's
-            evidence outweighs it. 0: off.
+            the template outside each panel's design changes, `design_modes`: moves, scales, shears and
+            flares are free): the fit reshapes a panel only where the scan's evidence outweighs it. 0: off.
     """
 
     boundary: float = 1.0e4

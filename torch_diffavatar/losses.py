@@ -474,34 +474,63 @@ def rest_area_loss(
     return _reduce(torch.relu(threshold - ratio) ** 2, None, reduction)
 
 
-def pattern_change_loss(
-    rest_uv: torch.Tensor, template_uv: torch.Tensor, vert_panel: torch.Tensor, *, scale: float = 1.0e-3
-) -> torch.Tensor:
-    """How far the pattern has moved from the template, as a robust (L1-like) distance [m].
+def design_modes(template_uv: torch.Tensor, vert_panel: torch.Tensor) -> torch.Tensor:
+    """(V, 4) per panel, an orthonormal basis (over that panel's vertices) of the displacement fields a
+    design change makes, evaluated at each vertex: constant, linear in u and in v, and u·v.
 
-    Per panel, the rest coordinates' displacement from the template less its panel mean (a panel moved
-    whole in its own plane is the same panel); the term is the mean over vertices of the Charbonnier
-    distance ``sqrt(|δ|² + scale²) − scale``. Its gradient has a bounded size: a weight on it sets how
-    strong the scan's evidence must be before the fit changes the design, not how far it may go once the
-    evidence is there (a quadratic prior would hold a true 10 cm change back as hard as 1 cm of drift).
+    Applied to either coordinate of the displacement, these span a panel moved, scaled in width or length,
+    sheared, and flared (its width changing linearly along its length): what GarmentCode's design
+    parameters (length, width, flare) and `synthetic_scans.changed_pattern` do. A neckline dug deeper or an
+    armhole reshaped is outside it. ``template_uv``: (V, 2) [m]; ``vert_panel``: (V,) int64.
+    """
+    modes = torch.zeros(len(template_uv), 4, dtype=template_uv.dtype, device=template_uv.device)
+    for panel in torch.unique(vert_panel):
+        rows = vert_panel == panel
+        uv = template_uv[rows]
+        uv = (uv - uv.mean(0)) / (uv - uv.mean(0)).abs().max().clamp(min=1e-12)  # conditioned basis
+        basis = torch.stack([torch.ones_like(uv[:, 0]), uv[:, 0], uv[:, 1], uv[:, 0] * uv[:, 1]], dim=1)
+        modes[rows] = torch.linalg.qr(basis).Q
+    return modes
+
+
+def pattern_change_loss(
+    rest_uv: torch.Tensor,
+    template_uv: torch.Tensor,
+    vert_panel: torch.Tensor,
+    *,
+    modes: torch.Tensor | None = None,
+    scale: float = 1.0e-3,
+) -> torch.Tensor:
+    """How far the pattern has moved from the template outside the design changes, as a robust (L1-like)
+    distance [m].
+
+    Per panel, the rest coordinates' displacement from the template less its projection on the panel's
+    ``modes`` (`design_modes`: moves, scales, shears and flares are free); the term is the mean over
+    vertices of the Charbonnier distance ``sqrt(|r|² + scale²) − scale`` of that remainder. Its gradient
+    has a bounded size: a weight on it sets how strong the scan's evidence must be before the fit reshapes
+    the panel, not how far it may go once the evidence is there (a quadratic prior would hold a true
+    change back harder the larger it is).
 
     Args:
         rest_uv: (V, 2) or (B, V, 2) rest coordinates [m]; template_uv: (V, 2) [m].
         vert_panel: (V,) int64 panel index of each vertex.
-        scale: below this displacement [m] the term is quadratic (smooth at the template).
+        modes: (V, K) per-panel orthonormal displacement modes left free (default: `design_modes`;
+            computed once by a caller that evaluates the term many times).
+        scale: below this remainder [m] the term is quadratic (smooth at the template).
 
     Returns:
         () or (B,) [m].
     """
     if not scale > 0:
         raise ValueError(f"scale must be > 0 [m], got {scale}")
+    modes = design_modes(template_uv, vert_panel) if modes is None else modes
     delta = rest_uv - template_uv
     panels = int(vert_panel.max()) + 1
-    counts = torch.bincount(vert_panel, minlength=panels).to(delta.dtype).clamp(min=1)
-    sums = torch.zeros(*delta.shape[:-2], panels, 2, dtype=delta.dtype, device=delta.device)
-    means = sums.index_add(-2, vert_panel, delta) / counts[:, None]
-    delta = delta - means.index_select(-2, vert_panel)
-    return (torch.sqrt((delta**2).sum(-1) + scale**2) - scale).mean(-1)
+    per_vertex = modes[:, :, None] * delta[..., :, None, :]  # (..., V, K, 2)
+    coef = delta.new_zeros(*delta.shape[:-2], panels, *per_vertex.shape[-2:])
+    coef = coef.index_add(-3, vert_panel, per_vertex)  # (..., P, K, 2): projection on each panel's modes
+    remainder = delta - (modes[:, :, None] * coef.index_select(-3, vert_panel)).sum(-2)
+    return (torch.sqrt((remainder**2).sum(-1) + scale**2) - scale).mean(-1)
 
 
 def rest_distortion_loss(

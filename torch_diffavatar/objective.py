@@ -24,6 +24,7 @@ from torch_diffavatar.fit_config import FitConfig, LossWeights, adjoint_options,
 from torch_diffavatar.losses import (
     boundary_loss,
     curvature_loss,
+    design_modes,
     folded_collar_loop,
     interior_loss,
     pattern_change_loss,
@@ -250,6 +251,7 @@ class FitObjective(nn.Module):
         tri = garment.tri_vertices
         self.register_buffer("template_area", signed_rest_areas(template_uv, tri), persistent=False)
         self.register_buffer("template_inverse", template_edge_inverse(template_uv, tri), persistent=False)
+        self.register_buffer("design_modes", design_modes(template_uv, garment.vert_panel), persistent=False)
 
     def _register_target(self, target: ScanTarget, fit_body: bool, dtype: torch.dtype) -> None:
         gen = torch.Generator().manual_seed(self.config.seed)
@@ -324,7 +326,9 @@ class FitObjective(nn.Module):
                 rest_uv, self.template_uv, tri, template_inverse=self.template_inverse
             )
         if self.weight_pattern_change > 0:
-            terms["pattern_change"] = pattern_change_loss(rest_uv, self.template_uv, self.garment.vert_panel)
+            terms["pattern_change"] = pattern_change_loss(
+                rest_uv, self.template_uv, self.garment.vert_panel, modes=self.design_modes
+            )
         return terms
 
     def rest_loss(self, rest_uv: torch.Tensor) -> torch.Tensor:
