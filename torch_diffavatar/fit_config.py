@@ -82,6 +82,14 @@ class FitConfig:
             of ``lr_log_bend_stiffness`` (0.15, decaying) move log k_b by about 2.5 (×12) in 30 iterations
             at most. A dress 20× stiffer than 5e-6 moved ×5.6 and ended at 0.28× its k_b, 13.1 mm from the
             scan; started at its k_b, at 6.0 mm (docs/BENCHMARKS.md, "A stiff dress").
+        lr_log_stretch: Adam step of the log membrane stretch scale s [-]: the base material's k_uu, k_vv
+            and k_uv are multiplied by exp(s) (bounded, ``stretch_bound``; `objective.stretch_material`).
+            0 (the default, and every shipped config's) freezes it: the fit keeps the base membrane, as
+            before the variable existed. A scan draped by a softer physics is then matched by a longer
+            pattern; with s free the membrane can take it up instead (docs/BENCHMARKS.md, "Membrane
+            stretch").
+        stretch_bound: the fitted membrane factor stays within (1/``stretch_bound``, ``stretch_bound``)
+            (a smooth bound, `objective.bounded_stretch`) [-]; must be > 1.
         weights: the loss weights.
         adjoint: ``"trajectory"`` or ``"equilibrium"`` (see `sim.differentiable.drape`).
         drape_steps: frames of every warm-started drape [-]. Trajectory adjoint: exactly this many (the
@@ -161,6 +169,8 @@ class FitConfig:
     lr_pose: float = 0.0
     lr_log_bend_stiffness: float = 0.1
     initial_bend_stiffness: float = 5.0e-6
+    lr_log_stretch: float = 0.0
+    stretch_bound: float = 30.0
     weights: LossWeights = field(default_factory=LossWeights)
     adjoint: str = "trajectory"
     drape_steps: int = 3
@@ -213,6 +223,8 @@ class FitConfig:
             raise ValueError(
                 f"FitConfig.initial_bend_stiffness must be > 0 [N·m], got {self.initial_bend_stiffness}"
             )
+        if not 1 < self.stretch_bound < math.inf:
+            raise ValueError(f"FitConfig.stretch_bound must be a finite factor > 1, got {self.stretch_bound}")
         for name in (
             "iterations",
             "drape_steps",
@@ -257,7 +269,14 @@ class FitConfig:
             raise ValueError(f"FitConfig.max_loss_rise must be > 0 (inf: no check), got {self.max_loss_rise}")
         if not 0 < self.lr_final <= 1:
             raise ValueError(f"FitConfig.lr_final must be in (0, 1], got {self.lr_final}")
-        for name in ("lr_cage", "lr_phenotypes", "lr_translation", "lr_pose", "lr_log_bend_stiffness"):
+        for name in (
+            "lr_cage",
+            "lr_phenotypes",
+            "lr_translation",
+            "lr_pose",
+            "lr_log_bend_stiffness",
+            "lr_log_stretch",
+        ):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"FitConfig.{name} must be >= 0 (0 freezes the parameter)")
 
