@@ -89,9 +89,10 @@ class FitVariables:
 def bounded_stretch(log_stretch: torch.Tensor, bound: float) -> torch.Tensor:
     """The membrane stiffness factor exp(L·tanh(s/L)), L = log ``bound``, of the log stretch scale s.
 
-    Near s = 0 it is exp(s); it never leaves (1/``bound``, ``bound``), and its gradient never vanishes, so a
-    fit that drives s far (the drape barely constrains it where the cloth is slack) stays bounded and can
-    come back, which a clamp's zero gradient would not allow.
+    Near s = 0 it is exp(s); it never leaves [1/``bound``, ``bound``], and beyond the bound its gradient
+    fades smoothly (tanh) instead of vanishing at once, so a fit that drives s far (the drape barely
+    constrains the membrane where the cloth is slack) stays bounded and can come back, which a clamp's zero
+    gradient would not allow.
 
     Args:
         log_stretch: () or (B,) s [-]; bound: > 1, the largest factor [-].
