@@ -216,6 +216,27 @@ def test_checkpoint_resume_gives_the_same_state(skirt_problem, tmp_path):
     assert material["stretch_scale_final"] == pytest.approx(float(straight.params.stretch()), rel=1e-12)
     kuu = ClothMaterial().k_uu * material["stretch_scale_final"]
     assert material["membrane_final"]["k_uu"] == pytest.approx(kuu, rel=1e-12)
+    last = straight.history[-1]  # the TensorBoard scalars of the last iteration
+    assert last["material/stretch_scale"] < 1.0 and last["material/log_stretch"] < 0  # longer target: softer
+    assert last["material/k_vv"] == pytest.approx(ClothMaterial().k_vv * last["material/stretch_scale"])
+
+
+def test_a_checkpoint_from_before_the_membrane_resumes_exactly(skirt_problem, tmp_path):
+    """A checkpoint written before ``log_stretch`` existed (no such parameter, no factor in its first
+    summary) resumes at the base membrane, as its fit ran, to the same result as a straight run."""
+    config = _config(iterations=2)
+    straight = _fitter(skirt_problem, config, out_dir=tmp_path / "a", tensorboard=False).run()
+    _fitter(skirt_problem, config, out_dir=tmp_path / "b", tensorboard=False).run(iterations=1)
+    path = tmp_path / "b" / "checkpoint.pt"
+    state = torch.load(path, weights_only=False)
+    for params in (state["params"], state["best"]["params"]):
+        del params["log_stretch"]
+    del state["first"]["stretch_scale"]
+    torch.save(state, path)
+    resumed = _fitter(skirt_problem, config, out_dir=tmp_path / "b", tensorboard=False).run(resume=True)
+    torch.testing.assert_close(resumed.x, straight.x, rtol=0, atol=1e-12)
+    assert resumed.report["material"]["stretch_scale_initial"] == 1.0
+    assert resumed.report["material"]["stretch_scale_final"] == 1.0
 
 
 def test_tensorboard_logs_written(skirt_problem, tmp_path):

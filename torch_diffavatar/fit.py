@@ -46,6 +46,7 @@ from torch_diffavatar.fit_checkpoint import (
     load_progress,
     progress_state,
     safe_load,
+    upgraded,
 )
 from torch_diffavatar.fit_config import (
     CONFIG_DIR,
@@ -573,7 +574,8 @@ class Fitter:
         }
 
     def load_state_dict(self, state: dict) -> ClothState:
-        """Restore a `state_dict`; returns its drape start."""
+        """Restore a `state_dict` (an older one too: `fit_checkpoint.upgraded`); returns its drape start."""
+        state = upgraded(state)
         self.params.load_state_dict(state["params"])
         self.optimizer.load_state_dict(state["optimizer"])
         load_progress(self, state)

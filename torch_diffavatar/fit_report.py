@@ -54,7 +54,6 @@ def summarize(out: ObjectiveOutput, objective: FitObjective, garment_points: tor
         },
         "bend_stiffness": float(out.bend_stiffness.detach()),
         "stretch_scale": 1.0 if out.stretch is None else float(out.stretch.detach()),
-        "membrane": membrane_stiffnesses(objective.material, out.stretch),
         "phenotypes": None
         if body is None
         else dict(zip(body.phenotype_labels, body.phenotypes[0].detach().tolist())),
@@ -98,8 +97,12 @@ def fit_report(first: dict, final: dict, objective: FitObjective, run: dict) -> 
             # the factor of the base material's k_uu, k_vv, k_uv [-], and those stiffnesses [N/m]
             "stretch_scale_initial": first["stretch_scale"],
             "stretch_scale_final": final["stretch_scale"],
-            "membrane_initial": dict(first["membrane"], unit="N/m"),
-            "membrane_final": dict(final["membrane"], unit="N/m"),
+            "membrane_initial": dict(
+                membrane_stiffnesses(objective.material, first["stretch_scale"]), unit="N/m"
+            ),
+            "membrane_final": dict(
+                membrane_stiffnesses(objective.material, final["stretch_scale"]), unit="N/m"
+            ),
         },
         "body_phenotypes_initial": first["phenotypes"],
         "body_phenotypes_final": final["phenotypes"],
