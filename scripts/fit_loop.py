@@ -72,6 +72,5 @@ if __name__ == "__main__":
     _, out = fit_loop(
         setup["garment"], setup["target"], config, body, sewing_fallback=setup["sewing_fallback"]
     )
-    print(
-        {k: float(v.detach()) for k, v in out.terms.items()}, "k_b", float(out.bend_stiffness.detach()), "N·m"
-    )
+    terms = {k: float(v.detach()) for k, v in out.terms.items()}
+    print(terms, "k_b", float(out.bend_stiffness.detach()), "N·m, membrane", float(out.stretch.detach()), "x")

@@ -14,14 +14,17 @@ from helpers_fit import fit_config as _config
 from torch_diffavatar.errors import InputError
 from torch_diffavatar.fit import (
     FitConfig,
+    FitParameters,
     Fitter,
     LossWeights,
     config_from_dict,
     load_config,
+    param_groups,
     rest_prox,
     result_warnings,
 )
 from torch_diffavatar.losses import rest_area_ratio
+from torch_diffavatar.sim.material import ClothMaterial
 
 
 def _fitter(problem, config, **kw) -> Fitter:
@@ -192,7 +195,7 @@ def test_nan_gradients_never_reach_the_parameters(skirt_problem):
 
 
 def test_checkpoint_resume_gives_the_same_state(skirt_problem, tmp_path):
-    config = _config(iterations=2)
+    config = _config(iterations=2, lr_log_stretch=0.05)  # every kind of fitted variable, the membrane too
     straight = _fitter(skirt_problem, config, out_dir=tmp_path / "a", tensorboard=False).run()
     _fitter(skirt_problem, config, out_dir=tmp_path / "b", tensorboard=False).run(iterations=1)
     assert (tmp_path / "b" / "checkpoint.pt").is_file()
@@ -204,7 +207,36 @@ def test_checkpoint_resume_gives_the_same_state(skirt_problem, tmp_path):
     torch.testing.assert_close(
         resumed_fitter.params.log_bend_stiffness, straight.params.log_bend_stiffness, rtol=0, atol=1e-12
     )
+    log_stretch = straight.params.log_stretch
+    assert float(log_stretch.detach()) != 0.0  # it was fitted
+    torch.testing.assert_close(resumed_fitter.params.log_stretch, log_stretch, rtol=0, atol=1e-12)
     assert resumed.report["chamfer_initial"] == straight.report["chamfer_initial"]
+    material = resumed.report["material"]
+    assert material["stretch_scale_initial"] == 1.0
+    assert material["stretch_scale_final"] == pytest.approx(float(straight.params.stretch()), rel=1e-12)
+    kuu = ClothMaterial().k_uu * material["stretch_scale_final"]
+    assert material["membrane_final"]["k_uu"] == pytest.approx(kuu, rel=1e-12)
+    last = straight.history[-1]  # the TensorBoard scalars of the last iteration
+    assert last["material/stretch_scale"] < 1.0 and last["material/log_stretch"] < 0  # longer target: softer
+    assert last["material/k_vv"] == pytest.approx(ClothMaterial().k_vv * last["material/stretch_scale"])
+
+
+def test_a_checkpoint_from_before_the_membrane_resumes_exactly(skirt_problem, tmp_path):
+    """A checkpoint written before ``log_stretch`` existed (no such parameter, no factor in its first
+    summary) resumes at the base membrane, as its fit ran, to the same result as a straight run."""
+    config = _config(iterations=2)
+    straight = _fitter(skirt_problem, config, out_dir=tmp_path / "a", tensorboard=False).run()
+    _fitter(skirt_problem, config, out_dir=tmp_path / "b", tensorboard=False).run(iterations=1)
+    path = tmp_path / "b" / "checkpoint.pt"
+    state = torch.load(path, weights_only=False)
+    for params in (state["params"], state["best"]["params"]):
+        del params["log_stretch"]
+    del state["first"]["stretch_scale"]
+    torch.save(state, path)
+    resumed = _fitter(skirt_problem, config, out_dir=tmp_path / "b", tensorboard=False).run(resume=True)
+    torch.testing.assert_close(resumed.x, straight.x, rtol=0, atol=1e-12)
+    assert resumed.report["material"]["stretch_scale_initial"] == 1.0
+    assert resumed.report["material"]["stretch_scale_final"] == 1.0
 
 
 def test_tensorboard_logs_written(skirt_problem, tmp_path):
@@ -229,6 +261,21 @@ def test_config_unknown_key_is_an_error(tmp_path):
         load_config(path)
     with pytest.raises(InputError, match="adjoint"):
         config_from_dict({"adjoint": "magic"})
+
+
+def test_stretch_config_is_checked(skirt_problem):
+    """The membrane's learning rate and bound are validated like the other fields; 0 freezes it (the
+    default): the parameter gets no gradient and no optimizer group."""
+    with pytest.raises(InputError, match="lr_log_stretch"):
+        config_from_dict({"lr_log_stretch": -0.1})
+    with pytest.raises(InputError, match="stretch_bound"):
+        config_from_dict({"stretch_bound": 1.0})
+    assert FitConfig().lr_log_stretch == 0.0 and FitConfig().stretch_bound == 30.0
+    for lr, fitted in ((0.0, False), (0.05, True)):
+        params = FitParameters.from_config(skirt_problem[0], _config(lr_log_stretch=lr), dtype=DT)
+        names = [g["name"] for g in param_groups(params, _config(lr_log_stretch=lr))]
+        assert ("log_stretch" in names) == fitted == params.log_stretch.requires_grad
+        assert float(params.stretch()) == 1.0  # s = 0: the base material's membrane
 
 
 @pytest.mark.parametrize("garment", ["dress", "longsleeve", "polo", "tshirt", "skirt", "pants"])

@@ -1,7 +1,8 @@
-"""The fit (paper §4.2): pattern cage, body and bending stiffness optimised through the differentiable drape.
+"""The fit (paper §4.2): pattern cage, body and material optimised through the differentiable drape.
 
 `Fitter` is the driver of a ``torch.optim.Adam`` loop over `FitParameters` (control-cage handles ζ, body
-phenotypes / translation / pose, log bending stiffness; one parameter group and learning rate each) and a
+phenotypes / translation / pose, log bending stiffness, log membrane stretch scale; one parameter group and
+learning rate each) and a
 `FitObjective` (the loss, `torch_diffavatar.objective`). Every iteration drapes the garment, warm-started
 from the previous equilibrium (the very first start state is a full `sew_and_drape` of the placed template,
 or the winner of several, `torch_diffavatar.fit_start`), backpropagates through the drape and steps. The
@@ -15,7 +16,7 @@ shrink a rest triangle below ``min_rest_area_ratio`` of its template area (inver
 parameter non-finite, or blow up the drape (`SimulationError`, non-finite positions, a vertex jumping
 more than ``max_drape_jump``) is rejected and retried at half the size (``max_retries`` times; then the
 step is dropped and the learning rates halved). TensorBoard (``<out>/tb``, `torch_diffavatar.fit_logging`):
-every loss term, Chamfer distance, rest/draped mesh quality, bending stiffness, body parameters, pictures of
+every loss term, Chamfer distance, rest/draped mesh quality, the material, body parameters, pictures of
 the pattern and the drape, the draped mesh. A tqdm bar on stderr. A checkpoint (``<out>/checkpoint.pt``,
 atomic) after every iteration; ``resume=True`` continues from it bit for bit. The report:
 `torch_diffavatar.fit_report` (Chamfer distances [m]; loss terms in the units of `torch_diffavatar.losses`
@@ -45,6 +46,7 @@ from torch_diffavatar.fit_checkpoint import (
     load_progress,
     progress_state,
     safe_load,
+    upgraded,
 )
 from torch_diffavatar.fit_config import (
     CONFIG_DIR,
@@ -113,6 +115,7 @@ def param_groups(params: FitParameters, config: FitConfig) -> list[dict]:
             ("pose", [params.body.pose], config.lr_pose),
         ]
     spec.append(("log_bend_stiffness", [params.log_bend_stiffness], config.lr_log_bend_stiffness))
+    spec.append(("log_stretch", [params.log_stretch], config.lr_log_stretch))
     for p in params.parameters():
         p.requires_grad_(False)
     groups = []
@@ -295,7 +298,8 @@ class Fitter:
         body: a float32 `BodyModel` initialised to the scan (fitted in place), or None with ``body_mesh``
             for a fixed body (or no body at all).
         body_mesh: (verts (Vb, 3), faces (Fb, 3)) of a fixed body, or None (ignored with ``body``).
-        material: the base cloth material (its bending stiffness is replaced by the fitted one).
+        material: the base cloth material (its bending stiffness is replaced by the fitted one, and its
+            membrane stiffnesses are scaled by the fitted stretch factor).
         start_state: the first warm start (e.g. a `sew_and_drape` result's state); None runs
             `sew_and_drape` from the placement.
         sewing_fallback: how to dress the body when sewing the placed garment on it fails
@@ -570,7 +574,8 @@ class Fitter:
         }
 
     def load_state_dict(self, state: dict) -> ClothState:
-        """Restore a `state_dict`; returns its drape start."""
+        """Restore a `state_dict` (an older one too: `fit_checkpoint.upgraded`); returns its drape start."""
+        state = upgraded(state)
         self.params.load_state_dict(state["params"])
         self.optimizer.load_state_dict(state["optimizer"])
         load_progress(self, state)

@@ -95,3 +95,17 @@ def load_progress(driver, state: dict) -> None:
     for name, (kind, default) in PROGRESS.items():
         value = state.get(name, default)
         setattr(driver, name, value if kind is None else kind(value))
+
+
+def upgraded(state: dict) -> dict:
+    """A checkpoint ``state`` of an older version in today's form: the parameters (and the best iteration's)
+    of a checkpoint written before the membrane stretch was a fit variable get ``log_stretch`` = 0, and its
+    first evaluation's summary the factor 1: the base membrane those fits used, so they resume exactly."""
+    state = dict(state)
+    for owner in (state, state.get("best")):
+        if owner is not None and "log_stretch" not in owner["params"]:
+            params = owner["params"]
+            owner["params"] = {**params, "log_stretch": params["log_bend_stiffness"].new_zeros(())}
+    if state.get("first") is not None and "stretch_scale" not in state["first"]:
+        state["first"] = {**state["first"], "stretch_scale": 1.0}
+    return state

@@ -88,6 +88,18 @@ class FitConfig:
             of ``lr_log_bend_stiffness`` (0.15, decaying) move log k_b by about 2.5 (×12) in 30 iterations
             at most. A dress 20× stiffer than 5e-6 moved ×5.6 and ended at 0.28× its k_b, 13.1 mm from the
             scan; started at its k_b, at 6.0 mm (docs/BENCHMARKS.md, "A stiff dress").
+        lr_log_stretch: Adam step of the log membrane stretch scale s [-]: the base material's k_uu, k_vv
+            and k_uv are multiplied by exp(s) (bounded, ``stretch_bound``; `objective.stretch_material`).
+            0 (the default, and every shipped config's) freezes it: the fit keeps the base membrane, bit
+            for bit as before the variable existed. Measured (docs/BENCHMARKS.md, "Membrane stretch"): at
+            40 substeps it recovers a skirt's 4× softer membrane (0.29 for 0.25), with the pattern frozen
+            or free, but the free pattern did not end closer to the truth; on a dress, which barely
+            stretches under its weight, it drifted to 0.80 on a scan made at the base membrane (Chamfer
+            +0.5 mm) and reached only 0.75 on one made 4× softer. Fit it (e.g. 0.05-0.2) for scans of
+            visibly stretchier cloth, with the fit's drapes at 40 substeps: at 10 the XPBD drape is far
+            softer than its nominal membrane and the factor runs past the truth.
+        stretch_bound: the fitted membrane factor stays within (1/``stretch_bound``, ``stretch_bound``)
+            (a smooth bound, `objective.bounded_stretch`) [-]; must be > 1.
         weights: the loss weights.
         adjoint: ``"trajectory"`` or ``"equilibrium"`` (see `sim.differentiable.drape`).
         drape_steps: frames of every warm-started drape [-]. Trajectory adjoint: exactly this many (the
@@ -167,6 +179,8 @@ class FitConfig:
     lr_pose: float = 0.0
     lr_log_bend_stiffness: float = 0.1
     initial_bend_stiffness: float = 5.0e-6
+    lr_log_stretch: float = 0.0
+    stretch_bound: float = 30.0
     weights: LossWeights = field(default_factory=LossWeights)
     adjoint: str = "trajectory"
     drape_steps: int = 3
@@ -219,6 +233,8 @@ class FitConfig:
             raise ValueError(
                 f"FitConfig.initial_bend_stiffness must be > 0 [N·m], got {self.initial_bend_stiffness}"
             )
+        if not 1 < self.stretch_bound < math.inf:
+            raise ValueError(f"FitConfig.stretch_bound must be a finite factor > 1, got {self.stretch_bound}")
         for name in (
             "iterations",
             "drape_steps",
@@ -263,7 +279,14 @@ class FitConfig:
             raise ValueError(f"FitConfig.max_loss_rise must be > 0 (inf: no check), got {self.max_loss_rise}")
         if not 0 < self.lr_final <= 1:
             raise ValueError(f"FitConfig.lr_final must be in (0, 1], got {self.lr_final}")
-        for name in ("lr_cage", "lr_phenotypes", "lr_translation", "lr_pose", "lr_log_bend_stiffness"):
+        for name in (
+            "lr_cage",
+            "lr_phenotypes",
+            "lr_translation",
+            "lr_pose",
+            "lr_log_bend_stiffness",
+            "lr_log_stretch",
+        ):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"FitConfig.{name} must be >= 0 (0 freezes the parameter)")
         self._check_numbers()

@@ -1,5 +1,6 @@
 """A fit's TensorBoard log (``<out>/tb``) and progress bar: the scalars of one evaluation (every loss term,
-weighted and not, Chamfer distances, rest/draped mesh quality, bending stiffness, body parameters, drape
+weighted and not, Chamfer distances, rest/draped mesh quality, the material (bending stiffness, membrane
+stretch factor and stiffnesses), body parameters, drape
 diagnostics), pictures of the drape and the pattern, and the draped mesh."""
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from torch_diffavatar.fit_config import FitConfig, config_to_dict, yaml_dump
 from torch_diffavatar.fit_report import chamfer_m
 from torch_diffavatar.losses import rest_area_ratio
 from torch_diffavatar.metrics import triangle_quality
-from torch_diffavatar.objective import FitObjective, FitParameters, ObjectiveOutput
+from torch_diffavatar.objective import FitObjective, FitParameters, ObjectiveOutput, membrane_stiffnesses
 from torch_diffavatar.pattern.garment_mesh import GarmentMesh
 
 
@@ -50,6 +51,10 @@ def fit_scalars(
     scalars["quality/inverted_rest_triangles"] = int((ratio <= 0).sum())
     scalars["material/bend_stiffness"] = float(out.bend_stiffness.detach())
     scalars["material/log_bend_stiffness"] = float(params.log_bend_stiffness.detach())
+    scalars["material/log_stretch"] = float(params.log_stretch.detach())  # s, before its bound
+    scalars["material/stretch_scale"] = float(params.stretch().detach())  # the factor of k_uu, k_vv, k_uv
+    for name, value in membrane_stiffnesses(objective.material, out.stretch).items():
+        scalars[f"material/{name}"] = value
     body = params.body
     if body is not None:
         for label, value in zip(body.phenotype_labels, body.phenotypes[0].detach().tolist()):

@@ -13,7 +13,7 @@ import torch
 from torch_diffavatar.chamfer import nearest_indices, surface_chamfer_m
 from torch_diffavatar.losses import rest_area_ratio
 from torch_diffavatar.metrics import scan_noise_sigma_m, triangle_quality
-from torch_diffavatar.objective import FitObjective, ObjectiveOutput
+from torch_diffavatar.objective import FitObjective, ObjectiveOutput, membrane_stiffnesses
 
 # a draped triangle below this quality (`metrics.triangle_quality`) is flagged in the fit's report: the
 # evaluation's target for a simulation-ready drape (docs/RESULTS.md)
@@ -61,6 +61,7 @@ def summarize(out: ObjectiveOutput, objective: FitObjective, garment_points: tor
             lp.name: chamfer_m(out.x[lp.vertices], objective.scan_boundaries[lp.name]) for lp in out.openings
         },
         "bend_stiffness": float(out.bend_stiffness.detach()),
+        "stretch_scale": 1.0 if out.stretch is None else float(out.stretch.detach()),
         "phenotypes": None
         if body is None
         else dict(zip(body.phenotype_labels, body.phenotypes[0].detach().tolist())),
@@ -101,6 +102,15 @@ def fit_report(first: dict, final: dict, objective: FitObjective, run: dict) -> 
             "bend_stiffness_initial": first["bend_stiffness"],
             "bend_stiffness_final": final["bend_stiffness"],
             "unit": "N*m",
+            # the factor of the base material's k_uu, k_vv, k_uv [-], and those stiffnesses [N/m]
+            "stretch_scale_initial": first["stretch_scale"],
+            "stretch_scale_final": final["stretch_scale"],
+            "membrane_initial": dict(
+                membrane_stiffnesses(objective.material, first["stretch_scale"]), unit="N/m"
+            ),
+            "membrane_final": dict(
+                membrane_stiffnesses(objective.material, final["stretch_scale"]), unit="N/m"
+            ),
         },
         "body_phenotypes_initial": first["phenotypes"],
         "body_phenotypes_final": final["phenotypes"],

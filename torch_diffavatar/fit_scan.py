@@ -240,10 +240,12 @@ def write_fit_assets(out: Path, setup: dict, fitter, result, report: dict) -> di
         setup: `fit_setup.prepare`'s; fitter: the `Fitter` that ran; result: its `FitResult`.
     """
     from torch_diffavatar.assets import write_assets
-    from torch_diffavatar.sim.material import ClothMaterial
 
     body, garment = fitter.params.body, setup["garment"]
-    final_material = ClothMaterial(bend_stiffness=float(result.params.log_bend_stiffness.detach().exp()))
+    # the fitted k_b and membrane (the stretch factor times the base's k_uu, k_vv, k_uv)
+    with torch.no_grad():
+        params = result.params
+        final_material = fitter.objective.material_at(params.log_bend_stiffness.exp(), params.stretch())
     body_params = dict(body.parameters_dict())
     body_params["phenotypes_by_name"] = dict(zip(body.phenotype_labels, body.phenotypes[0].detach().tolist()))
     first = fitter.first

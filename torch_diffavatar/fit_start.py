@@ -79,7 +79,8 @@ def first_states(
 
     rest_uv, bend_stiffness = variables.rest_uv, variables.bend_stiffness
     body_verts = objective.body_or_fixed(variables.body_verts)
-    material = replace(objective.material, bend_stiffness=float(bend_stiffness))
+    stretch = None if variables.stretch is None else float(variables.stretch)
+    material = objective.material_at(float(bend_stiffness), stretch)  # the sewing's too: the fit's membrane
     dtype = objective.template_uv.dtype
     if start_state is not None:
         start = ClothState(start_state.x.to(dtype), start_state.v.to(dtype))

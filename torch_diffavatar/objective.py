@@ -1,9 +1,10 @@
 """The fit's objective as a PyTorch module (paper §4.2.5), and the fit variables it is evaluated at.
 
-`FitParameters` holds the fit variables (a `ControlCage`, an optional `BodyModel`, the log bending stiffness)
-and returns them as `FitVariables`. `FitObjective` holds the scan target and the loss weights (buffers, so
-``.to()`` and ``state_dict()`` carry them) and, called at the variables and a start `ClothState`, drapes the
-garment with `torch_diffavatar.sim.differentiable.drape` and returns the loss as `ObjectiveOutput`:
+`FitParameters` holds the fit variables (a `ControlCage`, an optional `BodyModel`, the log bending stiffness,
+the log membrane stretch scale) and returns them as `FitVariables`. `FitObjective` holds the scan target and
+the loss weights (buffers, so ``.to()`` and ``state_dict()`` carry them) and, called at the variables and a
+start `ClothState`, drapes the garment with `torch_diffavatar.sim.differentiable.drape` and returns the loss
+as `ObjectiveOutput`:
 
     loss = ρ·boundary + σ·interior + α·seam_length + β·curvature  (+ rest area / shape, skin, body prior)
 
@@ -76,31 +77,92 @@ class FitVariables:
         bend_stiffness: () bending stiffness k_b [N·m].
         phenotypes: (1, P) the body's phenotypes [-] while they are fitted (their logits require grad),
             else None: the objective's phenotype prior holds fitted phenotypes only.
+        stretch: () factor [-] of the base material's membrane stiffnesses k_uu, k_vv, k_uv
+            (`stretch_material`), or None for the base material's.
     """
 
     rest_uv: torch.Tensor
     body_verts: torch.Tensor | None
     bend_stiffness: torch.Tensor
     phenotypes: torch.Tensor | None = None
+    stretch: torch.Tensor | None = None
+
+
+def bounded_stretch(log_stretch: torch.Tensor, bound: float) -> torch.Tensor:
+    """The membrane stiffness factor exp(L·tanh(s/L)), L = log ``bound``, of the log stretch scale s.
+
+    Near s = 0 it is exp(s); it never leaves [1/``bound``, ``bound``], and beyond the bound its gradient
+    fades smoothly (tanh) instead of vanishing at once, so a fit that drives s far (the drape barely
+    constrains the membrane where the cloth is slack) stays bounded and can come back, which a clamp's zero
+    gradient would not allow.
+
+    Args:
+        log_stretch: () or (B,) s [-]; bound: > 1, the largest factor [-].
+
+    Returns:
+        a tensor shaped like ``log_stretch`` [-].
+    """
+    limit = math.log(bound)
+    return torch.exp(limit * torch.tanh(log_stretch / limit))
+
+
+def membrane_stiffnesses(material: ClothMaterial, stretch: torch.Tensor | float | None) -> dict[str, float]:
+    """The membrane stiffnesses [N/m] of `stretch_material` (``material``, …, ``stretch`` [-]) as floats:
+    ``{"k_uu": …, "k_vv": …, "k_uv": …}`` (for logs and reports)."""
+    factor = 1.0 if stretch is None else float(stretch.detach() if torch.is_tensor(stretch) else stretch)
+    return {name: float(getattr(material, name)) * factor for name in ("k_uu", "k_vv", "k_uv")}
+
+
+def stretch_material(material: ClothMaterial, bend_stiffness, stretch=None) -> ClothMaterial:
+    """``material`` with bending stiffness ``bend_stiffness`` [N·m] and its membrane stiffnesses k_uu, k_vv
+    and k_uv [N/m] times ``stretch`` [-] (() tensors or floats; None keeps them).
+
+    One factor for all three (a softer or stiffer fabric of the same weave): the ratios of the orthotropic
+    stiffness matrix stay the template fabric's. On a hanging skirt, warp and weft factors apart are not
+    identifiable (docs/BENCHMARKS.md, "Membrane stretch"), and the shear, which a drape under gravity barely
+    loads, follows them so that the factor scales the membrane energy as a whole.
+    """
+    if stretch is None:
+        return replace(material, bend_stiffness=bend_stiffness)
+    return replace(
+        material,
+        bend_stiffness=bend_stiffness,
+        k_uu=material.k_uu * stretch,
+        k_vv=material.k_vv * stretch,
+        k_uv=material.k_uv * stretch,
+    )
 
 
 class FitParameters(nn.Module):
-    """The fit variables: a `ControlCage` (pattern), an optional `BodyModel`, the log bending stiffness.
+    """The fit variables: a `ControlCage` (pattern), an optional `BodyModel`, the log bending stiffness, the
+    log membrane stretch scale s (the factor of the base material's k_uu, k_vv, k_uv is
+    `bounded_stretch` (s, ``stretch_bound``)).
 
     Args:
         cage: the pattern's control cage, or `FreeVertices` (its ``handles`` parameter is optimised).
         body: a `BodyModel` (batch 1) whose vertices are the drape's body, or None for a fixed body.
         log_bend_stiffness: initial log k_b (k_b in [N·m]).
+        log_stretch: initial s [-] (0: the base material's membrane).
+        stretch_bound: the factor stays within (1/``stretch_bound``, ``stretch_bound``) [-].
 
     ``forward()`` returns `FitVariables`.
     """
 
-    def __init__(self, cage: ControlCage, body: nn.Module | None, log_bend_stiffness: float):
+    def __init__(
+        self,
+        cage: ControlCage,
+        body: nn.Module | None,
+        log_bend_stiffness: float,
+        log_stretch: float = 0.0,
+        stretch_bound: float = 30.0,
+    ):
         super().__init__()
         self.cage = cage
         self.body = body
         dtype = cage.handles.dtype
         self.log_bend_stiffness = nn.Parameter(torch.tensor(float(log_bend_stiffness), dtype=dtype))
+        self.log_stretch = nn.Parameter(torch.tensor(float(log_stretch), dtype=dtype))
+        self.stretch_bound = float(stretch_bound)
 
     @classmethod
     def from_config(
@@ -111,7 +173,8 @@ class FitParameters(nn.Module):
         dtype: torch.dtype = torch.float32,
     ) -> FitParameters:
         """The variables of a fit of ``garment``: its `ControlCage` with ``config``'s tying options (or
-        `FreeVertices` when ``config.cage`` is False), ``body``, k_b = ``config.initial_bend_stiffness``."""
+        `FreeVertices` when ``config.cage`` is False), ``body``, k_b = ``config.initial_bend_stiffness``, the
+        base membrane (s = 0) bounded by ``config.stretch_bound``."""
         if config.cage:
             cage = ControlCage(
                 garment,
@@ -121,14 +184,20 @@ class FitParameters(nn.Module):
             )
         else:
             cage = FreeVertices(garment)
-        return cls(cage.to(dtype), body, math.log(config.initial_bend_stiffness))
+        log_kb = math.log(config.initial_bend_stiffness)
+        return cls(cage.to(dtype), body, log_kb, stretch_bound=config.stretch_bound)
 
     def forward(self) -> FitVariables:
         rest_uv = self.cage()
         body_verts = None if self.body is None else self.body().vertices[0]
         bend_stiffness = self.log_bend_stiffness.exp()
         fitted = self.body is not None and self.body.phenotype_logits.requires_grad
-        return FitVariables(rest_uv, body_verts, bend_stiffness, self.body.phenotypes if fitted else None)
+        phenotypes = self.body.phenotypes if fitted else None
+        return FitVariables(rest_uv, body_verts, bend_stiffness, phenotypes, self.stretch())
+
+    def stretch(self) -> torch.Tensor:
+        """() the factor [-] of the base material's membrane stiffnesses (`bounded_stretch`)."""
+        return bounded_stretch(self.log_stretch, self.stretch_bound)
 
 
 @dataclass
@@ -140,6 +209,7 @@ class ObjectiveOutput:
         terms: term name (`TERM_NAMES`) -> () unweighted loss term, in the order they are summed.
         x: (Vs, 3) the drape [m].
         rest_uv: (V, 2) [m]; body_verts: (Vb, 3) [m] or None; bend_stiffness: () [N·m]: the variables.
+        stretch: () the membrane stiffness factor [-] (`FitVariables.stretch`), or None (the base's).
         stats: the drape's diagnostics (`sim.differentiable.drape` ``stats``; the backward adds to it).
         openings: the garment's openings matched to the scan's, on ``x`` (`FitObjective.openings`).
     """
@@ -150,6 +220,7 @@ class ObjectiveOutput:
     rest_uv: torch.Tensor
     body_verts: torch.Tensor | None
     bend_stiffness: torch.Tensor
+    stretch: torch.Tensor | None
     stats: dict
     openings: list[BoundaryLoop]
 
@@ -168,7 +239,8 @@ class FitObjective(nn.Module):
     None, ``body_faces`` (Fb, 3) int64 or None.
 
     Attributes (not moved by ``.to()``): ``garment`` (`GarmentMesh`), ``config`` (`FitConfig`: robust
-    kernels, samples, drape and adjoint options), ``material`` (`ClothMaterial`; k_b is the variable's),
+    kernels, samples, drape and adjoint options), ``material`` (`ClothMaterial`; k_b is the variable's, and
+    k_uu, k_vv, k_uv are scaled by the stretch variable: `material_at`),
     ``cloth_model`` (the `ClothModel` on the CPU, rebuilt for the buffers' dtype when it changes).
 
     Args:
@@ -342,12 +414,14 @@ class FitObjective(nn.Module):
         bend_stiffness: torch.Tensor,
         start: ClothState,
         *,
+        stretch: torch.Tensor | None = None,
         adjoint: str | None = None,
         drape_steps: int | None = None,
         stats: dict | None = None,
     ) -> torch.Tensor:
-        """(Vs, 3) the differentiable drape [m] from ``start`` (`sim.differentiable.drape`), with
-        ``config``'s adjoint and frames, or ``adjoint`` / ``drape_steps`` instead."""
+        """(Vs, 3) the differentiable drape [m] from ``start`` (`sim.differentiable.drape`) at `material_at`
+        (``bend_stiffness``, ``stretch``), with ``config``'s adjoint and frames, or ``adjoint`` /
+        ``drape_steps`` instead."""
         from torch_diffavatar.sim.differentiable import drape
 
         adjoint = self.config.adjoint if adjoint is None else adjoint
@@ -355,7 +429,7 @@ class FitObjective(nn.Module):
             rest_uv,
             self.cloth_model,
             body_verts,
-            replace(self.material, bend_stiffness=bend_stiffness),
+            self.material_at(bend_stiffness, stretch),
             body_faces=None if body_verts is None else self.body_faces,
             state=start,
             config=drape_config(self.config, drape_steps, adjoint),
@@ -363,6 +437,11 @@ class FitObjective(nn.Module):
             options=adjoint_options(self.config, adjoint),
             stats=stats,
         )
+
+    def material_at(self, bend_stiffness, stretch=None) -> ClothMaterial:
+        """The base ``material`` at the fit's material variables (`stretch_material`): k_b
+        ``bend_stiffness`` [N·m], the membrane times ``stretch`` [-] (None: the base's)."""
+        return stretch_material(self.material, bend_stiffness, stretch)
 
     # -- the loss ------------------------------------------------------------------------------------------
 
@@ -374,6 +453,7 @@ class FitObjective(nn.Module):
         body_verts: torch.Tensor | None = None,
         bend_stiffness: torch.Tensor | None = None,
         phenotypes: torch.Tensor | None = None,
+        stretch: torch.Tensor | None = None,
         adjoint: str | None = None,
         drape_steps: int | None = None,
     ) -> ObjectiveOutput:
@@ -384,7 +464,8 @@ class FitObjective(nn.Module):
                 other variables as keywords.
             start: the drape's start (warm start: the previous drape, velocities zeroed).
             body_verts: (Vb, 3) [m] (default: the fixed body); bend_stiffness: () [N·m] (required with
-                a tensor ``variables``); phenotypes: (1, P) fitted phenotypes (the prior), or None.
+                a tensor ``variables``); phenotypes: (1, P) fitted phenotypes (the prior), or None;
+                stretch: () membrane stiffness factor [-] or None (the base material's).
             adjoint, drape_steps: override ``config.adjoint`` / ``config.drape_steps`` for this drape
                 (e.g. a short trajectory replay when the equilibrium adjoint fails).
 
@@ -394,6 +475,7 @@ class FitObjective(nn.Module):
         if isinstance(variables, FitVariables):
             rest_uv, body_verts = variables.rest_uv, variables.body_verts
             bend_stiffness, phenotypes = variables.bend_stiffness, variables.phenotypes
+            stretch = variables.stretch
         else:
             rest_uv = variables
             if bend_stiffness is None:
@@ -401,14 +483,15 @@ class FitObjective(nn.Module):
         body_verts = self.body_or_fixed(body_verts)
         stats: dict = {}
         x = self.drape(
-            rest_uv, body_verts, bend_stiffness, start, adjoint=adjoint, drape_steps=drape_steps, stats=stats
-        )
+            rest_uv, body_verts, bend_stiffness, start, stretch=stretch, adjoint=adjoint,
+            drape_steps=drape_steps, stats=stats,
+        )  # fmt: skip
         openings = self.openings(x)
         terms = self.drape_terms(x, openings)
         terms.update(self.rest_terms(rest_uv))
         terms.update(self.body_terms(body_verts, phenotypes))
         loss = self.weighted_sum(terms)
-        return ObjectiveOutput(loss, terms, x, rest_uv, body_verts, bend_stiffness, stats, openings)
+        return ObjectiveOutput(loss, terms, x, rest_uv, body_verts, bend_stiffness, stretch, stats, openings)
 
     def drape_terms(self, x: torch.Tensor, openings: list[BoundaryLoop]) -> dict[str, torch.Tensor]:
         """The unweighted terms of the drape ``x`` (Vs, 3) [m]: ``interior``, and ``boundary`` over the
