@@ -194,6 +194,14 @@ def test_nan_gradients_never_reach_the_parameters(skirt_problem):
     assert float(fitter.params.log_bend_stiffness.detach()) == before  # its only gradient was NaN → zeroed
 
 
+def test_a_runaway_bending_stiffness_is_rejected_not_written(skirt_problem):
+    # lr_log_bend_stiffness 1000 once sent k_b to inf and material.json to "Infinity" with exit 0
+    fitter = _fitter(skirt_problem, _config(iterations=2, lr_log_bend_stiffness=1000.0), tensorboard=False)
+    result = fitter.run()
+    assert result.report["rejection_reasons"].get("bending stiffness outside its physical range", 0) >= 1
+    assert 1e-9 <= result.report["material"]["bend_stiffness_final"] <= 1e-2
+
+
 def test_checkpoint_resume_gives_the_same_state(skirt_problem, tmp_path):
     config = _config(iterations=2, lr_log_stretch=0.05)  # every kind of fitted variable, the membrane too
     straight = _fitter(skirt_problem, config, out_dir=tmp_path / "a", tensorboard=False).run()

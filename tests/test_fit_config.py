@@ -35,7 +35,7 @@ def test_numbers_that_yaml_reads_as_strings_parse(tmp_path):
         ("max_retries: -5", "max_retries must be an integer >= 0"),  # skipped every step before
         ("max_drape_jump: .nan", "max_drape_jump must be a finite number"),  # switched the guard off
         ("lr_cage: .inf", "lr_cage must be a finite number"),
-        ("initial_bend_stiffness: .inf", "initial_bend_stiffness must be a finite number"),
+        ("initial_bend_stiffness: .inf", "initial_bend_stiffness must be in \\[1e-9, 1e-2\\] N·m"),
         ("lr_cage: fast", "lr_cage must be a number"),
         ("weights: {boundary: true}", "weights.boundary must be a number"),
         ("weights: {boundary: .nan}", "LossWeights.boundary must be a finite number"),

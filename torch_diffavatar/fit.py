@@ -188,6 +188,12 @@ def sanitize_grads(groups: list[dict]) -> int:
     return count
 
 
+# [N·m] a fit's bending stiffness stays in here: fabrics span about 1e-7 (silk) to 1e-4 (denim, leather)
+# (Kawabata B per unit width); a step beyond it is a runaway (lr_log_bend_stiffness: 1000 reached inf, and
+# material.json then held Infinity), rejected like any other
+BEND_STIFFNESS_RANGE = (1.0e-9, 1.0e-2)
+
+
 def drape_rejection(out: ObjectiveOutput, start: ClothState, max_jump: float) -> str | None:
     """Why the drape of ``out`` cannot be accepted (non-finite, or a vertex moved more than ``max_jump``
     [m] from ``start``), or None."""
@@ -222,10 +228,14 @@ def backtrack(
 
 @torch.no_grad()
 def parameter_rejection(params: FitParameters, objective: FitObjective, min_ratio: float) -> str | None:
-    """Why ``params`` cannot be tried (a non-finite parameter, or a rest triangle of the cage that keeps no
-    more than ``min_ratio`` of its template area), or None."""
+    """Why ``params`` cannot be tried (a non-finite parameter, a bending stiffness outside
+    `BEND_STIFFNESS_RANGE`, or a rest triangle of the cage that keeps no more than ``min_ratio`` of its
+    template area), or None."""
     if not all(bool(torch.isfinite(p).all()) for p in params.parameters()):
         return "non-finite parameters"
+    low, high = BEND_STIFFNESS_RANGE
+    if not low <= float(params.log_bend_stiffness.exp()) <= high:
+        return "bending stiffness outside its physical range"
     rest_uv = params.cage()
     if torch.isfinite(rest_uv).all():
         ratio = rest_area_ratio(rest_uv, objective.template_uv, objective.garment.tri_vertices)

@@ -229,9 +229,10 @@ class FitConfig:
             )
         if not 0 <= self.arms_low_angle <= 180:
             raise ValueError(f"FitConfig.arms_low_angle must be in [0, 180] [deg], got {self.arms_low_angle}")
-        if not self.initial_bend_stiffness > 0:
+        if not 1e-9 <= self.initial_bend_stiffness <= 1e-2:  # `fit.BEND_STIFFNESS_RANGE`, cloth's
             raise ValueError(
-                f"FitConfig.initial_bend_stiffness must be > 0 [N·m], got {self.initial_bend_stiffness}"
+                f"FitConfig.initial_bend_stiffness must be in [1e-9, 1e-2] N·m (cloth), got "
+                f"{self.initial_bend_stiffness}"
             )
         if not 1 < self.stretch_bound < math.inf:
             raise ValueError(f"FitConfig.stretch_bound must be a finite factor > 1, got {self.stretch_bound}")
