@@ -293,12 +293,24 @@ def save_ply(
     colors: np.ndarray | None = None,
     faces: np.ndarray | None = None,
     int_properties: dict[str, np.ndarray] | None = None,
+    normals: np.ndarray | None = None,
+    binary: bool = False,
 ) -> None:
     """Write an ASCII PLY with optional colours, faces and integer vertex properties (e.g. labels).
 
     Args:
         points: (N, 3) [m]; colors: (N, 3) uint8; faces: (F, 3) int; int_properties: name -> (N,) ints.
+        normals: (N, 3) unit normals (``nx ny nz``, binary files only).
+        binary: write binary little-endian PLY (float32 points; `save_point_cloud_ply`) instead: ASCII
+            takes seconds per 100k points.
     """
+    if binary:
+        if faces is not None:
+            raise ValueError("save_ply: binary=True writes point clouds only (no faces)")
+        save_point_cloud_ply(path, points, colors=colors, normals=normals, int_properties=int_properties)
+        return
+    if normals is not None:
+        raise ValueError("save_ply: normals are written in binary files only (pass binary=True)")
     points = np.asarray(points, dtype=np.float64)
     props = dict(int_properties or {})
     header = ["ply", "format ascii 1.0", f"element vertex {len(points)}"]
@@ -323,3 +335,41 @@ def save_ply(
         if faces is not None:
             for tri in np.asarray(faces, dtype=np.int64):
                 f.write(f"3 {tri[0]} {tri[1]} {tri[2]}\n")
+
+
+def save_point_cloud_ply(
+    path: str | Path,
+    points: np.ndarray,
+    *,
+    colors: np.ndarray | None = None,
+    normals: np.ndarray | None = None,
+    int_properties: dict[str, np.ndarray] | None = None,
+) -> None:
+    """Write a binary little-endian PLY point cloud: ``x y z`` float32, then optional ``nx ny nz`` float32,
+    ``red green blue`` uchar and int32 properties (e.g. ``label``); `load_scan` reads it back.
+
+    Args:
+        points: (N, 3); normals: (N, 3); colors: (N, 3) uint8; int_properties: name -> (N,) ints.
+    """
+    points = np.asarray(points)
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    columns = {"x": points[:, 0], "y": points[:, 1], "z": points[:, 2]}
+    if normals is not None:
+        fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
+        columns.update(zip(("nx", "ny", "nz"), np.asarray(normals).T))
+    if colors is not None:
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+        columns.update(zip(("red", "green", "blue"), np.asarray(colors)[:, :3].T))
+    for name, values in (int_properties or {}).items():
+        fields.append((name, "<i4"))
+        columns[name] = np.asarray(values).reshape(-1)
+    record = np.empty(len(points), dtype=fields)
+    for name, values in columns.items():
+        record[name] = values
+    ply_types = {"<f4": "float", "u1": "uchar", "<i4": "int"}
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(points)}"]
+    header += [f"property {ply_types[t]} {name}" for name, t in fields]
+    header.append("end_header")
+    with open(path, "wb") as f:
+        f.write(("\n".join(header) + "\n").encode("ascii"))
+        f.write(record.tobytes())
