@@ -176,18 +176,22 @@ def remesh_for_arms(pattern, mesh, config, arm_angles: dict[str, float]):
     return mesh_pattern(pattern, spacing=spacing), spacing
 
 
-def load_fit_scan(scan_path, *, units: str = "m", up: str = "y"):
-    """The scan of a fit (`scan.load_scan`, its warnings printed on stderr), outliers removed."""
+def load_fit_scan(scan_path, *, units: str | None = "m", up: str | None = "y"):
+    """The scan of a fit through the intake (`scan_intake.intake_scan`: ``units`` None: from the height,
+    ``up`` None: from the floor; floor, clutter and outliers removed), its messages and warnings printed
+    on stderr."""
     import warnings
 
-    from torch_diffavatar.scan import ScanWarning, load_scan, remove_outliers
+    from torch_diffavatar.scan import ScanWarning
+    from torch_diffavatar.scan_intake import intake_scan
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ScanWarning)
-        scan = load_scan(scan_path, units=units, up=up)
+        scan, report = intake_scan(scan_path, units=units, up=up)
+    for message in report.messages:
+        print(f"diffavatar fit: {message}", file=sys.stderr)
     for message in scan.warnings:
         print(f"diffavatar fit: warning: {message}", file=sys.stderr)
-    scan, _ = remove_outliers(scan)
     return scan
 
 

@@ -64,8 +64,18 @@ def register(subparsers) -> None:
         help="mesh spacing [m] (overrides the config's, and its arms_low_spacing for arms held low)",
     )
     p.add_argument("--resume", action="store_true", help="continue from --out's checkpoint")
-    p.add_argument("--units", default="m", choices=("m", "cm", "mm"), help="length unit of the scan file")
-    p.add_argument("--up", default="y", choices=("y", "-y", "z", "-z"), help="up axis of the scan file")
+    p.add_argument(
+        "--units",
+        default=None,
+        choices=("m", "cm", "mm"),
+        help="length unit of the scan file (default: from its height)",
+    )
+    p.add_argument(
+        "--up",
+        default=None,
+        choices=("y", "-y", "z", "-z"),
+        help="up axis of the scan file (default: y, or -y when the floor is on top)",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--json", action="store_true", help="print report.json as one JSON line")
     p.set_defaults(func=fit_command)
