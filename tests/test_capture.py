@@ -128,8 +128,9 @@ def test_coverage_of_front_and_ring():
 
     for layout, cameras, expected in (("front", 1, range(3, 6)), ("ring", 4, range(8, 9))):
         s = CaptureSettings(layout=layout, cameras=cameras, floor_size=0.0, stray_fraction=0.0)
-        points = capture_scene([_column()], s, np.random.default_rng(4)).points
-        assert coverage(points)["sectors_seen"] in expected
+        captured = capture_scene([_column()], s, np.random.default_rng(4))
+        assert coverage(captured.points)["sectors_seen"] in expected  # normals estimated
+        assert coverage(captured.points, captured.normals)["sectors_seen"] in expected  # the sensor's
 
 
 def test_bad_settings_are_one_line_errors():

@@ -44,6 +44,8 @@ class Scan:
         colors: (N, 3) uint8 RGB, or None.
         labels: (N,) int64 per-point garment labels (0 = not garment), or None.
         source: the file it came from.
+        normals: (N, 3) float64 per-point unit normals (a PLY's ``nx ny nz``, e.g. towards the sensor of a
+            depth capture), or None.
         warnings: messages from `check_scan_frame` (also issued as `ScanWarning`).
     """
 
@@ -53,6 +55,7 @@ class Scan:
     labels: np.ndarray | None = None
     source: str = ""
     warnings: list[str] = field(default_factory=list)
+    normals: np.ndarray | None = None
 
     @property
     def point_count(self) -> int:
@@ -71,6 +74,7 @@ class Scan:
             faces=faces,
             colors=None if self.colors is None else self.colors[keep],
             labels=None if self.labels is None else self.labels[keep],
+            normals=None if self.normals is None else self.normals[keep],
         )
 
 
@@ -123,6 +127,20 @@ def _labels_of(geom, count: int, label_property: str | None, path: Path) -> np.n
     if label_property is not None:
         raise ScanError(f"{path}: no vertex property {label_property!r}; found {names}")
     return None
+
+
+def _normals_of(geom, count: int) -> np.ndarray | None:
+    """(count, 3) float64 per-vertex ``nx ny nz`` of a PLY, or None."""
+    raw = (
+        geom.metadata.get("_ply_raw", {}).get("vertex", {}).get("data") if hasattr(geom, "metadata") else None
+    )
+    names = (
+        () if raw is None else (list(raw.keys()) if isinstance(raw, dict) else list(raw.dtype.names or ()))
+    )
+    if not {"nx", "ny", "nz"} <= set(names):
+        return None
+    normals = np.stack([np.asarray(raw[a], np.float64).reshape(-1) for a in ("nx", "ny", "nz")], 1)
+    return normals if len(normals) == count and np.isfinite(normals).all() else None
 
 
 def read_labels(path: str | Path, count: int) -> np.ndarray:
@@ -195,6 +213,9 @@ def load_scan(
         labels=_labels_of(geom, len(points), label_property, path),
         source=str(path),
     )
+    normals = _normals_of(geom, len(points))
+    if normals is not None:
+        scan.normals = normals @ UP_AXES[up].T
     if labels is not None:
         scan.labels = read_labels(labels, len(points))
     if check:

@@ -9,6 +9,9 @@ import torch
 from torch_diffavatar.errors import InputError, read_json_file
 from torch_diffavatar.synthetic_scans import POSE_SEED_OFFSET, make_draped_scan, write_scan
 
+# ``--yaw random`` draws from (seed, this), apart from the scan's and the capture's draws.
+YAW_SEED_OFFSET = 2001
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -63,7 +66,7 @@ def _capture_args(p) -> None:
         "--scan-up",
         default="y",
         choices=tuple(UP_AXES),
-        help="up axis of scan.ply (default y; Y down: --scan-up=-y)",
+        help="up axis of scan.ply (default y)",
     )
     g.add_argument("--camera-distance", type=float, default=2.2, help="[m], 1.5..3 (default 2.2)")
     g.add_argument("--resolution", default="640x480", help="depth image WxH [px] (default 640x480)")
@@ -92,7 +95,7 @@ def _capture_settings(args):
             raise InputError(f"{', '.join(changed)} need --capture ring or --capture front")
         return None
     if args.yaw.lower() == "random":
-        yaw = float(np.random.default_rng([args.seed, 2001]).uniform(0.0, 360.0))
+        yaw = float(np.random.default_rng([args.seed, YAW_SEED_OFFSET]).uniform(0.0, 360.0))
     else:
         try:
             yaw = float(args.yaw)
