@@ -143,3 +143,25 @@ def test_bad_settings_are_one_line_errors():
     ):
         with pytest.raises(InputError):
             CaptureSettings(**bad).check()
+
+
+def test_make_scan_capture_options():
+    """``make-scan --capture``'s options become `CaptureSettings` before any drape; misuse is one line."""
+    from torch_diffavatar.cli import _join_signed_values, build_parser
+    from torch_diffavatar.commands.make_scan import _capture_settings
+
+    def settings(*extra):
+        argv = ["make-scan", "tshirt", "--out", "o", "--seed", "5", *extra]
+        return _capture_settings(build_parser().parse_args(_join_signed_values(argv)))
+
+    s = settings("--capture", "ring", "--yaw", "random", "--scan-units", "cm", "--scan-up", "-y")
+    assert (s.layout, s.units, s.up, s.width, s.height) == ("ring", "cm", "-y", 640, 480)
+    assert 0.0 <= s.yaw_deg < 360.0 and settings("--capture", "ring", "--yaw", "random").yaw_deg == s.yaw_deg
+    assert settings() is None  # the sampled scan, as before
+    for bad in (
+        ("--yaw", "30"),
+        ("--capture", "front", "--yaw", "north"),
+        ("--capture", "ring", "--resolution", "640"),
+    ):
+        with pytest.raises(InputError):
+            settings(*bad)
