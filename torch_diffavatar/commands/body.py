@@ -12,7 +12,7 @@ import numpy as np
 from torch_diffavatar.errors import InputError, ScanError
 from torch_diffavatar.json_io import write_json
 from torch_diffavatar.mesh_io import write_obj
-from torch_diffavatar.scan import UP_AXES
+from torch_diffavatar.scan import UNITS, UP_AXES
 
 BODY_OBJ = "body.obj"
 BODY_JSON = "body.json"
@@ -46,20 +46,26 @@ def _stdout_to_stderr(command):
     return run
 
 
-def _scan_args(parser) -> None:
-    parser.add_argument("scan", help="scan mesh or point cloud (PLY, OBJ, GLB)")
+def add_frame_args(parser) -> None:
+    """``--units`` and ``--up`` of a scan file, both inferred by the intake when not given
+    (`scan_intake.intake_scan`)."""
     parser.add_argument(
         "--units",
         default=None,
-        choices=("m", "cm", "mm"),
-        help="length unit of the file (default: from its height)",
+        choices=tuple(UNITS),
+        help="length unit of the scan file (default: from its height)",
     )
     parser.add_argument(
         "--up",
         default=None,
         choices=tuple(UP_AXES),
-        help="up axis of the file (default: y, or -y when the floor is on top)",
+        help="up axis of the scan file (default: y, or -y when the floor is on top)",
     )
+
+
+def _scan_args(parser) -> None:
+    parser.add_argument("scan", help="scan mesh or point cloud (PLY, OBJ, GLB)")
+    add_frame_args(parser)
     parser.add_argument("--no-clean", action="store_true", help="skip floor, clutter and outlier removal")
 
 

@@ -19,6 +19,7 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
+from torch_diffavatar.commands.body import add_frame_args
 from torch_diffavatar.errors import InputError
 from torch_diffavatar.fit_scan import fit_scan
 from torch_diffavatar.fit_setup import SEGMENT_TYPES, TYPE_CONFIGS, infer_garment_type
@@ -64,18 +65,7 @@ def register(subparsers) -> None:
         help="mesh spacing [m] (overrides the config's, and its arms_low_spacing for arms held low)",
     )
     p.add_argument("--resume", action="store_true", help="continue from --out's checkpoint")
-    p.add_argument(
-        "--units",
-        default=None,
-        choices=("m", "cm", "mm"),
-        help="length unit of the scan file (default: from its height)",
-    )
-    p.add_argument(
-        "--up",
-        default=None,
-        choices=("y", "-y", "z", "-z"),
-        help="up axis of the scan file (default: y, or -y when the floor is on top)",
-    )
+    add_frame_args(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--json", action="store_true", help="print report.json as one JSON line")
     p.set_defaults(func=fit_command)
