@@ -8,7 +8,7 @@ produces all of that from meshes in our world frame (Y up, metres, floor at y = 
 
 1. each `DepthCamera` (a pinhole; `ring_cameras`: N around the person, `front_camera`: one in front)
    renders the meshes and the floor (a square at y = 0, ray-cast exactly) into a z-buffer: the
-   triangles are rasterised in numpy with perspective-correct barycentric depth per pixel;
+   triangles are rasterised in numpy (`render`'s rasteriser) with perspective-correct depth per pixel;
 2. every pixel with a return is back-projected to a point, with the normal of its triangle (turned
    towards the camera), the colour of its mesh (+ Gaussian noise of ``color_noise`` levels) and its label;
 3. pixels seen at a grazing angle (|cos(view ray, normal)| < ``min_cos``) are dropped, and the depth gets
@@ -40,10 +40,6 @@ FLOOR_LABEL = -1
 STRAY_LABEL = -2
 FLOOR_COLOR = (128, 124, 118)
 LAYOUTS = ("ring", "front")
-# Rasterisation works on triangles whose pixel bounding box fits a tile of this many pixels: bigger ones
-# are split by `_subdivide` first (bounded memory; few triangles of a body or garment are that large).
-_MAX_TILE = 32
-_CANDIDATES_PER_CHUNK = 2_000_000
 
 
 @dataclass
@@ -296,7 +292,8 @@ def _capture_view(meshes, cam: DepthCamera, s: CaptureSettings, centre: np.ndarr
 
 
 def rasterize(cam: DepthCamera, verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Z-buffer of a triangle mesh seen by ``cam``.
+    """Z-buffer of a triangle mesh seen by ``cam`` (the rasteriser of `render`, with perspective-correct
+    depth: 1/z is affine in screen space).
 
     Args:
         cam: the `DepthCamera`. verts: (V, 3) [m] world frame. faces: (F, 3) int.
@@ -306,96 +303,19 @@ def rasterize(cam: DepthCamera, verts: np.ndarray, faces: np.ndarray) -> tuple[n
         centre (inf where none); tri: (H·W,) int64 its triangle (-1 where none). Row-major pixels.
         Triangles with a vertex closer than 5 cm to the camera plane are skipped (none in a capture).
     """
-    rot, f = cam.rotation(), cam.focal()
-    cam_pts = (verts - np.asarray(cam.position)) @ rot.T  # (V, 3) camera frame
+    from torch_diffavatar.render import _rasterize
+
+    cam_pts = (verts - np.asarray(cam.position)) @ cam.rotation().T  # (V, 3) camera frame
     z = cam_pts[:, 2]
-    uv = np.stack(
-        [f * cam_pts[:, 0] / z + 0.5 * (cam.width - 1), f * cam_pts[:, 1] / z + 0.5 * (cam.height - 1)], 1
-    )
-    ok = (z[faces] > 0.05).all(1)
-    tri_uv, tri_z, tri_id = _subdivide(uv[faces[ok]], z[faces[ok]], np.flatnonzero(ok))
-    size = cam.width * cam.height
-    depth = np.full(size, np.inf)
-    best = np.full(size, -1, np.int64)
-    lo = np.ceil(tri_uv.min(1)).astype(np.int64)  # (T, 2) first pixel column/row inside the box
-    hi = np.floor(tri_uv.max(1)).astype(np.int64)
-    on_image = (hi[:, 0] >= 0) & (hi[:, 1] >= 0) & (lo[:, 0] < cam.width) & (lo[:, 1] < cam.height)
-    span = (hi - lo + 1).max(1)  # (T,) box side [px]
-    on_image &= (hi - lo + 1).min(1) >= 1  # a box with no pixel centre inside has no fragment
-    previous = 0
-    for tile in (1, 2, 4, 8, 16, _MAX_TILE):
-        sel = np.flatnonzero(on_image & (span <= tile) & (span > previous))
-        previous, step = tile, max(1, _CANDIDATES_PER_CHUNK // (tile * tile))
-        for start in range(0, len(sel), step):
-            chunk = sel[start : start + step]
-            pix, d, t = _fragments(tri_uv[chunk], tri_z[chunk], lo[chunk], tile, cam.width, cam.height)
-            nearer = d < depth[pix]
-            _scatter_min(depth, best, pix[nearer], d[nearer], tri_id[chunk][t[nearer]])
-    return depth, best
-
-
-def _scatter_min(depth: np.ndarray, best: np.ndarray, pix, d, tri) -> None:
-    """depth[p] = min(depth[p], d) over fragments, best[p] = the winning triangle (in place)."""
-    order = np.lexsort((d, pix))
-    pix, d, tri = pix[order], d[order], tri[order]
-    first = np.ones(len(pix), bool)
-    first[1:] = pix[1:] != pix[:-1]
-    p = pix[first]
-    win = d[first] < depth[p]
-    depth[p[win]] = d[first][win]
-    best[p[win]] = tri[first][win]
-
-
-def _fragments(tri_uv, tri_z, lo, tile: int, width: int, height: int):
-    """Pixels covered by triangles (T, 3, 2) [px] with vertex depths (T, 3) [m], their boxes starting at
-    ``lo`` (T, 2) and at most ``tile`` px wide: (pixel index (K,), depth (K,) [m], triangle (K,))."""
-    oy, ox = np.mgrid[0:tile, 0:tile]
-    px = lo[:, 0, None] + ox.ravel()[None]  # (T, tile²)
-    py = lo[:, 1, None] + oy.ravel()[None]
-    a, b, c = tri_uv[:, 0], tri_uv[:, 1], tri_uv[:, 2]  # (T, 2)
-    area = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
-    good = np.abs(area) > 1e-12
-    inv = np.where(good, 1.0 / np.where(good, area, 1.0), 0.0)[:, None]
-
-    def edge(p, q):  # signed area of (p, q, pixel), (T, tile²)
-        return (q[:, 0, None] - p[:, 0, None]) * (py - p[:, 1, None]) - (q[:, 1, None] - p[:, 1, None]) * (
-            px - p[:, 0, None]
-        )
-
-    w0, w1, w2 = edge(b, c) * inv, edge(c, a) * inv, edge(a, b) * inv  # barycentrics of a, b, c
-    inside = (w0 >= 0) & (w1 >= 0) & (w2 >= 0) & good[:, None]
-    inside &= (px >= 0) & (px < width) & (py >= 0) & (py < height)
-    # perspective-correct: 1/z is affine in screen space
-    inv_z = w0 / tri_z[:, 0, None] + w1 / tri_z[:, 1, None] + w2 / tri_z[:, 2, None]
-    t, k = np.nonzero(inside)
-    return py[t, k] * width + px[t, k], 1.0 / inv_z[t, k], t
-
-
-def _subdivide(tri_uv: np.ndarray, tri_z: np.ndarray, tri_id: np.ndarray):
-    """Split triangles (T, 3, 2) [px] whose box is wider than `_MAX_TILE` px into four (midpoints; the
-    depth at a screen midpoint is the harmonic mean, 1/z being affine on screen), until none is."""
-    done_uv, done_z, done_id = [], [], []
-    for _ in range(16):
-        span = (np.ceil(tri_uv.max(1)) - np.ceil(tri_uv.min(1))).max(1) + 1
-        small = span <= _MAX_TILE
-        done_uv.append(tri_uv[small])
-        done_z.append(tri_z[small])
-        done_id.append(tri_id[small])
-        tri_uv, tri_z, tri_id = tri_uv[~small], tri_z[~small], tri_id[~small]
-        if not len(tri_uv):
-            break
-        mid_uv = 0.5 * (tri_uv + tri_uv[:, [1, 2, 0]])  # (T, 3, 2): ab, bc, ca
-        mid_z = 2.0 / (1.0 / tri_z + 1.0 / tri_z[:, [1, 2, 0]])
-        a, b, c, ab, bc, ca = (tri_uv[:, 0], tri_uv[:, 1], tri_uv[:, 2], *mid_uv.transpose(1, 0, 2))
-        za, zb, zc, zab, zbc, zca = (tri_z[:, 0], tri_z[:, 1], tri_z[:, 2], *mid_z.T)
-        tri_uv = np.concatenate(
-            [np.stack(t, 1) for t in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))]
-        )
-        tri_z = np.concatenate(
-            [np.stack(t, 1) for t in ((za, zab, zca), (zab, zb, zbc), (zca, zbc, zc), (zab, zbc, zca))]
-        )
-        tri_id = np.tile(tri_id, 4)
-    return np.concatenate(done_uv), np.concatenate(done_z), np.concatenate(done_id)
+    f = cam.focal()
+    # `render` puts pixel centres at +0.5; ours (`DepthCamera.rays`) at the integers
+    pix = np.stack([f * cam_pts[:, 0] / z + 0.5 * cam.width, f * cam_pts[:, 1] / z + 0.5 * cam.height], 1)
+    ok = np.flatnonzero((z[faces] > 0.05).all(1))
+    tri, bary = _rasterize(pix, -1.0 / np.maximum(z, 0.05), faces[ok], cam.width, cam.height)
+    hit = tri >= 0
+    depth = np.full(len(tri), np.inf)
+    depth[hit] = 1.0 / (bary[hit] / z[faces[ok][tri[hit]]]).sum(1)
+    return depth, np.where(hit, ok[np.maximum(tri, 0)], -1)
 
 
 def _add_strays(points, normals, colors, labels, lo, hi, s: CaptureSettings, rng):
