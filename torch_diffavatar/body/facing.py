@@ -53,3 +53,15 @@ def facing_yaw(points: np.ndarray) -> float | None:
     if not np.linalg.norm(forward) > 0:
         return None
     return math.degrees(math.atan2(forward[0], forward[1]))
+
+
+def body_facing_yaw(global_orient) -> float:
+    """The yaw [deg] about +Y of the direction a `BodyModel` faces: ``global_orient`` (3,) axis-angle
+    [rad] turns its +Z (Anny's front in our frame, `frames`); 0: facing +Z, 90: facing +X."""
+    from scipy.spatial.transform import Rotation
+
+    rotvec = np.asarray(
+        global_orient.detach().cpu().double() if hasattr(global_orient, "detach") else global_orient
+    )
+    front = Rotation.from_rotvec(rotvec.reshape(3)).apply([0.0, 0.0, 1.0])
+    return math.degrees(math.atan2(front[0], front[2]))
