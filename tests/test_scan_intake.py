@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 
+from torch_diffavatar.capture import yaw_rotation
 from torch_diffavatar.errors import ScanError
 from torch_diffavatar.scan import Scan, check_scan_frame, save_ply
 from torch_diffavatar.scan_intake import (
@@ -155,3 +156,16 @@ def test_ring_capture_turned_in_cm_y_down_fits(anny_model, tmp_path):
     surface = mesh_distance_m(fit_verts, fitted.body.faces, truth, body.faces)
     assert abs(fitted.height_m - height) < 0.015
     assert surface < 0.01
+
+
+def test_level_arms_are_not_a_floor(tmp_path):
+    """Arms held out level near the top are long and flat, but narrow: a Y-up scan without a floor
+    stays Y up (no floor found below, none on top either)."""
+    rng = np.random.default_rng(8)
+    points, _ = _standing(rng, floor=0, noise=0)
+    a, x = rng.uniform(0, 2 * math.pi, 4000), rng.choice([-1.0, 1.0], 4000) * rng.uniform(0.18, 0.9, 4000)
+    arms = np.stack([x, 1.45 + 0.04 * np.sin(a), 0.04 * np.cos(a)], 1)
+    path = tmp_path / "scan.ply"
+    save_ply(path, np.concatenate([points, arms]) @ yaw_rotation(30.0).T, binary=True)
+    scan, report = intake_scan(path, units="m")
+    assert report.up == "y" and report.floor is None

@@ -140,7 +140,8 @@ def find_floor(
     RANSAC among the points in the lowest ``search_height`` [m]: planes through three random points
     tilted at most `MAX_FLOOR_TILT_DEG`, scored by their points within ``threshold`` [m], then refined
     by least squares on those. A plane counts as a floor when its points reach farther than ``min_span``
-    [m] horizontally (the soles of a person are flat too, but only ~30 cm long) and number at least 200.
+    [m] along their principal horizontal axis and half that across it (the soles of a person are flat
+    too, but only ~30 cm long; arms held out level are long but narrow) and number at least 200.
 
     Args:
         points: (N, 3) [m], Y up.
@@ -169,8 +170,11 @@ def find_floor(
     normal = np.linalg.svd(inl - centre, full_matrices=False)[2][2]  # least-squares plane
     normal = normal * (1.0 if normal[1] >= 0 else -1.0)
     dist = (inl - centre) @ normal
-    span = np.quantile(inl[:, [0, 2]], 0.98, axis=0) - np.quantile(inl[:, [0, 2]], 0.02, axis=0)
-    if len(inl) < 200 or span.max() < min_span or normal[1] < min_cos:
+    # spans along the inliers' own horizontal axes: a floor is wide both ways, arms held out are not
+    flat = inl[:, [0, 2]] - inl[:, [0, 2]].mean(0)
+    flat = flat @ np.linalg.eigh(flat.T @ flat)[1]  # (k, 2): minor axis, major axis
+    span = np.quantile(flat, 0.98, axis=0) - np.quantile(flat, 0.02, axis=0)
+    if len(inl) < 200 or span[1] < min_span or span[0] < 0.5 * min_span or normal[1] < min_cos:
         return None
     return Floor(
         normal=normal,
