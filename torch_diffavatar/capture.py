@@ -286,7 +286,8 @@ def _capture_view(meshes, cam: DepthCamera, s: CaptureSettings, centre: np.ndarr
     sigma = s.noise_a + s.noise_b * depth_k**2
     noisy = dist[keep] + rng.normal(0.0, 1.0, len(depth_k)) * sigma / along[keep]
     points = np.asarray(cam.position, np.float64) + noisy[:, None] * rays[keep]
-    normals = normal[keep] * -np.sign((normal[keep] * rays[keep]).sum(1, keepdims=True))  # towards the camera
+    facing_away = (normal[keep] * rays[keep]).sum(1, keepdims=True) > 0
+    normals = np.where(facing_away, -normal[keep], normal[keep])  # towards the camera
     colors = np.clip(color[keep] + rng.normal(0.0, s.color_noise, (len(points), 3)), 0, 255).astype(np.uint8)
     return points, normals, colors, label[keep]
 
