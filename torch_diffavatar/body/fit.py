@@ -44,7 +44,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from torch_diffavatar.body.facing import facing_yaw
+from torch_diffavatar.body.facing import facing_yaws
 from torch_diffavatar.body.geometry import face_normals, vertex_areas, vertex_normals
 from torch_diffavatar.body.model import BodyModel
 from torch_diffavatar.body.parts import PART_NAMES
@@ -64,7 +64,7 @@ class BodyFitConfig:
             default trusts the world convention (the person faces +Z): a front/back choice by the
             Chamfer loss alone proved unreliable on posed scans (the back of a body fits the front well).
         yaw_from_scan: turn the ``yaw_candidates`` by the scan's own facing direction
-            (`body.facing.facing_yaw`: hips axis and feet) when it lies farther than
+            (`body.facing.facing_yaws`: hips axis and feet) when it lies farther than
             ``facing_tolerance_deg`` [deg] from 0, for a person facing any way (a capture turned 59° ended
             at 3.3 cm Chamfer from the 0° start, issue #29). Within the tolerance the world convention
             stands (the estimate is ~2° on +Z scans, and the placement stage corrects that itself).
@@ -397,11 +397,12 @@ def _scan_extent(scan: torch.Tensor) -> tuple[float, float]:
 
 def _yaw_starts(scan: torch.Tensor, cfg: BodyFitConfig) -> list[float]:
     """The yaws [deg] the placement stage starts from: ``cfg.yaw_candidates``, turned by the scan's
-    facing direction when ``cfg.yaw_from_scan`` and it lies beyond ``cfg.facing_tolerance_deg``."""
-    facing = facing_yaw(scan.numpy()) if cfg.yaw_from_scan else None
-    if facing is None or abs(facing) <= cfg.facing_tolerance_deg:
+    facing directions (`facing_yaws`: one, or two opposite ones when the scan shows no feet) when
+    ``cfg.yaw_from_scan`` and none of them lies within ``cfg.facing_tolerance_deg`` of +Z."""
+    facing = facing_yaws(scan.numpy()) if cfg.yaw_from_scan else []
+    if not facing or min(abs(f) for f in facing) <= cfg.facing_tolerance_deg:
         return list(cfg.yaw_candidates)
-    return [facing + yaw for yaw in cfg.yaw_candidates]
+    return [f + yaw for f in facing for yaw in cfg.yaw_candidates]
 
 
 @torch.no_grad()
