@@ -294,9 +294,8 @@ def prepare(
         raise InputError(f"{scan_path}: only {int(mask.sum())} garment points; cannot fit a garment")
     loops = scan_boundaries(scan.points, mask, body_verts.numpy(), faces, parts, seg_type)
     yaw = body_facing_yaw(body.global_orient[0])  # a captured person faces any way (issue #29)
-    garment = place_garment_turned(
-        mesh, body_verts, body.faces, yaw, arm_joints=body.arm_joints(body_out.joints[0])
-    )
+    arms = body.arm_joints(body_out.joints[0])
+    garment = place_garment_turned(mesh, body_verts, body.faces, yaw, arm_joints=arms)
     target = ScanTarget(
         garment_points=torch.as_tensor(scan.points[mask]),
         boundaries=match_boundaries(garment, loops),
