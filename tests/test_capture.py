@@ -17,9 +17,9 @@ from torch_diffavatar.capture import (
     SceneMesh,
     capture_scene,
     rasterize,
-    yaw_rotation,
 )
 from torch_diffavatar.errors import InputError
+from torch_diffavatar.geometry import yaw_rotation
 from torch_diffavatar.scan import UNITS, UP_AXES, load_scan, save_ply
 
 

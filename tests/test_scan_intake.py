@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from torch_diffavatar.capture import yaw_rotation
 from torch_diffavatar.errors import ScanError
+from torch_diffavatar.geometry import yaw_rotation
 from torch_diffavatar.scan import Scan, check_scan_frame, save_ply
 from torch_diffavatar.scan_intake import (
     find_floor,
@@ -131,7 +131,7 @@ def test_ring_capture_turned_in_cm_y_down_fits(anny_model, tmp_path):
 
     from torch_diffavatar.body.fit import fit_body
     from torch_diffavatar.body.model import BodyModel
-    from torch_diffavatar.capture import CaptureSettings, SceneMesh, capture_scene, yaw_rotation
+    from torch_diffavatar.capture import CaptureSettings, SceneMesh, capture_scene
     from torch_diffavatar.evaluation import mesh_distance_m
 
     body = BodyModel(anny_model=anny_model, dtype=torch.float64)

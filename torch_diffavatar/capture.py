@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from torch_diffavatar.errors import InputError
+from torch_diffavatar.geometry import yaw_rotation
 from torch_diffavatar.scan import UNITS, UP_AXES
 
 FLOOR_LABEL = -1
@@ -198,12 +199,6 @@ class CapturedScan:
     colors: np.ndarray
     labels: np.ndarray
     info: dict = field(default_factory=dict)
-
-
-def yaw_rotation(yaw_deg: float) -> np.ndarray:
-    """(3, 3) rotation by ``yaw_deg`` [deg] about +Y (counter-clockwise seen from above)."""
-    c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
 
 
 def to_file_frame(points: np.ndarray, units: str, up: str) -> np.ndarray:

@@ -17,7 +17,8 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from torch_diffavatar.capture import CapturedScan, CaptureSettings, SceneMesh, capture_scene, yaw_rotation
+from torch_diffavatar.capture import CapturedScan, CaptureSettings, SceneMesh, capture_scene
+from torch_diffavatar.geometry import yaw_rotation
 from torch_diffavatar.scan import UNITS, UP_AXES
 from torch_diffavatar.synthetic_scans import DrapedScan
 

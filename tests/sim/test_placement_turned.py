@@ -3,12 +3,11 @@
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 import torch
 
+from torch_diffavatar.geometry import yaw_rotation
 from torch_diffavatar.pattern.library import load_template
 from torch_diffavatar.pattern.mesher import mesh_pattern
 from torch_diffavatar.sim.placement import TURNED_BODY_DEG, place_garment, place_garment_turned
@@ -16,16 +15,11 @@ from torch_diffavatar.sim.placement import TURNED_BODY_DEG, place_garment, place
 pytestmark = pytest.mark.anny
 
 
-def _turn(yaw_deg: float) -> np.ndarray:
-    c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-
-
 def test_turned_body_gets_the_turned_placement(default_body):
     verts, faces = default_body
     mesh = mesh_pattern(load_template("tshirt"), spacing=0.04)
     upright = place_garment(mesh, verts, faces).vert_pos.numpy()
-    turn = _turn(120.0)
+    turn = yaw_rotation(120.0)
     turned_body = torch.as_tensor(verts.numpy() @ turn.T)
     placed = place_garment_turned(mesh, turned_body, faces, 120.0).vert_pos.numpy()
     np.testing.assert_allclose(placed, upright @ turn.T, atol=1e-6)

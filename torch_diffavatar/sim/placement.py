@@ -57,7 +57,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
-from torch_diffavatar.geometry import closest_point_on_triangles, green_strain
+from torch_diffavatar.geometry import closest_point_on_triangles, green_strain, yaw_rotation
 from torch_diffavatar.pattern.garment_mesh import GarmentMesh
 from torch_diffavatar.pattern.garmentcode import GC_BODY
 from torch_diffavatar.sim.forward_drape import PoseRoute
@@ -1342,8 +1342,7 @@ def place_garment_turned(
     """
     if abs(yaw_deg) <= TURNED_BODY_DEG:
         return place_garment(garment, body_verts, body_faces, arm_joints=arm_joints, **kw)
-    c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
-    turn = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])  # +Z -> the body's facing
+    turn = yaw_rotation(yaw_deg)  # +Z -> the body's facing
     verts = torch.as_tensor(body_verts)
     back = verts @ verts.new_tensor(turn)  # (Vb, 3) rows turned by turn^T: facing +Z
     arms = None if arm_joints is None else {k: np.asarray(v) @ turn for k, v in arm_joints.items()}
