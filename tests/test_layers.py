@@ -23,6 +23,7 @@ LAYERS = {
     "pattern": (1, "pattern"),
     "mesh_io": (2, "io"),
     "scan": (2, "io"),
+    "scan_intake": (2, "io"),
     "sim": (2, "sim"),
     "body": (2, "body"),
     "cage": (3, "terms"),  # the pattern's control cage and the loss terms (which use its seam segments)
@@ -30,8 +31,10 @@ LAYERS = {
     "assets": (3, "assets"),
     "motion": (3, "motion"),
     "fit_config": (3, "fit_config"),  # the fit's settings: the objective reads them
+    "capture": (3, "capture"),  # simulated depth captures: meshes in, points out (numpy)
     "objective": (4, "objective"),
     "synthetic_scans": (4, "synthetic_scans"),
+    "captured_scans": (4, "synthetic_scans"),
     "evaluation": (4, "evaluation"),
     "animate": (4, "animate"),
     "fit": (5, "fit"),

@@ -44,7 +44,7 @@ def emit_json(obj) -> None:
 
 
 # options whose values may start with "-" (``--up -y``), which argparse would take for an option
-_SIGNED_VALUE_OPTIONS = ("--up",)
+_SIGNED_VALUE_OPTIONS = ("--up", "--scan-up")
 
 
 def _join_signed_values(argv: list[str]) -> list[str]:

@@ -187,7 +187,13 @@ def evaluate_assets(assets_dir, gt_dir) -> dict:
     true_material = material_from_dict(json.loads((truth / "material.json").read_text()))
     out: dict = {"units": "m"}
     draped = read_obj(folder / "draped.obj")
-    scan = load_scan(gt / "scan.ply")
+    # a simulated depth capture's file is in its own units and axes (truth.json "capture"; captured_scans)
+    capture = (
+        json.loads((truth / "truth.json").read_text()).get("capture", {})
+        if (truth / "truth.json").is_file()
+        else {}
+    )
+    scan = load_scan(gt / "scan.ply", units=capture.get("units", "m"), up=capture.get("up", "y"), check=False)
     if scan.labels is None:
         raise InputError(f"{gt / 'scan.ply'} has no 'label' property: is --gt a make-scan output?")
     garment_points = torch.as_tensor(scan.points[scan.labels == 1])

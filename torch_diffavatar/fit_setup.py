@@ -176,18 +176,22 @@ def remesh_for_arms(pattern, mesh, config, arm_angles: dict[str, float]):
     return mesh_pattern(pattern, spacing=spacing), spacing
 
 
-def load_fit_scan(scan_path, *, units: str = "m", up: str = "y"):
-    """The scan of a fit (`scan.load_scan`, its warnings printed on stderr), outliers removed."""
+def load_fit_scan(scan_path, *, units: str | None = "m", up: str | None = "y"):
+    """The scan of a fit through the intake (`scan_intake.intake_scan`: ``units`` None: from the height,
+    ``up`` None: from the floor; floor, clutter and outliers removed), its messages and warnings printed
+    on stderr."""
     import warnings
 
-    from torch_diffavatar.scan import ScanWarning, load_scan, remove_outliers
+    from torch_diffavatar.scan import ScanWarning
+    from torch_diffavatar.scan_intake import intake_scan
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ScanWarning)
-        scan = load_scan(scan_path, units=units, up=up)
+        scan, report = intake_scan(scan_path, units=units, up=up)
+    for message in report.messages:
+        print(f"diffavatar fit: {message}", file=sys.stderr)
     for message in scan.warnings:
         print(f"diffavatar fit: warning: {message}", file=sys.stderr)
-    scan, _ = remove_outliers(scan)
     return scan
 
 
@@ -262,12 +266,13 @@ def prepare(
         [m]), ``upper_arm_angles_deg`` (of the initial body, `BodyModel.upper_arm_angles`), ``setup_seconds``.
     """
     from torch_diffavatar.body.anny_model import load_anny
+    from torch_diffavatar.body.facing import body_facing_yaw
     from torch_diffavatar.body.model import BodyModel
     from torch_diffavatar.body.parts import vertex_parts
     from torch_diffavatar.objective import ScanTarget
     from torch_diffavatar.pattern import mesh_pattern
     from torch_diffavatar.pattern.library import resolve_pattern
-    from torch_diffavatar.sim.placement import a_pose_route, place_garment
+    from torch_diffavatar.sim.placement import a_pose_route, place_garment_turned
 
     t0 = time.perf_counter()
     scan = load_fit_scan(scan_path, units=units, up=up)
@@ -288,7 +293,9 @@ def prepare(
     if mask.sum() < 50:
         raise InputError(f"{scan_path}: only {int(mask.sum())} garment points; cannot fit a garment")
     loops = scan_boundaries(scan.points, mask, body_verts.numpy(), faces, parts, seg_type)
-    garment = place_garment(mesh, body_verts, body.faces, arm_joints=body.arm_joints(body_out.joints[0]))
+    yaw = body_facing_yaw(body.global_orient[0])  # a captured person faces any way (issue #29)
+    arms = body.arm_joints(body_out.joints[0])
+    garment = place_garment_turned(mesh, body_verts, body.faces, yaw, arm_joints=arms)
     target = ScanTarget(
         garment_points=torch.as_tensor(scan.points[mask]),
         boundaries=match_boundaries(garment, loops),
@@ -299,7 +306,7 @@ def prepare(
         "pattern": pattern,
         "target": target,
         "body_params": body.parameters_dict(),
-        "sewing_fallback": a_pose_route(mesh, body),
+        "sewing_fallback": a_pose_route(mesh, body, yaw),
         "body_fit_chamfer_m": body_fit_chamfer_m,
         "scan_points": scan.point_count,
         "scan_boundaries": sorted(loops),

@@ -9,6 +9,8 @@ distances' ties aside; `closest_point_on_mesh` picks the op on CPU tensors when 
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 
@@ -206,3 +208,10 @@ def merge_pairs(count: int, pairs: np.ndarray) -> tuple[np.ndarray, int]:
     # components are labelled in order of their smallest vertex
     group_count, labels = connected_components(graph, directed=False)
     return labels.astype(np.int64), int(group_count)
+
+
+def yaw_rotation(yaw_deg: float) -> np.ndarray:
+    """(3, 3) float64 rotation by ``yaw_deg`` [deg] about +Y (counter-clockwise seen from above): it turns
+    +Z (the way a body faces) to (sin yaw, 0, cos yaw)."""
+    c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])

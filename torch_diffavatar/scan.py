@@ -44,6 +44,8 @@ class Scan:
         colors: (N, 3) uint8 RGB, or None.
         labels: (N,) int64 per-point garment labels (0 = not garment), or None.
         source: the file it came from.
+        normals: (N, 3) float64 per-point unit normals (a PLY's ``nx ny nz``, e.g. towards the sensor of a
+            depth capture), or None.
         warnings: messages from `check_scan_frame` (also issued as `ScanWarning`).
     """
 
@@ -53,6 +55,7 @@ class Scan:
     labels: np.ndarray | None = None
     source: str = ""
     warnings: list[str] = field(default_factory=list)
+    normals: np.ndarray | None = None
 
     @property
     def point_count(self) -> int:
@@ -71,6 +74,7 @@ class Scan:
             faces=faces,
             colors=None if self.colors is None else self.colors[keep],
             labels=None if self.labels is None else self.labels[keep],
+            normals=None if self.normals is None else self.normals[keep],
         )
 
 
@@ -123,6 +127,20 @@ def _labels_of(geom, count: int, label_property: str | None, path: Path) -> np.n
     if label_property is not None:
         raise ScanError(f"{path}: no vertex property {label_property!r}; found {names}")
     return None
+
+
+def _normals_of(geom, count: int) -> np.ndarray | None:
+    """(count, 3) float64 per-vertex ``nx ny nz`` of a PLY, or None."""
+    raw = (
+        geom.metadata.get("_ply_raw", {}).get("vertex", {}).get("data") if hasattr(geom, "metadata") else None
+    )
+    names = (
+        () if raw is None else (list(raw.keys()) if isinstance(raw, dict) else list(raw.dtype.names or ()))
+    )
+    if not {"nx", "ny", "nz"} <= set(names):
+        return None
+    normals = np.stack([np.asarray(raw[a], np.float64).reshape(-1) for a in ("nx", "ny", "nz")], 1)
+    return normals if len(normals) == count and np.isfinite(normals).all() else None
 
 
 def read_labels(path: str | Path, count: int) -> np.ndarray:
@@ -195,6 +213,9 @@ def load_scan(
         labels=_labels_of(geom, len(points), label_property, path),
         source=str(path),
     )
+    normals = _normals_of(geom, len(points))
+    if normals is not None:
+        scan.normals = normals @ UP_AXES[up].T
     if labels is not None:
         scan.labels = read_labels(labels, len(points))
     if check:
@@ -293,12 +314,24 @@ def save_ply(
     colors: np.ndarray | None = None,
     faces: np.ndarray | None = None,
     int_properties: dict[str, np.ndarray] | None = None,
+    normals: np.ndarray | None = None,
+    binary: bool = False,
 ) -> None:
     """Write an ASCII PLY with optional colours, faces and integer vertex properties (e.g. labels).
 
     Args:
         points: (N, 3) [m]; colors: (N, 3) uint8; faces: (F, 3) int; int_properties: name -> (N,) ints.
+        normals: (N, 3) unit normals (``nx ny nz``, binary files only).
+        binary: write binary little-endian PLY (float32 points; `save_point_cloud_ply`) instead: ASCII
+            takes seconds per 100k points.
     """
+    if binary:
+        if faces is not None:
+            raise ValueError("save_ply: binary=True writes point clouds only (no faces)")
+        save_point_cloud_ply(path, points, colors=colors, normals=normals, int_properties=int_properties)
+        return
+    if normals is not None:
+        raise ValueError("save_ply: normals are written in binary files only (pass binary=True)")
     points = np.asarray(points, dtype=np.float64)
     props = dict(int_properties or {})
     header = ["ply", "format ascii 1.0", f"element vertex {len(points)}"]
@@ -323,3 +356,41 @@ def save_ply(
         if faces is not None:
             for tri in np.asarray(faces, dtype=np.int64):
                 f.write(f"3 {tri[0]} {tri[1]} {tri[2]}\n")
+
+
+def save_point_cloud_ply(
+    path: str | Path,
+    points: np.ndarray,
+    *,
+    colors: np.ndarray | None = None,
+    normals: np.ndarray | None = None,
+    int_properties: dict[str, np.ndarray] | None = None,
+) -> None:
+    """Write a binary little-endian PLY point cloud: ``x y z`` float32, then optional ``nx ny nz`` float32,
+    ``red green blue`` uchar and int32 properties (e.g. ``label``); `load_scan` reads it back.
+
+    Args:
+        points: (N, 3); normals: (N, 3); colors: (N, 3) uint8; int_properties: name -> (N,) ints.
+    """
+    points = np.asarray(points)
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    columns = {"x": points[:, 0], "y": points[:, 1], "z": points[:, 2]}
+    if normals is not None:
+        fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
+        columns.update(zip(("nx", "ny", "nz"), np.asarray(normals).T))
+    if colors is not None:
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+        columns.update(zip(("red", "green", "blue"), np.asarray(colors)[:, :3].T))
+    for name, values in (int_properties or {}).items():
+        fields.append((name, "<i4"))
+        columns[name] = np.asarray(values).reshape(-1)
+    record = np.empty(len(points), dtype=fields)
+    for name, values in columns.items():
+        record[name] = values
+    ply_types = {"<f4": "float", "u1": "uchar", "<i4": "int"}
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(points)}"]
+    header += [f"property {ply_types[t]} {name}" for name, t in fields]
+    header.append("end_header")
+    with open(path, "wb") as f:
+        f.write(("\n".join(header) + "\n").encode("ascii"))
+        f.write(record.tobytes())

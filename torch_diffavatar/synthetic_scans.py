@@ -400,8 +400,12 @@ def _truth_info(
     }
 
 
-def write_scan(scan: DrapedScan, out_dir) -> dict[str, str]:
-    """Write ``scan.ply`` and ``truth/`` (see the module docstring) into ``out_dir``; returns the paths."""
+def write_scan(scan: DrapedScan, out_dir, *, capture=None) -> dict[str, str]:
+    """Write ``scan.ply`` and ``truth/`` (see the module docstring) into ``out_dir``; returns the paths.
+
+    ``capture``: a `capture.CapturedScan` of ``scan`` (`captured_scans.capture_draped_scan`), written as
+    ``scan.ply`` instead of ``scan.points`` (binary, with colours and normals, in its own units and axes).
+    """
     from torch_diffavatar.assets import material_dict
     from torch_diffavatar.mesh_io import write_obj
     from torch_diffavatar.pattern import save_pattern
@@ -420,7 +424,18 @@ def write_scan(scan: DrapedScan, out_dir) -> dict[str, str]:
         "draped_obj": truth / "draped.obj",
         "truth": truth / "truth.json",
     }
-    save_ply(paths["scan"], scan.points, int_properties={"label": scan.labels})
+    if capture is None:
+        save_ply(paths["scan"], scan.points, int_properties={"label": scan.labels})
+    else:
+        labels = {"label": capture.labels}
+        save_ply(
+            paths["scan"],
+            capture.points,
+            colors=capture.colors,
+            normals=capture.normals,
+            int_properties=labels,
+            binary=True,
+        )
     save_pattern(scan.pattern, paths["pattern"])
     write_obj(paths["body_obj"], scan.body_vertices, scan.body_faces)
     paths["body_json"].write_text(json.dumps(scan.body_params, indent=1))

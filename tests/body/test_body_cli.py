@@ -35,7 +35,15 @@ def test_fit_body_cli_contract(capsys, tmp_path, dressed_scan, anny_model, monke
     code, out, _ = _run(capsys, ["fit-body", str(path), "--units", "mm", "--out", str(tmp_path), "--json"])
     assert code == 0
     summary = json.loads(out)
-    assert list(summary) == ["points", "seconds", "chamfer_m", "height_m", "phenotypes"]
+    assert list(summary) == [
+        "points",
+        "seconds",
+        "chamfer_m",
+        "height_m",
+        "phenotypes",
+        "yaw_deg",
+        "coverage",
+    ]
     assert summary["points"] > 0.9 * len(scan.points)
     assert set(summary["phenotypes"]) == {"gender", "age", "muscle", "weight", "height", "proportions"}
     assert 1.0 < summary["height_m"] < 2.3

@@ -12,7 +12,7 @@ import numpy as np
 from torch_diffavatar.errors import InputError, ScanError
 from torch_diffavatar.json_io import write_json
 from torch_diffavatar.mesh_io import write_obj
-from torch_diffavatar.scan import UP_AXES
+from torch_diffavatar.scan import UNITS, UP_AXES
 
 BODY_OBJ = "body.obj"
 BODY_JSON = "body.json"
@@ -46,28 +46,49 @@ def _stdout_to_stderr(command):
     return run
 
 
+def add_frame_args(parser) -> None:
+    """``--units`` and ``--up`` of a scan file, both inferred by the intake when not given
+    (`scan_intake.intake_scan`)."""
+    parser.add_argument(
+        "--units",
+        default=None,
+        choices=tuple(UNITS),
+        help="length unit of the scan file (default: from its height)",
+    )
+    parser.add_argument(
+        "--up",
+        default=None,
+        choices=tuple(UP_AXES),
+        help="up axis of the scan file (default: y, or -y when the floor is on top)",
+    )
+
+
 def _scan_args(parser) -> None:
     parser.add_argument("scan", help="scan mesh or point cloud (PLY, OBJ, GLB)")
-    parser.add_argument("--units", default="m", choices=("m", "cm", "mm"), help="length unit of the file")
-    parser.add_argument("--up", default="y", choices=tuple(UP_AXES), help="up axis of the file")
-    parser.add_argument("--no-clean", action="store_true", help="skip floor and outlier removal")
+    add_frame_args(parser)
+    parser.add_argument("--no-clean", action="store_true", help="skip floor, clutter and outlier removal")
 
 
 def _load_clean_scan(args):
+    """The scan through the intake (`scan_intake.intake_scan`), its decisions and warnings on stderr."""
     import warnings
 
-    from torch_diffavatar.scan import ScanWarning, load_scan, remove_floor, remove_outliers
+    from torch_diffavatar.scan import ScanWarning
+    from torch_diffavatar.scan_intake import intake_scan
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ScanWarning)
-        scan = load_scan(args.scan, units=args.units, up=args.up)
+        scan, report = intake_scan(args.scan, units=args.units, up=args.up, clean=not args.no_clean)
+    for message in report.messages:
+        print(f"diffavatar {args.command}: {message}", file=sys.stderr)
     for message in scan.warnings:
         print(f"diffavatar {args.command}: warning: {message}", file=sys.stderr)
-    if not args.no_clean:
-        scan, _ = remove_floor(scan)
-        scan, _ = remove_outliers(scan)
-    if scan.point_count < 100:
-        raise ScanError(f"{args.scan}: only {scan.point_count} points left after clean-up; need >= 100")
+    cov = report.coverage
+    print(
+        f"diffavatar {args.command}: coverage: {cov['sectors_seen']} of {cov['sectors']} sides seen",
+        file=sys.stderr,
+    )
+    args.units, args.up, args.intake = report.units, report.up, report.as_dict()
     return scan
 
 
@@ -97,6 +118,8 @@ def fit_body_command(args) -> dict:
         "chamfer_m": result.chamfer_m,
         "height_m": result.height_m,
         "phenotypes": phenotypes,
+        "yaw_deg": result.yaw_deg,
+        "coverage": args.intake["coverage"],
     }
     # the body parameters last: the summary's phenotypes by name must not replace their list, which
     # `BodyModel.load_parameters_dict` (fit --body, segment --body) reads back

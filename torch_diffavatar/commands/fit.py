@@ -19,6 +19,7 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
+from torch_diffavatar.commands.body import add_frame_args
 from torch_diffavatar.errors import InputError
 from torch_diffavatar.fit_scan import fit_scan
 from torch_diffavatar.fit_setup import SEGMENT_TYPES, TYPE_CONFIGS, infer_garment_type
@@ -65,8 +66,7 @@ def register(subparsers) -> None:
     )
     p.add_argument("--resume", action="store_true", help="continue from --out's checkpoint")
     p.add_argument("--force", action="store_true", help="replace another fit in --out (its files only)")
-    p.add_argument("--units", default="m", choices=("m", "cm", "mm"), help="length unit of the scan file")
-    p.add_argument("--up", default="y", choices=("y", "-y", "z", "-z"), help="up axis of the scan file")
+    add_frame_args(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--json", action="store_true", help="print report.json as one JSON line")
     p.set_defaults(func=fit_command)

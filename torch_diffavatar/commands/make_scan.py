@@ -9,6 +9,9 @@ import torch
 from torch_diffavatar.errors import InputError, read_json_file
 from torch_diffavatar.synthetic_scans import POSE_SEED_OFFSET, make_draped_scan, write_scan
 
+# ``--yaw random`` draws from (seed, this), apart from the scan's and the capture's draws.
+YAW_SEED_OFFSET = 2001
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -40,7 +43,79 @@ def register(subparsers) -> None:
     p.add_argument("--garment-points", type=int, default=40000, help="cloth samples before holes (40000)")
     p.add_argument("--body-points", type=int, default=30000, help="skin samples before holes (30000)")
     p.add_argument("--json", action="store_true", help="print the ground-truth summary as one JSON line")
+    _capture_args(p)
     p.set_defaults(func=_make_scan_command)
+
+
+def _capture_args(p) -> None:
+    """The simulated depth capture's options (`captured_scans`); ``--capture none`` keeps the sampled scan."""
+    from torch_diffavatar.scan import UNITS, UP_AXES
+
+    g = p.add_argument_group("depth capture (instead of the sampled scan)")
+    g.add_argument(
+        "--capture",
+        default="none",
+        choices=("none", "ring", "front"),
+        help="'ring': --cameras depth cameras around the person, 'front': one in front; with a floor, "
+        "stray points, colours and normals (default none: the sampled scan)",
+    )
+    g.add_argument("--cameras", type=int, default=4, help="ring cameras (default 4)")
+    g.add_argument("--yaw", default="0", help="turn of the whole capture [deg], or 'random' (default 0)")
+    g.add_argument("--scan-units", default="m", choices=tuple(UNITS), help="units of scan.ply (default m)")
+    g.add_argument(
+        "--scan-up",
+        default="y",
+        choices=tuple(UP_AXES),
+        help="up axis of scan.ply (default y)",
+    )
+    g.add_argument("--camera-distance", type=float, default=2.2, help="[m], 1.5..3 (default 2.2)")
+    g.add_argument("--resolution", default="640x480", help="depth image WxH [px] (default 640x480)")
+
+
+def _capture_settings(args):
+    """`CaptureSettings` from the arguments, or None for ``--capture none`` (InputError on bad values)."""
+    import numpy as np
+
+    from torch_diffavatar.capture import CaptureSettings
+
+    changed = [
+        flag
+        for flag, value, default in (
+            ("--cameras", args.cameras, 4),
+            ("--yaw", args.yaw, "0"),
+            ("--scan-units", args.scan_units, "m"),
+            ("--scan-up", args.scan_up, "y"),
+            ("--camera-distance", args.camera_distance, 2.2),
+            ("--resolution", args.resolution, "640x480"),
+        )
+        if value != default
+    ]
+    if args.capture == "none":
+        if changed:
+            raise InputError(f"{', '.join(changed)} need --capture ring or --capture front")
+        return None
+    if args.yaw.lower() == "random":
+        yaw = float(np.random.default_rng([args.seed, YAW_SEED_OFFSET]).uniform(0.0, 360.0))
+    else:
+        try:
+            yaw = float(args.yaw)
+        except ValueError as exc:
+            raise InputError(f"--yaw: {args.yaw!r} is neither a number of degrees nor 'random'") from exc
+    width, _, height = args.resolution.lower().partition("x")
+    if not (width.isdigit() and height.isdigit()):
+        raise InputError(f"--resolution: {args.resolution!r} is not WIDTHxHEIGHT, e.g. 640x480")
+    settings = CaptureSettings(
+        layout=args.capture,
+        cameras=args.cameras,
+        distance=args.camera_distance,
+        width=int(width),
+        height=int(height),
+        yaw_deg=round(yaw, 3),
+        units=args.scan_units,
+        up=args.scan_up,
+    )
+    settings.check()
+    return settings
 
 
 def _parse_phenotypes(text: str | None) -> dict[str, float] | None:
@@ -77,6 +152,7 @@ def _parse_pose(text: str, seed: int) -> torch.Tensor | None:
 
 
 def _make_scan_command(args) -> dict:
+    settings = _capture_settings(args)  # bad capture options fail before the drape
     scan = make_draped_scan(
         args.template,
         seed=args.seed,
@@ -93,7 +169,12 @@ def _make_scan_command(args) -> dict:
         garment_points=args.garment_points,
         body_points=args.body_points,
     )
-    paths = write_scan(scan, args.out)
+    captured = None
+    if settings is not None:
+        from torch_diffavatar.captured_scans import capture_draped_scan
+
+        scan, captured = capture_draped_scan(scan, settings, args.seed)
+    paths = write_scan(scan, args.out, capture=captured)
     summary = dict(scan.info, files=paths)
     if not args.json:
         print(f"scan: {paths['scan']} ({len(scan.points)} points); truth: {Path(paths['truth']).parent}")

@@ -57,7 +57,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
-from torch_diffavatar.geometry import closest_point_on_triangles, green_strain
+from torch_diffavatar.geometry import closest_point_on_triangles, green_strain, yaw_rotation
 from torch_diffavatar.pattern.garment_mesh import GarmentMesh
 from torch_diffavatar.pattern.garmentcode import GC_BODY
 from torch_diffavatar.sim.forward_drape import PoseRoute
@@ -1322,6 +1322,34 @@ def place_garment(
     return replace(garment, vert_pos=new_pos)
 
 
+# A body turned less than this from +Z is placed as it stands (the placement's frame); beyond it,
+# `place_garment_turned` turns it to face +Z first (issue #29: a body facing 52° got its t-shirt 32 cm low).
+TURNED_BODY_DEG = 20.0
+
+
+def place_garment_turned(
+    garment: GarmentMesh, body_verts, body_faces, yaw_deg: float, *, arm_joints: dict | None = None, **kw
+) -> GarmentMesh:
+    """`place_garment` for a body facing ``yaw_deg`` [deg] about +Y (0: facing +Z, 90: facing +X).
+
+    `place_garment` assumes a body facing +Z. Beyond `TURNED_BODY_DEG` the body (and ``arm_joints``) is
+    turned about the vertical axis through the origin to face +Z, the garment placed on it, and the placed
+    garment turned back with it; nearer +Z it is `place_garment` itself.
+
+    Args:
+        body_verts: (Vb, 3) [m]; body_faces: (Fb, 3); arm_joints: as for `place_garment`, in the same frame.
+        kw: passed to `place_garment`.
+    """
+    if abs(yaw_deg) <= TURNED_BODY_DEG:
+        return place_garment(garment, body_verts, body_faces, arm_joints=arm_joints, **kw)
+    turn = yaw_rotation(yaw_deg)  # +Z -> the body's facing
+    verts = torch.as_tensor(body_verts)
+    back = verts @ verts.new_tensor(turn)  # (Vb, 3) rows turned by turn^T: facing +Z
+    arms = None if arm_joints is None else {k: np.asarray(v) @ turn for k, v in arm_joints.items()}
+    placed = place_garment(garment, back, body_faces, arm_joints=arms, **kw)
+    return replace(placed, vert_pos=placed.vert_pos @ placed.vert_pos.new_tensor(turn).T)
+
+
 def _placement_context(garment, verts, faces, body_landmarks, arm_joints, clearance: float) -> _Context:
     """The body's sections and landmarks, the panels' kinds and sides, and the wraps' clearances."""
     if body_landmarks is not None and body_landmarks._sections is not None:
@@ -1492,7 +1520,7 @@ def _push_out(garment: GarmentMesh, fit: _Clearances, pos: np.ndarray, push_radi
     return pos
 
 
-def a_pose_route(garment: GarmentMesh, body, **place_kwargs) -> PoseRoute | None:
+def a_pose_route(garment: GarmentMesh, body, yaw_deg: float = 0.0, **place_kwargs) -> PoseRoute | None:
     """The `PoseRoute` of ``garment`` onto a posed body: placed on the body's A-pose, which the
     templates are made for, to be sewn there and carried along the body's path to its pose.
 
@@ -1503,6 +1531,7 @@ def a_pose_route(garment: GarmentMesh, body, **place_kwargs) -> PoseRoute | None
     Args:
         garment: the mesher's output (as for `place_garment`).
         body: a `torch_diffavatar.body.model.BodyModel` (its first body of the batch).
+        yaw_deg: the body's facing [deg] (`place_garment_turned`).
         place_kwargs: passed to `place_garment`.
 
     Returns:
@@ -1513,7 +1542,9 @@ def a_pose_route(garment: GarmentMesh, body, **place_kwargs) -> PoseRoute | None
         return None
     a_pose = path.vertices[0].detach()
     arms = body.arm_joints(path.joints[0])
-    placed = place_garment(garment, a_pose.double(), body.faces, arm_joints=arms, **place_kwargs)
+    placed = place_garment_turned(
+        garment, a_pose.double(), body.faces, yaw_deg, arm_joints=arms, **place_kwargs
+    )
     return PoseRoute(vert_pos=placed.vert_pos, body_path=path.vertices.detach())
 
 
