@@ -29,6 +29,7 @@ LAYERS = {
     "assets": (3, "assets"),
     "motion": (3, "motion"),
     "fit_config": (3, "fit_config"),  # the fit's settings: the objective reads them
+    "sim_newton": (3, "sim_newton"),  # Newton's cloth on our sim model: synthetic scans' second physics
     "objective": (4, "objective"),
     "synthetic_scans": (4, "synthetic_scans"),
     "evaluation": (4, "evaluation"),
