@@ -222,6 +222,7 @@ class NewtonDrapeConfig:
         fps: frames per second [1/s]; substeps: VBD steps per frame; iterations: VBD iterations per step.
         max_frames: frames at most; min_frames: frames always run.
         speed_tol: at rest when the MEAN vertex speed is below this [m/s] ...
+        max_speed_tol: ... and the largest below this [m/s] ...
         settle_frames: ... for this many consecutive frames.
         velocity_scale: velocity factor per frame (mild artificial damping: it shortens the settle, not
             the resting shape).
@@ -235,9 +236,10 @@ class NewtonDrapeConfig:
     iterations: int = 5
     max_frames: int = 400
     min_frames: int = 30
-    speed_tol: float = 0.01
+    speed_tol: float = 0.005
+    max_speed_tol: float = 0.05
     settle_frames: int = 5
-    velocity_scale: float = 0.9
+    velocity_scale: float = 0.95
     contact_ke: float = 1.0e4
     contact_kd: float = 1.0e-2
     contact_gap: float = 0.02
@@ -471,7 +473,7 @@ def _settle(newton, nmodel, body_verts, body_faces, config: NewtonDrapeConfig) -
                 f"the Newton settle blew up at frame {frames} (max speed {speed.max():.3g} m/s)"
             )
         s0.particle_qd.assign(qd * config.velocity_scale)
-        calm = calm + 1 if speed.mean() < config.speed_tol else 0
+        calm = calm + 1 if speed.mean() < config.speed_tol and speed.max() < config.max_speed_tol else 0
         if frames >= config.min_frames and calm >= config.settle_frames:
             converged = True
             break
