@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 
 import pytest
-import torch
 
 pytest.importorskip("newton")
 
@@ -30,7 +29,7 @@ def newton_skirt(anny_model, tmp_path_factory):
 @pytest.mark.anny
 @pytest.mark.slow
 def test_truth_is_complete_and_eval_reads_it(newton_skirt, tmp_path):
-    from torch_diffavatar.assets import write_assets
+    from helpers_fit import write_truth_as_assets
 
     scan, _, folder = newton_skirt
     truth = folder / "truth"
@@ -39,19 +38,7 @@ def test_truth_is_complete_and_eval_reads_it(newton_skirt, tmp_path):
     info = json.loads((truth / "truth.json").read_text())
     assert info["simulator"] == "newton" and info["newton"]["waist_drop_m"] == 0.03
     assert {"raw", "conversion", "drape", "edge_strain", "chamfer_to_ours_drape_m"} <= set(info["newton"])
-    write_assets(  # assets that are the truth itself: eval reads the Newton truth like ours
-        tmp_path / "fit",
-        pattern=scan.pattern,
-        garment=scan.garment,
-        rest_uv=scan.garment.vert_uv,
-        draped_x=torch.as_tensor(scan.cloth_x),
-        body_verts=torch.as_tensor(scan.body_vertices),
-        body_faces=torch.as_tensor(scan.body_faces),
-        body_params=scan.body_params,
-        material=scan.material,
-        report={"inverted_rest_triangles": 0},
-        png_size=64,
-    )
+    write_truth_as_assets(scan, tmp_path / "fit", png_size=64)  # eval reads the Newton truth like ours
     out = evaluate_assets(tmp_path / "fit", folder)
     assert out["chamfer_truth_drape_m"] < 1e-4 and out["bending_stiffness_ratio"] == pytest.approx(1.0)
 
