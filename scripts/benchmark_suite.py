@@ -30,7 +30,7 @@ import torch
 DRAPED_BY = {
     "ours": "our simulator",
     "newton": "our simulator, then settled again by NVIDIA Newton's VBD cloth with a random material "
-    "(`make-scan --simulator newton`: stretch 2-10x softer or stiffer, bending 0.3-3x)",
+    "(`make-scan --simulator newton`: stretch 2-10x softer, bending 0.3-3x)",
 }
 DISCUSSION_MARKER = "<!-- discussion: hand-written, kept by benchmark_suite.py -->"
 ABLATIONS = {

@@ -93,13 +93,13 @@ def test_drawn_material_is_in_our_units_and_ranges():
         material, draws = sn.draw_material(np.random.default_rng(seed), 2.0e-5)
         s = draws["stretch_factor"]
         lo, hi = sn.STRETCH_FACTOR_RANGE
-        assert lo <= max(s, 1 / s) <= hi
+        assert lo <= 1 / s <= hi  # softer than ours
         assert material.k_uv == pytest.approx(s * base.k_uv)
         assert material.k_uu == pytest.approx(s * np.sqrt(base.k_uu * base.k_vv))
         assert sn.BEND_FACTOR_RANGE[0] <= material.bend_stiffness / 2.0e-5 <= sn.BEND_FACTOR_RANGE[1]
         assert sn.FRICTION_RANGE[0] <= material.friction <= sn.FRICTION_RANGE[1]
         factors.append(s)
-    assert min(factors) < 1 < max(factors)  # both sides
+    assert max(factors) / min(factors) > 2  # spread over the range
 
 
 def test_newton_scan_without_newton_says_how_to_install(monkeypatch, tmp_path, capsys):
