@@ -34,8 +34,14 @@ Newton's energies (read in ``newton/_src/solvers/vbd/particle_vbd_kernels.py``) 
   ``soft_contact_ke``, Coulomb friction ``soft_contact_mu`` = our ``friction``) at ``particle_radius`` =
   our ``thickness``. Gravity −9.81 m/s² along −Y.
 
-Limitations: no self-collision (as ours), Warp's CPU kernels run on one core (a 2 cm dress settles in
-minutes), and the first use compiles Warp's kernels (~30 s, cached in ~/.cache/warp).
+Waist-held garments (our ``attach_vertices``: skirts, trousers) slid off the body on contact and friction
+alone, and zero-length springs (or Newton's particle-body attachments) to fixed points did not hold them
+in Newton 1.8's VBD either, so their waist vertices are pinned (kinematic) on the body surface
+(`waist_anchors`).
+
+Limitations: no self-collision (as ours); stiff cloth does not settle at the affordable substeps (see
+`STRETCH_FACTOR_RANGE`); Warp's CPU kernels run on one core (a 2 cm dress settles in 2-5 minutes here),
+and the first use compiles Warp's kernels (~30 s, cached in ~/.cache/warp).
 """
 
 from __future__ import annotations
@@ -308,8 +314,8 @@ def lower_onto_body(
 ):
     """(Vs, 3) float64: ``x`` (Vs, 3) [m] moved down by ``drop`` [m], then every vertex that lands within
     ``thickness`` [m] of the body (or behind it) pushed out along its closest body triangle's normal.
-    A waist-held garment then starts lower on the hips (a lowered waist that is too narrow for the hips
-    starts stretched over them, and Newton's membrane decides where it rests)."""
+    A waist-held garment then starts lower on the hips (`waist_anchors` then pins its waist on the body
+    there)."""
     from torch_diffavatar.sim import collision
 
     xd = x.double().clone()
