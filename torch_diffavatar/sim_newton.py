@@ -234,8 +234,9 @@ class NewtonDrapeConfig:
         speed_tol: at rest when the MEAN vertex speed is below this [m/s] ...
         max_speed_tol: ... and the largest below this [m/s] ...
         settle_frames: ... for this many consecutive frames.
-        velocity_scale: velocity factor per frame (mild artificial damping: it shortens the settle, not
-            the resting shape).
+        velocity_scale: velocity factor per frame (artificial damping: it shortens the settle, not the
+            resting shape). At 0.95 a few vertices kept jittering at 8-11 cm/s for 400 frames (2 cm skirt and
+            T-shirt, 5 cm trousers: VBD's penalty contact); at 0.9 the trousers came to rest in 94 frames.
         contact_ke: body contact stiffness [N/m]; contact_kd: its damping [s].
         contact_gap: contact detection band beyond the particle radius [m] (detection once per frame).
         blow_up_speed: `SimulationError` when a vertex gets faster than this [m/s].
@@ -249,7 +250,7 @@ class NewtonDrapeConfig:
     speed_tol: float = 0.005
     max_speed_tol: float = 0.05
     settle_frames: int = 5
-    velocity_scale: float = 0.95
+    velocity_scale: float = 0.9
     contact_ke: float = 1.0e4
     contact_kd: float = 1.0e-2
     contact_gap: float = 0.02
