@@ -181,10 +181,11 @@ def material_from_newton(
 
 
 # [-] the random true material of a Newton scan, relative to our defaults (`draw_material`). The stretch is
-# 2-10x SOFTER only: at 8.4x stiffer (μ = 8.4e3, λ = 1.3e5 N/m) VBD at 10 substeps x 5 iterations per frame
-# did not settle a 2 cm dress in 400 frames (mean speed 1.4 cm/s, max 0.2 m/s, 46 vertices inside the body,
-# an edge stretched 80 %), nor a 4 cm skirt at 4.5x (3 iterations): the stiff side needs more substeps than
-# a CPU scan affords. At 0.12x the 2 cm dress settled in 111 frames, nothing inside the body.
+# 2-10x SOFTER only: at 8.45x stiffer (μ = 8.4e3, λ = 1.3e5 N/m) VBD at 10 substeps x 5 iterations per
+# frame did not settle a 2 cm dress in 400 frames (max speed 0.13 m/s, 57 vertices inside the body, edge
+# strains as large as at 0.25x: the stiffness is not resolved), nor a 2 cm skirt at 3x (max 6.7 cm/s): the
+# stiff side needs more substeps than a CPU scan affords. At 0.12x and 0.25x the dress settled (111-179
+# frames), nothing inside the body.
 STRETCH_FACTOR_RANGE = (2.0, 10.0)
 BEND_FACTOR_RANGE = (0.3, 3.0)
 FRICTION_RANGE = (0.2, 0.6)
