@@ -26,6 +26,12 @@ from pathlib import Path
 
 import torch
 
+# who drapes the scans' truth (``--simulator``), as the results page says it
+DRAPED_BY = {
+    "ours": "our simulator",
+    "newton": "our simulator, then settled again by NVIDIA Newton's VBD cloth with a random material "
+    "(`make-scan --simulator newton`: stretch 2-10x softer, bending 0.3-3x)",
+}
 DISCUSSION_MARKER = "<!-- discussion: hand-written, kept by benchmark_suite.py -->"
 ABLATIONS = {
     "w/o cage": {"cage": False},
@@ -121,6 +127,13 @@ def main() -> int:
     p.add_argument("--scan-spacing", type=float, default=0.02, help="drape spacing of the scans [m]")
     p.add_argument("--garment-points", type=int, default=40000, help="cloth samples of each scan")
     p.add_argument("--body-points", type=int, default=30000, help="skin samples of each scan")
+    p.add_argument(
+        "--simulator",
+        choices=("ours", "newton"),
+        default="ours",
+        help="who drapes the scans' truth: our simulator (default) or NVIDIA Newton's VBD cloth with a "
+        "random material (`make-scan --simulator newton`; needs the newton extra)",
+    )
     p.add_argument("--results", default="docs/RESULTS.md")
     args = p.parse_args()
     torch.set_num_threads(1)
@@ -150,6 +163,7 @@ def main() -> int:
                 spacing=args.scan_spacing,
                 garment_points=args.garment_points,
                 body_points=args.body_points,
+                simulator=args.simulator,
             )
             write_scan(scan, scan_dir)
             row["scan_seconds"] = time.perf_counter() - t0
@@ -247,8 +261,9 @@ def _write_results(path: Path, rows: list, ablations: list, args, started: str) 
         f"Command: `{cmd}` — started {started}, on the 2-core development machine (one thread).",
         "",
         f"Each scan: the garment's template with its hem raised {args.hem_up * 100:.0f} cm and widened "
-        f"{args.hem_widen * 100:.0f} %, bending stiffness 2e-5 N·m (4× the fit's start), draped by our "
-        f"simulator at {args.scan_spacing * 100:.0f} cm on a random Anny body (seed {args.seed}, phenotypes "
+        f"{args.hem_widen * 100:.0f} %, bending stiffness 2e-5 N·m (4× the fit's start), draped by "
+        f"{DRAPED_BY[args.simulator]} at {args.scan_spacing * 100:.0f} cm on a random Anny body "
+        f"(seed {args.seed}, phenotypes "
         f"uniform in [0.35, 0.65]), sampled as {args.garment_points // 1000}k cloth + "
         f"{args.body_points // 1000}k skin points, 3 mm noise, 10 % of the points "
         "cut away in holes plus a hole under each arm (`diffavatar make-scan`). The fit starts from the "

@@ -31,3 +31,23 @@ def fit_config(**kw) -> FitConfig:
     base = dict(template="skirt", iterations=3, lr_cage=0.01, lr_log_bend_stiffness=0.05, image_every=0)
     base.update(kw)
     return FitConfig(**base)
+
+
+def write_truth_as_assets(scan, folder, **kw) -> None:
+    """A fit output folder whose assets ARE the truth of the `DrapedScan` ``scan`` (its pattern, drape,
+    body and material); ``kw`` goes to `assets.write_assets` (``before``, ``png_size``)."""
+    from torch_diffavatar.assets import write_assets
+
+    write_assets(
+        folder,
+        pattern=scan.pattern,
+        garment=scan.garment,
+        rest_uv=scan.garment.vert_uv,
+        draped_x=torch.as_tensor(scan.cloth_x),
+        body_verts=torch.as_tensor(scan.body_vertices),
+        body_faces=torch.as_tensor(scan.body_faces),
+        body_params=scan.body_params,
+        material=scan.material,
+        report={"inverted_rest_triangles": 0},
+        **kw,
+    )

@@ -32,6 +32,7 @@ LAYERS = {
     "motion": (3, "motion"),
     "fit_config": (3, "fit_config"),  # the fit's settings: the objective reads them
     "capture": (3, "capture"),  # simulated depth captures: meshes in, points out (numpy)
+    "sim_newton": (3, "sim_newton"),  # Newton's cloth on our sim model: synthetic scans' second physics
     "objective": (4, "objective"),
     "synthetic_scans": (4, "synthetic_scans"),
     "captured_scans": (4, "synthetic_scans"),

@@ -88,22 +88,13 @@ def test_draped_scan_is_labelled_noisy_and_holey(skirt_scan):
 @pytest.mark.slow
 def test_eval_of_the_truth_itself_is_exact(skirt_scan, tmp_path, capsys):
     """Assets that *are* the truth: every error is ~0 and the scan Chamfer is at the noise level."""
-    from torch_diffavatar.assets import write_assets
-    from torch_diffavatar.sim.material import ClothMaterial
+    from helpers_fit import write_truth_as_assets
 
     scan = skirt_scan
     write_scan(scan, tmp_path / "gt")
-    write_assets(
+    write_truth_as_assets(
+        scan,
         tmp_path / "fit",
-        pattern=scan.pattern,
-        garment=scan.garment,
-        rest_uv=scan.garment.vert_uv,
-        draped_x=torch.as_tensor(scan.cloth_x),
-        body_verts=torch.as_tensor(scan.body_vertices),
-        body_faces=torch.as_tensor(scan.body_faces),
-        body_params=scan.body_params,
-        material=ClothMaterial(bend_stiffness=scan.bend_stiffness),
-        report={"inverted_rest_triangles": 0},
         # the "first drape": the garment as placed, before any simulation
         before=(
             scan.garment.sim_positions(),

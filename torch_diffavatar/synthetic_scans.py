@@ -12,13 +12,18 @@ Design changes act on the pattern's hem (the panel corners on the garment's bott
 the meshed template: ``hem``, ``hem_left``, ``hem_right``): ``hem_up`` raises them in their panels
 (shorter), ``hem_widen`` spreads them about their panel's hem centre (more flare).
 
-``diffavatar make-scan TEMPLATE --out DIR [--seed S] [...] --json`` is the command.
+With ``simulator="newton"`` the truth is not our simulator's: our drape (sewn and placed) is settled
+again by NVIDIA Newton's VBD cloth (`sim_newton`) with a random material drawn from the seed
+(`sim_newton.draw_material`), and ``truth/material.json`` holds that material in our units. A waist-held
+garment (skirt, trousers) starts ``waist_drop`` lower and its waist is pinned to the body surface there
+(`sim_newton.waist_anchors`).
+
+``diffavatar make-scan TEMPLATE --out DIR [--seed S] [--simulator newton] [...] --json`` is the command.
 """
 
 from __future__ import annotations
 
 import copy
-import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,12 +33,18 @@ import torch
 from scipy.spatial import cKDTree
 
 from torch_diffavatar.errors import InputError
+from torch_diffavatar.json_io import write_json
 
 HEM_LOOPS = ("hem", "hem_left", "hem_right")
 # Default range of the random phenotypes of `make_draped_scan` (each of the six, uniform).
 DEFAULT_PHENOTYPE_RANGE = (0.35, 0.65)
 # ``--pose random`` draws from seed + this offset, apart from the phenotypes' draws.
 POSE_SEED_OFFSET = 1000
+# The Newton truth's material and waist drop draw from seed + this offset (the scan's own draws unchanged).
+NEWTON_SEED_OFFSET = 2000
+SIMULATORS = ("ours", "newton")
+# [m] range of the random waist drop of a waist-held garment under ``simulator="newton"``
+WAIST_DROP_RANGE = (0.0, 0.08)
 
 
 def changed_pattern(pattern, hem_up: float = 0.0, hem_widen: float = 0.0, spacing: float = 0.03):
@@ -106,6 +117,7 @@ class DrapedScan:
         body_vertices: (Vb, 3) float64 true body [m]; body_faces: (Fb, 3) int64.
         body_params: `BodyModel.parameters_dict` of the true body; height: its standing height [m].
         bend_stiffness: true bending stiffness [N·m].
+        material: the true `ClothMaterial` (None: ``ClothMaterial(bend_stiffness=bend_stiffness)``).
         info: the settings and the drape's diagnostics (what `write_scan` puts in ``truth.json``).
     """
 
@@ -120,6 +132,7 @@ class DrapedScan:
     height: float
     bend_stiffness: float
     info: dict = field(default_factory=dict)
+    material: object = None
 
 
 def make_draped_scan(
@@ -139,6 +152,8 @@ def make_draped_scan(
     hole_fraction: float = 0.1,
     underarm_holes: bool = True,
     missing_bottom: float = 0.0,
+    simulator: str = "ours",
+    waist_drop: float | None = None,
 ) -> DrapedScan:
     """Drape a changed template on an Anny body and sample it like a real scan (see the module docstring).
 
@@ -156,21 +171,19 @@ def make_draped_scan(
         garment_points, body_points: samples on the cloth and on the uncovered skin (before holes). A
             real scanner gives far more; the cloth's 40k (about one per 4 mm on a dress) keep the scan ↔
             drape Chamfer's own floor from the point spacing near the noise (14k: a 6 mm floor).
+        simulator: ``"ours"`` or ``"newton"``; waist_drop [m]: `_newton_truth` (and the module docstring).
         noise: Gaussian noise sigma [m]. hole_fraction: fraction of the points cut away in round holes.
         underarm_holes: also cut a 7 cm hole under each arm. missing_bottom: drop points below this
             height [m] (0: keep all).
 
     Raises:
-        SimulationError: the drape failed (the message says why).
+        SimulationError: the drape failed (the message says why). InputError: bad settings / no Newton.
     """
     from torch_diffavatar.body.anny_model import load_anny
     from torch_diffavatar.pattern.library import resolve_pattern
 
-    for name, value in (("spacing", spacing), ("bend_stiffness", bend_stiffness)):
-        if not value > 0:
-            raise InputError(f"{name} must be > 0, got {value}")
     capture = _Capture(garment_points, body_points, noise, hole_fraction, underarm_holes, missing_bottom)
-    capture.check()
+    _check_settings(spacing, bend_stiffness, simulator, waist_drop, capture)
     t0 = time.perf_counter()
     rng = np.random.default_rng(seed)
     gen = torch.Generator().manual_seed(seed)
@@ -178,6 +191,9 @@ def make_draped_scan(
     body, out, normals, height = _posed_body(anny_model, phenotypes, pose, gen)
     pattern = changed_pattern(resolve_pattern(template), hem_up, hem_widen)
     garment, result = _drape_on_body(pattern, body, out, spacing, bend_stiffness)
+    result.x, material, newton_info = _final_drape(
+        simulator, garment, result, out, body, seed, bend_stiffness, waist_drop
+    )
     cloth, cloth_faces = result.x.double().numpy(), garment.sim_faces.numpy()
     bv, bf, bn = out.vertices[0].double().numpy(), body.faces.numpy(), normals.double().numpy()
     armpits = _armpits(out.joints[0].double().numpy(), anny_model.bone_labels)
@@ -195,9 +211,102 @@ def make_draped_scan(
         body_faces=bf,
         body_params=body.parameters_dict(),
         height=height,
-        bend_stiffness=bend_stiffness,
-        info=info,
+        bend_stiffness=float(material.bend_stiffness),
+        info=info | newton_info,  # with the Newton truth's keys ("simulator", "material", "newton")
+        material=material,
     )
+
+
+def _check_settings(spacing: float, bend_stiffness: float, simulator: str, waist_drop: float | None, capture):
+    """InputError for a bad setting of `make_draped_scan` (``capture``: its `_Capture`), or Newton missing
+    (checked before any work)."""
+    capture.check()
+    for name, value in (("spacing", spacing), ("bend_stiffness", bend_stiffness)):
+        if not value > 0:
+            raise InputError(f"{name} must be > 0, got {value}")
+    if simulator not in SIMULATORS:
+        raise InputError(f"unknown simulator {simulator!r}; use one of {', '.join(SIMULATORS)}")
+    if waist_drop is not None and (simulator != "newton" or not 0.0 <= waist_drop <= 0.3):
+        raise InputError(
+            f"waist_drop needs simulator='newton' and 0 <= waist_drop <= 0.3 m, got {waist_drop}"
+        )
+    if simulator == "newton":
+        from torch_diffavatar.sim_newton import import_newton
+
+        import_newton()
+
+
+def _strain_summary(strain: np.ndarray) -> dict:
+    """Mean, mean absolute, 99th percentile and max of (K,) edge strains [-]."""
+    return {
+        "mean": float(strain.mean()),
+        "mean_abs": float(np.abs(strain).mean()),
+        "p99": float(np.percentile(strain, 99)),
+        "max": float(strain.max()),
+    }
+
+
+def _material_summary(material) -> dict:
+    """``{field: float}`` of a `ClothMaterial`."""
+    from torch_diffavatar.assets import material_dict
+
+    return {k: v["value"] for k, v in material_dict(material).items()}
+
+
+def _final_drape(
+    simulator: str, garment, result, out, body, seed: int, bend_stiffness: float, waist_drop: float | None
+):
+    """The truth's final drape. ``"ours"``: our drape ``result`` of ``garment`` as it is, with our material
+    of stiffness ``bend_stiffness`` [N·m]. ``"newton"``: it settled again on the `BodyModel` ``body``
+    (``out``: its output) by Newton's VBD with a random material about ``bend_stiffness`` (`sim_newton`),
+    drawn from ``seed`` + `NEWTON_SEED_OFFSET`; ``waist_drop`` [m]: how much lower a waist-held garment
+    sits (None: random in `WAIST_DROP_RANGE`; 0 for other garments).
+
+    Returns:
+        (Vs, 3) float32 drape [m], the true `ClothMaterial` (our units), the extra ``truth.json`` keys.
+    """
+    from torch_diffavatar.sim.material import ClothMaterial
+
+    if simulator == "ours":
+        return result.x, ClothMaterial(bend_stiffness=bend_stiffness), {}
+    from torch_diffavatar import sim_newton as sn
+    from torch_diffavatar.chamfer import sample_surface, surface_chamfer_m
+
+    rng = np.random.default_rng(seed + NEWTON_SEED_OFFSET)
+    body_verts, body_faces = out.vertices[0], body.faces
+    model, uv = result.model, garment.vert_uv
+    material, factors = sn.draw_material(rng, bend_stiffness)
+    held = model.attach_vertices
+    if waist_drop is None:
+        waist_drop = float(rng.uniform(*WAIST_DROP_RANGE)) if len(held) else 0.0
+    weight, length = sn.edge_geometry(model, uv)
+    newton_material = sn.material_to_newton(material, weight, length)
+    x0 = sn.lower_onto_body(result.x, waist_drop, body_verts, body_faces, material.thickness)
+    targets = sn.waist_anchors(x0, held, body_verts, body_faces, material.thickness) if len(held) else None
+    drape = sn.newton_drape(
+        model, uv, x0, body_verts, body_faces, newton_material, attach_vertices=held, attach_targets=targets
+    )
+    strain_newton = sn.pattern_edge_strain(drape.x, model, uv)
+    strain_ours = sn.pattern_edge_strain(result.x, model, uv)
+    faces = garment.sim_faces
+    ours_samples = sample_surface(
+        result.x.double(), faces, 20000, generator=torch.Generator().manual_seed(seed)
+    )
+    chamfer = surface_chamfer_m(drape.x, faces, ours_samples)["symmetric"]
+    record = {
+        "raw": newton_material.summary(),
+        "conversion": "torch_diffavatar.sim_newton: k_uu = k_vv = tri_ka + 2 tri_ke, k_uv = tri_ke, "
+        "poisson = tri_ka / (tri_ka + 2 tri_ke); bend_stiffness = edge_ke |e| / (3|e|^2/(A1+A2))",
+        "solver": "SolverVBD (stable Neo-Hookean membrane, dihedral bending, penalty contact + friction)",
+        "draws": factors,
+        "waist_drop_m": waist_drop,
+        "waist_pinned_vertices": int(len(held)),
+        "drape": drape.diagnostics(),
+        "edge_strain": {"newton": _strain_summary(strain_newton), "ours": _strain_summary(strain_ours)},
+        "chamfer_to_ours_drape_m": float(chamfer),
+    }
+    info = {"simulator": "newton", "material": dict(_material_summary(material), unit="SI (ClothMaterial)")}
+    return drape.x.float(), material, dict(info, newton=record)
 
 
 @dataclass(frozen=True)
@@ -438,9 +547,9 @@ def write_scan(scan: DrapedScan, out_dir, *, capture=None) -> dict[str, str]:
         )
     save_pattern(scan.pattern, paths["pattern"])
     write_obj(paths["body_obj"], scan.body_vertices, scan.body_faces)
-    paths["body_json"].write_text(json.dumps(scan.body_params, indent=1))
-    material = ClothMaterial(bend_stiffness=scan.bend_stiffness)
-    paths["material"].write_text(json.dumps(material_dict(material), indent=1))
+    write_json(paths["body_json"], scan.body_params)
+    material = ClothMaterial(bend_stiffness=scan.bend_stiffness) if scan.material is None else scan.material
+    write_json(paths["material"], material_dict(material))
     write_obj(paths["draped_obj"], scan.cloth_x, scan.garment.sim_faces.numpy())
-    paths["truth"].write_text(json.dumps(scan.info, indent=1))
+    write_json(paths["truth"], scan.info)
     return {k: str(v) for k, v in paths.items()}

@@ -7,7 +7,7 @@ from pathlib import Path
 import torch
 
 from torch_diffavatar.errors import InputError, read_json_file
-from torch_diffavatar.synthetic_scans import POSE_SEED_OFFSET, make_draped_scan, write_scan
+from torch_diffavatar.synthetic_scans import POSE_SEED_OFFSET, SIMULATORS, make_draped_scan, write_scan
 
 # ``--yaw random`` draws from (seed, this), apart from the scan's and the capture's draws.
 YAW_SEED_OFFSET = 2001
@@ -42,6 +42,20 @@ def register(subparsers) -> None:
     p.add_argument("--missing-bottom", type=float, default=0.0, help="drop points below this height [m]")
     p.add_argument("--garment-points", type=int, default=40000, help="cloth samples before holes (40000)")
     p.add_argument("--body-points", type=int, default=30000, help="skin samples before holes (30000)")
+    p.add_argument(
+        "--simulator",
+        choices=SIMULATORS,
+        default="ours",
+        help="who makes the truth's final drape: 'ours' (default) or 'newton' (NVIDIA Newton's VBD cloth "
+        'with a random material from --seed; needs pip install -e ".[newton]")',
+    )
+    p.add_argument(
+        "--waist-drop",
+        type=float,
+        default=None,
+        help="with --simulator newton: a skirt / trousers sits this much lower on the body [m] (default: "
+        "random in [0, 0.08] from --seed; 0 for other garments)",
+    )
     p.add_argument("--json", action="store_true", help="print the ground-truth summary as one JSON line")
     _capture_args(p)
     p.set_defaults(func=_make_scan_command)
@@ -168,6 +182,8 @@ def _make_scan_command(args) -> dict:
         missing_bottom=args.missing_bottom,
         garment_points=args.garment_points,
         body_points=args.body_points,
+        simulator=args.simulator,
+        waist_drop=args.waist_drop,
     )
     captured = None
     if settings is not None:

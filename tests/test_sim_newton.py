@@ -1,0 +1,116 @@
+"""The conversion between Newton's cloth parameters and ours (`sim_newton`), and the clear error when
+Newton is missing. Needs neither Newton nor Anny."""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from torch_diffavatar import sim_newton as sn
+from torch_diffavatar.cli import main
+from torch_diffavatar.geometry import triangle_green_strain
+from torch_diffavatar.sim.constraints import membrane_stiffness
+from torch_diffavatar.sim.material import ClothMaterial
+
+
+def _newton_membrane_density(f: np.ndarray, mu: float, lam: float) -> float:
+    """Newton's stable Neo-Hookean membrane energy per rest area [J/m²] of F (3, 2)
+    (``evaluate_neo_hookean_membrane_force_hessian`` in newton's VBD kernels), less its value at rest
+    (``μ²/(2λ')``: the stable Neo-Hookean energy is not 0 at F = I, its stress is)."""
+    lam_nh = lam + mu
+    alpha = 1.0 + mu / lam_nh
+    j = np.linalg.norm(np.cross(f[:, 0], f[:, 1]))
+    rest = 0.5 * lam_nh * (1.0 - alpha) ** 2
+    return 0.5 * mu * (np.sum(f * f) - 2.0) + 0.5 * lam_nh * (j - alpha) ** 2 - rest
+
+
+def test_membrane_round_trip():
+    for mu, lam in ((1.0e3, 1.5e4), (4.0e3, 0.0), (250.0, 3.3e3)):
+        ours = sn.membrane_from_newton(mu, lam)
+        assert sn.membrane_to_newton(ours["k_uu"], ours["k_vv"], ours["k_uv"]) == pytest.approx((mu, lam))
+    # ours -> Newton keeps the shear and the geometric mean of the axial stiffnesses
+    mu, lam = sn.membrane_to_newton(2.0e4, 1.5e4, 1.0e3)
+    assert mu == 1.0e3 and lam + 2 * mu == pytest.approx(np.sqrt(2.0e4 * 1.5e4))
+
+
+def test_membrane_energies_agree_at_small_strain():
+    """Our StVK energy with the converted material equals Newton's Neo-Hookean one to second order."""
+    mu, lam = 2.0e3, 1.2e4
+    material = ClothMaterial(**sn.membrane_from_newton(mu, lam))
+    k = membrane_stiffness(material, torch.zeros((), dtype=torch.float64))
+    rng = np.random.default_rng(0)
+    for eps in (1e-2, 1e-3):
+        for _ in range(5):
+            f = np.eye(3, 2) + eps * rng.normal(size=(3, 2))  # F = D D̄⁻¹ of a rest triangle
+            rest_inv = torch.eye(2, dtype=torch.float64)  # rest edges: the unit axes from corner 2
+            x = torch.zeros(3, 3, dtype=torch.float64)
+            x[0] = torch.from_numpy(f[:, 0])
+            x[1] = torch.from_numpy(f[:, 1])
+            c = triangle_green_strain(x[None], rest_inv[None])[0]  # [E00, E11, E01]
+            ours = float(0.5 * c @ k @ c)
+            newton = _newton_membrane_density(f, mu, lam)
+            assert ours == pytest.approx(newton, rel=30 * eps)
+
+
+def test_bending_and_material_round_trip():
+    rng = np.random.default_rng(1)
+    weight, length = rng.uniform(1.0, 4.0, 50), rng.uniform(0.01, 0.03, 50)
+    edge_ke = sn.bend_to_newton(3.0e-5, weight, length)
+    # equal energies per edge: ½ edge_ke |e| θ² = ½ k_b w θ²
+    np.testing.assert_allclose(edge_ke * length, 3.0e-5 * weight)
+    assert sn.bend_from_newton(edge_ke, weight, length) == pytest.approx(3.0e-5)
+    mu, lam = 800.0, 9.0e3
+    material = ClothMaterial(
+        areal_density=0.2,
+        **sn.membrane_from_newton(mu, lam),
+        bend_stiffness=7e-6,
+        friction=0.3,
+        thickness=0.004,
+    )
+    newton = sn.material_to_newton(material, weight, length)
+    assert (newton.tri_ke, newton.tri_ka) == pytest.approx((mu, lam))
+    back = sn.material_from_newton(newton, weight, length)
+    for name in (
+        "areal_density",
+        "k_uu",
+        "k_vv",
+        "k_uv",
+        "poisson",
+        "bend_stiffness",
+        "friction",
+        "thickness",
+    ):
+        assert float(getattr(back, name)) == pytest.approx(float(getattr(material, name)))
+
+
+def test_drawn_material_is_in_our_units_and_ranges():
+    base = ClothMaterial()
+    factors = []
+    for seed in range(40):
+        material, draws = sn.draw_material(np.random.default_rng(seed), 2.0e-5)
+        s = draws["stretch_factor"]
+        lo, hi = sn.STRETCH_FACTOR_RANGE
+        assert lo <= 1 / s <= hi  # softer than ours
+        assert material.k_uv == pytest.approx(s * base.k_uv)
+        assert material.k_uu == pytest.approx(s * np.sqrt(base.k_uu * base.k_vv))
+        assert sn.BEND_FACTOR_RANGE[0] <= material.bend_stiffness / 2.0e-5 <= sn.BEND_FACTOR_RANGE[1]
+        assert sn.FRICTION_RANGE[0] <= material.friction <= sn.FRICTION_RANGE[1]
+        factors.append(s)
+    assert max(factors) / min(factors) > 2  # spread over the range
+
+
+def test_newton_scan_without_newton_says_how_to_install(monkeypatch, tmp_path, capsys):
+    monkeypatch.setitem(sys.modules, "newton", None)  # `import newton` now raises ImportError
+    code = main(["make-scan", "skirt", "--out", str(tmp_path / "s"), "--simulator", "newton"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code != 0 and len(err) == 1
+    assert 'pip install -e ".[newton]"' in err[0]
+    assert not (tmp_path / "s").exists()
+
+
+def test_waist_drop_needs_newton(tmp_path, capsys):
+    code = main(["make-scan", "skirt", "--out", str(tmp_path / "s"), "--waist-drop", "0.05"])
+    assert code != 0 and "waist_drop" in capsys.readouterr().err

@@ -1,0 +1,503 @@
+"""A second cloth physics: settle a sewn garment with NVIDIA Newton's VBD solver (Newton 1.8.0, Warp 1.19.0).
+
+`diffavatar make-scan --simulator newton` uses it so that a synthetic scan's truth is NOT made by the
+simulator a fit inverts (which would hide model error). Newton and Warp are optional (the ``newton``
+extra: ``pip install -e ".[newton]"``) and are imported only inside the functions that need them.
+
+The Newton model is built on our sewn, seam-merged garment (`ClothModel` of `sew_and_drape`'s result):
+particles at our drape, triangles = our triangles, and the REST shape from the pattern, per triangle:
+a merged seam vertex has different (u, v) in its two panels, so each triangle's rest matrix and area
+(Newton's ``tri_poses``, ``tri_areas``) are set from its own panel's 2D coordinates, the bending rest
+angles are 0 (a flat pattern), and the particle masses are our lumped ``density × rest area / 3``.
+
+Newton's energies (read in ``newton/_src/solvers/vbd/particle_vbd_kernels.py``) and ours:
+
+* Membrane. Newton's VBD triangle is the *stable Neo-Hookean* membrane of Smith et al. 2018 (not StVK):
+  per rest area ``ψ = μ/2 (I_c − 2) + λ'/2 (J − α)²`` with ``I_c = tr FᵀF``, ``J = |f0 × f1|``,
+  ``λ' = λ + μ``, ``α = 1 + μ/λ'``, where ``μ = tri_ke`` and ``λ = tri_ka`` [N/m] are 2D Lamé moduli.
+  Expanded to second order in the Green strain E = ½(FᵀF − I) it is
+  ``ψ ≈ (λ+2μ)/2 (E00² + E11²) + λ E00 E11 + 2μ E01²``.
+  Ours (`ClothMaterial`, `sim/constraints.py`): ``ψ = ½ k_uu E00² + ½ k_vv E11² + ν√(k_uu k_vv) E00 E11
+  + 2 k_uv E01²``. So Newton → ours is exact at small strain: ``k_uu = k_vv = λ + 2μ``, ``k_uv = μ``,
+  ``ν = λ/(λ + 2μ)`` (`membrane_from_newton`). Newton's membrane is isotropic, ours orthotropic: ours →
+  Newton (`membrane_to_newton`) keeps the shear ``μ = k_uv`` and the geometric mean of the axial
+  stiffnesses ``λ + 2μ = √(k_uu k_vv)`` (λ clamped at 0) and drops ν; it inverts `membrane_from_newton`
+  exactly (the round trip Newton → ours → Newton is the identity, and ours → Newton → ours is for an
+  isotropic material of ours with ν = (k − 2k_uv)/k). Large strains differ (Neo-Hookean vs StVK): that,
+  the solver and the contact model are the "other physics".
+* Bending. Newton's dihedral energy per interior edge is ``½ edge_ke · |ē| (θ − θ̄)²`` (``|ē|`` =
+  ``edge_rest_length``, edge_ke in N); ours is ``½ k_b · w (θ − θ̄)²`` with ``w = 3|ē|²/(Ā1 + Ā2)``
+  (`constraints.edge_bend_weight`). Newton takes one stiffness per edge, so with Newton's rest length set
+  to ours the energies are equal for ``edge_ke = k_b w / |ē|`` (`bend_to_newton`); back,
+  ``k_b = edge_ke |ē| / w`` (`bend_from_newton`, the mean over the edges).
+* Mass: ``density`` [kg/m²] = our ``areal_density``. Contact: Newton's penalty contact (stiffness
+  ``soft_contact_ke``, Coulomb friction ``soft_contact_mu`` = our ``friction``) at ``particle_radius`` =
+  our ``thickness``. Gravity −9.81 m/s² along −Y.
+
+Waist-held garments (our ``attach_vertices``: skirts, trousers) slid off the body on contact and friction
+alone, and zero-length springs (or Newton's particle-body attachments) to fixed points did not hold them
+in Newton 1.8's VBD either, so their waist vertices are pinned (kinematic) on the body surface
+(`waist_anchors`).
+
+Limitations: no self-collision (as ours); stiff cloth does not settle at the affordable substeps (see
+`STRETCH_FACTOR_RANGE`); Warp's CPU kernels run on one core (a 2 cm dress settles in 2-5 minutes here),
+and the first use compiles Warp's kernels (~30 s, cached in ~/.cache/warp).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from torch_diffavatar.errors import InputError, SimulationError
+from torch_diffavatar.sim.material import ClothMaterial
+
+NEWTON_INSTALL = 'pip install -e ".[newton]"'
+# [m/s²] Newton's default gravity along -up (the model is built Y up)
+GRAVITY = 9.81
+
+
+def import_newton():
+    """(warp, newton), Warp's banner silenced; `InputError` naming the install command when missing."""
+    try:
+        import warp as wp
+
+        wp.config.log_level = wp.LOG_WARNING  # before newton initialises Warp
+        import newton
+    except ImportError as exc:
+        raise InputError(
+            f"--simulator newton needs NVIDIA Newton and Warp ({exc.name or exc} is missing): "
+            f"install them with {NEWTON_INSTALL}"
+        ) from exc
+    return wp, newton
+
+
+# ---------------------------------------------------------------------------------------------------
+# parameters: ours <-> Newton's (see the module docstring)
+# ---------------------------------------------------------------------------------------------------
+
+
+def membrane_to_newton(k_uu: float, k_vv: float, k_uv: float) -> tuple[float, float]:
+    """Our membrane stiffnesses [N/m] -> Newton's (tri_ke = μ, tri_ka = λ) [N/m]: μ = k_uv and
+    λ + 2μ = √(k_uu k_vv) (λ >= 0); our Poisson coupling has no counterpart and is dropped."""
+    mu = float(k_uv)
+    lam = max(float(np.sqrt(k_uu * k_vv)) - 2.0 * mu, 0.0)
+    return mu, lam
+
+
+def membrane_from_newton(tri_ke: float, tri_ka: float) -> dict[str, float]:
+    """Newton's (tri_ke = μ, tri_ka = λ) [N/m] -> our ``k_uu, k_vv, k_uv`` [N/m] and ``poisson`` [-] with
+    the same energy to second order in the strain."""
+    axial = float(tri_ka) + 2.0 * float(tri_ke)
+    return {"k_uu": axial, "k_vv": axial, "k_uv": float(tri_ke), "poisson": float(tri_ka) / axial}
+
+
+def bend_to_newton(bend_stiffness: float, edge_weight: np.ndarray, edge_length: np.ndarray) -> np.ndarray:
+    """(E,) Newton edge_ke [N] of our k_b [N·m] on edges with weights ``3|ē|²/(Ā1+Ā2)`` (E,) [-] and
+    rest lengths (E,) [m]."""
+    return float(bend_stiffness) * np.asarray(edge_weight) / np.asarray(edge_length)
+
+
+def bend_from_newton(edge_ke: np.ndarray, edge_weight: np.ndarray, edge_length: np.ndarray) -> float:
+    """Our k_b [N·m] of Newton's (E,) edge_ke [N]: the mean of ``edge_ke |ē| / w`` (exact when uniform)."""
+    return float(np.mean(np.asarray(edge_ke) * np.asarray(edge_length) / np.asarray(edge_weight)))
+
+
+@dataclass(frozen=True)
+class NewtonMaterial:
+    """Newton's raw cloth parameters (VBD).
+
+    Attributes:
+        tri_ke: membrane Lamé μ [N/m]; tri_ka: Lamé λ [N/m]; tri_kd: membrane damping [s].
+        edge_ke: (E,) bending stiffness per interior edge of the model [N]; edge_kd: bending damping [s].
+        density: mass per rest area [kg/m²].
+        soft_contact_mu: cloth-body Coulomb friction [-]; particle_radius: contact thickness [m].
+    """
+
+    tri_ke: float
+    tri_ka: float
+    tri_kd: float
+    edge_ke: np.ndarray
+    edge_kd: float
+    density: float
+    soft_contact_mu: float
+    particle_radius: float
+
+    def summary(self) -> dict:
+        """JSON-friendly raw parameters (edge_ke as its mean, min and max)."""
+        return {
+            "tri_ke_N_per_m": self.tri_ke,
+            "tri_ka_N_per_m": self.tri_ka,
+            "tri_kd_s": self.tri_kd,
+            "edge_ke_N": {
+                "mean": float(np.mean(self.edge_ke)),
+                "min": float(np.min(self.edge_ke)),
+                "max": float(np.max(self.edge_ke)),
+            },
+            "edge_kd_s": self.edge_kd,
+            "density_kg_per_m2": self.density,
+            "soft_contact_mu": self.soft_contact_mu,
+            "particle_radius_m": self.particle_radius,
+        }
+
+
+def material_to_newton(
+    material: ClothMaterial,
+    edge_weight: np.ndarray,
+    edge_length: np.ndarray,
+    *,
+    tri_kd: float = 1.0e-5,
+    edge_kd: float = 0.0,
+) -> NewtonMaterial:
+    """Our `ClothMaterial` (floats) on edges (E,) weights / (E,) rest lengths [m] -> `NewtonMaterial`."""
+    mu, lam = membrane_to_newton(float(material.k_uu), float(material.k_vv), float(material.k_uv))
+    return NewtonMaterial(
+        tri_ke=mu,
+        tri_ka=lam,
+        tri_kd=tri_kd,
+        edge_ke=bend_to_newton(float(material.bend_stiffness), edge_weight, edge_length),
+        edge_kd=edge_kd,
+        density=float(material.areal_density),
+        soft_contact_mu=float(material.friction),
+        particle_radius=float(material.thickness),
+    )
+
+
+def material_from_newton(
+    newton_material: NewtonMaterial, edge_weight: np.ndarray, edge_length: np.ndarray
+) -> ClothMaterial:
+    """`NewtonMaterial` -> our `ClothMaterial` (damping left at ours: Newton's damps differently)."""
+    m = newton_material
+    return ClothMaterial(
+        areal_density=m.density,
+        **membrane_from_newton(m.tri_ke, m.tri_ka),
+        bend_stiffness=bend_from_newton(m.edge_ke, edge_weight, edge_length),
+        friction=m.soft_contact_mu,
+        thickness=m.particle_radius,
+    )
+
+
+# [-] the random true material of a Newton scan, relative to our defaults (`draw_material`). The stretch is
+# 2-10x SOFTER only: at 8.45x stiffer (μ = 8.4e3, λ = 1.3e5 N/m) VBD at 10 substeps x 5 iterations per
+# frame did not settle a 2 cm dress in 400 frames (max speed 0.13 m/s, 57 vertices inside the body, edge
+# strains as large as at 0.25x: the stiffness is not resolved), nor a 2 cm skirt at 3x (max 6.7 cm/s): the
+# stiff side needs more substeps than a CPU scan affords. At 0.12x and 0.25x the dress settled (111-179
+# frames), nothing inside the body.
+STRETCH_FACTOR_RANGE = (2.0, 10.0)
+BEND_FACTOR_RANGE = (0.3, 3.0)
+FRICTION_RANGE = (0.2, 0.6)
+
+
+def draw_material(rng: np.random.Generator, bend_stiffness: float, base: ClothMaterial | None = None):
+    """A random true material in our units, with an exact Newton counterpart (isotropic membrane).
+
+    The stretch (Newton's μ and λ + 2μ, i.e. our k_uv and √(k_uu k_vv)) is ``s`` × ``base``'s, softer:
+    ``1/s`` log-uniform in `STRETCH_FACTOR_RANGE` (see there why not stiffer);
+    the bending is ``bend_stiffness`` [N·m] × a log-uniform factor in `BEND_FACTOR_RANGE`; the friction
+    uniform in `FRICTION_RANGE`. Density and thickness stay ``base``'s (default `ClothMaterial()`).
+
+    Returns:
+        (the `ClothMaterial`, ``{"stretch_factor": s, "bend_factor": b}``).
+    """
+    base = ClothMaterial() if base is None else base
+    lo, hi = np.log(STRETCH_FACTOR_RANGE)
+    s = float(np.exp(-rng.uniform(lo, hi)))
+    b = float(np.exp(rng.uniform(*np.log(BEND_FACTOR_RANGE))))
+    friction = float(rng.uniform(*FRICTION_RANGE))
+    mu, lam = membrane_to_newton(
+        s * float(base.k_uu), s * float(base.k_vv), s * float(base.k_uv)
+    )  # on the isotropic subset, where both directions are exact
+    material = ClothMaterial(
+        areal_density=float(base.areal_density),
+        **membrane_from_newton(mu, lam),
+        bend_stiffness=b * bend_stiffness,
+        friction=friction,
+        thickness=float(base.thickness),
+    )
+    return material, {"stretch_factor": s, "bend_factor": b}
+
+
+# ---------------------------------------------------------------------------------------------------
+# the Newton drape
+# ---------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class NewtonDrapeConfig:
+    """How `newton_drape` steps Newton's VBD solver.
+
+    Attributes:
+        fps: frames per second [1/s]; substeps: VBD steps per frame; iterations: VBD iterations per step.
+        max_frames: frames at most; min_frames: frames always run.
+        speed_tol: at rest when the MEAN vertex speed is below this [m/s] ...
+        max_speed_tol: ... and the largest below this [m/s] ...
+        settle_frames: ... for this many consecutive frames.
+        velocity_scale: velocity factor per frame (artificial damping: it shortens the settle, not the
+            resting shape). At 0.95 a few vertices kept jittering at 8-11 cm/s for 400 frames (2 cm skirt and
+            T-shirt, 5 cm trousers: VBD's penalty contact); at 0.9 the trousers came to rest in 94 frames.
+        contact_ke: body contact stiffness [N/m]; contact_kd: its damping [s].
+        contact_gap: contact detection band beyond the particle radius [m] (detection once per frame).
+        blow_up_speed: `SimulationError` when a vertex gets faster than this [m/s].
+    """
+
+    fps: float = 60.0
+    substeps: int = 10
+    iterations: int = 5
+    max_frames: int = 400
+    min_frames: int = 30
+    speed_tol: float = 0.005
+    max_speed_tol: float = 0.05
+    settle_frames: int = 5
+    velocity_scale: float = 0.9
+    contact_ke: float = 1.0e4
+    contact_kd: float = 1.0e-2
+    contact_gap: float = 0.02
+    blow_up_speed: float = 20.0
+
+
+@dataclass
+class NewtonDrapeResult:
+    """Outcome of `newton_drape`.
+
+    Attributes:
+        x: (Vs, 3) float64 final positions [m]; frames: frames run; seconds: wall time of the settle [s];
+        mean_speed, max_speed: vertex speeds at the end [m/s]; converged: the speed criterion was met;
+        penetrating_count: cloth vertices behind the plane of their closest body triangle (5 cm band).
+    """
+
+    x: torch.Tensor
+    frames: int
+    seconds: float
+    mean_speed: float
+    max_speed: float
+    converged: bool
+    penetrating_count: int
+
+    def diagnostics(self) -> dict:
+        """JSON-friendly figures (without ``x``)."""
+        return {
+            "frames": self.frames,
+            "seconds": round(self.seconds, 2),
+            "mean_speed_m_per_s": self.mean_speed,
+            "max_speed_m_per_s": self.max_speed,
+            "converged": self.converged,
+            "penetrating_count": self.penetrating_count,
+        }
+
+
+def edge_geometry(model, rest_uv: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """(E,) bending weights ``3|ē|²/(Ā1+Ā2)`` [-] and (E,) rest lengths [m] of ``model``'s interior edges
+    (`ClothModel`), from the (V, 2) panel rest coordinates [m] (the length: the root mean square of the
+    edge's lengths in its two panels)."""
+    rest = model.rest_data(rest_uv.to(model.dtype))
+    u = rest_uv.double()[model.edge_panel_vertices.cpu()]  # (E, 4, 2)
+    sq = 0.5 * (((u[:, 1] - u[:, 0]) ** 2).sum(-1) + ((u[:, 3] - u[:, 2]) ** 2).sum(-1))
+    return rest.edge_weight.double().cpu().numpy(), sq.sqrt().numpy()
+
+
+def pattern_edge_strain(x: torch.Tensor, model, rest_uv: torch.Tensor) -> np.ndarray:
+    """(3F,) strain ``|e| / |ē| − 1`` [-] of every triangle edge at positions ``x`` (Vs, 3) [m] against
+    its rest length in its own panel (``rest_uv`` (V, 2) [m]; ``model``: the `ClothModel`)."""
+    tri, tri_panel = model.tri_vertices.cpu(), model.tri_panel_vertices.cpu()
+    xd, ud = x.double().cpu(), rest_uv.double().cpu()
+    out = []
+    for a, b in ((0, 1), (1, 2), (2, 0)):
+        length = (xd[tri[:, a]] - xd[tri[:, b]]).norm(dim=1)
+        rest = (ud[tri_panel[:, a]] - ud[tri_panel[:, b]]).norm(dim=1)
+        out.append(length / rest - 1.0)
+    return torch.cat(out).numpy()
+
+
+def lower_onto_body(
+    x: torch.Tensor, drop: float, body_verts: torch.Tensor, body_faces: torch.Tensor, thickness
+):
+    """(Vs, 3) float64: ``x`` (Vs, 3) [m] moved down by ``drop`` [m], then every vertex that lands within
+    ``thickness`` [m] of the body (or behind it) pushed out along its closest body triangle's normal.
+    A waist-held garment then starts lower on the hips (`waist_anchors` then pins its waist on the body
+    there)."""
+    from torch_diffavatar.sim import collision
+
+    xd = x.double().clone()
+    xd[:, 1] -= drop
+    bv, bf = body_verts.double(), body_faces
+    for _ in range(3):  # a push along one face normal can land near another face: repeat
+        contacts = collision.detect_contacts(xd, bv, bf, 0.05)
+        if contacts.count == 0:
+            break
+        xd, _, _ = collision.project_contacts(
+            xd, torch.ones(len(xd), dtype=xd.dtype), bv, bf, contacts, thickness
+        )
+    return xd
+
+
+def waist_anchors(
+    x: torch.Tensor,
+    attach_vertices: torch.Tensor,
+    body_verts: torch.Tensor,
+    body_faces: torch.Tensor,
+    thickness,
+) -> np.ndarray:
+    """(A, 3) float64 [m]: for each waist vertex ``attach_vertices`` (A,) of ``x`` (Vs, 3) [m], the closest
+    point of the body surface, ``thickness`` [m] out along its face normal: where `newton_drape` holds it.
+
+    Newton's contact and friction alone do not hold a skirt whose waistband is wider than the hips: the
+    template skirt (84 cm band) on the seed-1 body slid to the floor in 577 frames. The garment is then
+    pinned there (Newton 1.8's VBD springs to kinematic anchor particles did not hold it: the waist fell
+    as if they were absent; ours holds the waist at a height, away from the body)."""
+    from torch_diffavatar.sim import collision
+
+    xa = x.double()[attach_vertices.cpu()]
+    bv = body_verts.double()
+    contacts = collision.detect_contacts(xa, bv, body_faces, 1.0)
+    if contacts.count != len(xa):
+        raise SimulationError("a waist vertex is more than 1 m from the body: cannot hold it there")
+    point, normal = collision.contact_frames(bv, body_faces, contacts)
+    out = np.zeros((len(xa), 3))
+    out[contacts.vert.numpy()] = (point + float(thickness) * normal).numpy()
+    return out
+
+
+def newton_drape(
+    model,
+    rest_uv: torch.Tensor,
+    x: torch.Tensor,
+    body_verts: torch.Tensor,
+    body_faces: torch.Tensor,
+    material: NewtonMaterial,
+    config: NewtonDrapeConfig | None = None,
+    *,
+    attach_vertices: torch.Tensor | None = None,
+    attach_targets: np.ndarray | None = None,
+) -> NewtonDrapeResult:
+    """Settle the garment with Newton's VBD cloth until it rests (see the module docstring).
+
+    Args:
+        model: our seam-merged `ClothModel` (topology, edges, panel vertices): ``sew_and_drape(...).model``.
+        rest_uv: (V, 2) panel-vertex rest coordinates [m].
+        x: (Vs, 3) start positions [m] (e.g. our drape, at rest).
+        body_verts: (Vb, 3) static body [m]; body_faces: (Fb, 3) int64.
+        material: Newton's parameters (``edge_ke`` one per edge of ``model``).
+        config: stepping options.
+        attach_vertices: (A,) int64 simulated vertices held fixed at ``attach_targets`` (A, 3) [m]
+            (`waist_anchors`: on the body surface); default none.
+
+    Raises:
+        InputError: Newton is not installed. SimulationError: the settle blew up.
+    """
+    config = NewtonDrapeConfig() if config is None else config
+    _, newton = import_newton()
+    if len(material.edge_ke) != model.edge_count:
+        raise ValueError(
+            f"material.edge_ke has {len(material.edge_ke)} values, the model {model.edge_count} edges"
+        )
+    attach = (
+        None if attach_vertices is None or not len(attach_vertices) else (attach_vertices, attach_targets)
+    )
+    nmodel = _build_model(newton, model, rest_uv, x, body_verts, body_faces, material, config, attach)
+    return _settle(newton, nmodel, body_verts, body_faces, config)
+
+
+def _build_model(
+    newton, model, rest_uv, x, body_verts, body_faces, material: NewtonMaterial, config, attach=None
+):
+    """Newton's finalized `Model` of the garment (particles at ``x``, rest data from ``rest_uv``) and body;
+    ``attach``: None or (vertices (A,), targets (A, 3) [m]): those particles are kinematic at the targets."""
+    tri = model.tri_vertices.cpu().numpy()
+    uv = rest_uv.double().cpu().numpy()[model.tri_panel_vertices.cpu().numpy()]  # (F, 3, 2)
+    dm = np.stack((uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]), axis=-1)  # (F, 2, 2) columns: rest edges
+    area = 0.5 * np.abs(np.linalg.det(dm))
+    mass = model.rest_data(rest_uv.to(model.dtype), ClothMaterial(areal_density=material.density)).vert_mass
+    quads = model.edge_quads.cpu().numpy()
+    _, edge_length = edge_geometry(model, rest_uv)
+
+    builder = newton.ModelBuilder(up_axis=newton.Axis.Y)  # gravity -9.81 m/s² along -Y
+    xs = x.double().cpu().numpy().copy()
+    mass = mass.double().cpu().numpy()
+    if attach is not None:  # kinematic (mass 0) waist particles, on the body surface
+        xs[attach[0].cpu().numpy()] = np.asarray(attach[1])
+        mass[attach[0].cpu().numpy()] = 0.0
+    builder.add_particles(
+        pos=[tuple(p) for p in xs],
+        vel=[(0.0, 0.0, 0.0)] * len(xs),
+        mass=mass.tolist(),
+        radius=[material.particle_radius] * len(xs),
+    )
+    n_tri = len(tri)
+    builder.add_triangles(
+        tri[:, 0], tri[:, 1], tri[:, 2],
+        tri_ke=[material.tri_ke] * n_tri, tri_ka=[material.tri_ka] * n_tri, tri_kd=[material.tri_kd] * n_tri,
+    )  # fmt: skip
+    if len(builder.tri_poses) != n_tri:
+        raise SimulationError("Newton dropped degenerate triangles of the drape: cannot settle it")
+    # the rest shape is the pattern's, per triangle (the builder took it from the 3D drape)
+    builder.tri_poses[:] = np.linalg.inv(dm).tolist()
+    builder.tri_areas[:] = area.tolist()
+    # ours (v0, v1, v2, v3): edge v0-v1, v2 opposite in (v0, v1, v2); Newton (o0, o1, e0, e1), (o0, e0, e1)
+    builder.add_edges(
+        quads[:, 2], quads[:, 3], quads[:, 0], quads[:, 1],
+        rest=[0.0] * len(quads), edge_ke=material.edge_ke.tolist(), edge_kd=[material.edge_kd] * len(quads),
+    )  # fmt: skip
+    builder.edge_rest_length[-len(quads) :] = edge_length.tolist()
+    builder.add_shape_mesh(
+        body=-1,
+        mesh=newton.Mesh(
+            body_verts.detach().cpu().numpy().astype(np.float32),
+            body_faces.cpu().numpy().astype(np.int32).flatten(),
+            compute_inertia=False,
+        ),
+        cfg=newton.ModelBuilder.ShapeConfig(
+            mu=material.soft_contact_mu, ke=config.contact_ke, kd=config.contact_kd
+        ),
+    )
+    builder.color(include_bending=True)
+    nmodel = builder.finalize(device="cpu")
+    nmodel.soft_contact_ke, nmodel.soft_contact_kd = config.contact_ke, config.contact_kd
+    nmodel.soft_contact_mu = material.soft_contact_mu
+    return nmodel
+
+
+def _settle(newton, nmodel, body_verts, body_faces, config: NewtonDrapeConfig) -> NewtonDrapeResult:
+    """Step ``nmodel`` from rest at its particles' positions until the mean speed stays under tolerance."""
+    from torch_diffavatar.sim.forward_drape import penetration_diagnostics
+
+    solver = newton.solvers.SolverVBD(nmodel, iterations=config.iterations)
+    pipeline = newton.CollisionPipeline(nmodel, soft_contact_gap=config.contact_gap)
+    contacts = pipeline.contacts()
+    control = nmodel.control()
+    s0, s1 = nmodel.state(), nmodel.state()
+    dt = 1.0 / config.fps / config.substeps
+    t0 = time.perf_counter()
+    calm, frames, converged = 0, 0, False
+    while frames < config.max_frames:
+        pipeline.collide(s0, contacts)  # once per frame, within the detection band
+        for _ in range(config.substeps):
+            s0.clear_forces()
+            solver.step(s0, s1, control, contacts, dt)
+            s0, s1 = s1, s0
+        frames += 1
+        qd = s0.particle_qd.numpy()
+        speed = np.linalg.norm(qd, axis=1)
+        if not np.all(np.isfinite(speed)) or speed.max() > config.blow_up_speed:
+            raise SimulationError(
+                f"the Newton settle blew up at frame {frames} (max speed {speed.max():.3g} m/s)"
+            )
+        s0.particle_qd.assign(qd * config.velocity_scale)
+        calm = calm + 1 if speed.mean() < config.speed_tol and speed.max() < config.max_speed_tol else 0
+        if frames >= config.min_frames and calm >= config.settle_frames:
+            converged = True
+            break
+    seconds = time.perf_counter() - t0
+    xf = torch.from_numpy(s0.particle_q.numpy().astype(np.float64))
+    pen = penetration_diagnostics(xf, body_verts.double(), body_faces)
+    return NewtonDrapeResult(
+        x=xf,
+        frames=frames,
+        seconds=seconds,
+        mean_speed=float(speed.mean()),
+        max_speed=float(speed.max()),
+        converged=converged,
+        penetrating_count=int(pen["penetrating_count"]),
+    )
