@@ -212,26 +212,47 @@ def remove_floor_plane(scan: Scan, floor: Floor) -> tuple[Scan, int]:
     return out, int((~keep).sum())
 
 
-def largest_cluster(scan: Scan, radius: float = 0.05) -> tuple[Scan, int]:
-    """Keep the largest connected cluster of points (two points closer than ``radius`` [m] connect).
+def largest_cluster(
+    scan: Scan, radius: float = 0.05, *, attach: float = 0.15, min_share: float = 0.005
+) -> tuple[Scan, int]:
+    """Keep the person: the largest connected cluster of points (two points closer than ``radius`` [m]
+    connect), with the pieces a hole cut off it.
 
     Points are binned in cubes of ``radius`` / 2 and the occupied cubes whose centres lie within
     ``radius`` connect (so gaps up to about ``radius`` / 2 always join, never gaps beyond 1.5 ``radius``):
-    a few thousand cubes on a person, fast at any point count.
+    a few thousand cubes on a person, fast at any point count. A cluster of at least ``min_share`` of the
+    points that comes within ``attach`` [m] of what is kept is kept too (repeatedly): a hole across a
+    forearm or an ankle cuts a hand or a foot off the body (measured: 3,288 of 60,691 points, a hand and a
+    foot, on our synthetic dress scan with its 10 % of holes), and the body fit needs them. Clutter
+    farther away, or too small to be a body part, goes.
 
     Returns:
-        (the scan restricted to the cluster holding the most points, the number of points removed).
+        (the scan restricted to the kept clusters, the number of points removed).
     """
     if scan.point_count == 0:
         return scan, 0
     cell = 0.5 * radius
     keys, cube = np.unique(np.floor(scan.points / cell).astype(np.int64), axis=0, return_inverse=True)
     cube = cube.reshape(-1)
-    pairs = cKDTree(keys.astype(np.float64)).query_pairs(radius / cell + 1e-9, output_type="ndarray")
+    centres = keys.astype(np.float64)
+    pairs = cKDTree(centres).query_pairs(radius / cell + 1e-9, output_type="ndarray")
     graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(keys), len(keys)))
     _, comp = connected_components(graph, directed=False)
     comp_points = np.bincount(comp[cube])
-    keep = comp[cube] == int(np.argmax(comp_points))
+    kept = {int(np.argmax(comp_points))}
+    candidates = set(np.flatnonzero(comp_points >= min_share * scan.point_count).tolist()) - kept
+    while candidates:
+        tree = cKDTree(centres[np.isin(comp, list(kept))])
+        near = {
+            c
+            for c in candidates
+            if np.isfinite(tree.query(centres[comp == c], distance_upper_bound=attach / cell)[0]).any()
+        }
+        if not near:
+            break
+        kept |= near
+        candidates -= near
+    keep = np.isin(comp[cube], list(kept))
     return scan.subset(keep), int((~keep).sum())
 
 
