@@ -80,10 +80,17 @@ def test_results_file_keeps_its_discussion(suite, tmp_path):
     path = tmp_path / "RESULTS.md"
     path.write_text(f"old tables\n{suite.DISCUSSION_MARKER}\nhand-written notes\n")
     args = argparse.Namespace(
-        hem_up=0.05, hem_widen=0.1, scan_spacing=0.02, seed=0, garment_points=40000, body_points=30000
+        hem_up=0.05,
+        hem_widen=0.1,
+        scan_spacing=0.02,
+        seed=0,
+        garment_points=40000,
+        body_points=30000,
+        simulator="newton",
     )
     rows = [{"garment": "skirt", "initial": _eval(), "final": _eval(), "seconds": 1.0}]
     suite._write_results(path, rows, [], args, "2026-12-04 21:00 UTC")
     text = path.read_text()
     assert "old tables" not in text and text.endswith("hand-written notes\n")
+    assert "settled again by NVIDIA Newton's VBD cloth" in text  # who draped the truth
     assert text.index("## Table 1") < text.index("## Table 2") < text.index(suite.DISCUSSION_MARKER)
