@@ -201,3 +201,14 @@ def test_facing_from_hips_and_feet(yaw):
     both = facing_yaws(turned[turned[:, 1] > 0.3])
     # (a round trunk over the stand-in's legs: its hips axis is looser than a body's)
     assert len(both) == 2 and min(abs((b - yaw + 180.0) % 360.0 - 180.0) for b in both) < 10.0
+
+
+def test_a_huge_scan_is_thinned_before_the_clean_up(tmp_path):
+    points, _ = _standing(np.random.default_rng(6), floor=0, noise=0)
+    path = tmp_path / "scan.ply"
+    save_ply(path, points, binary=True)
+    scan, report = intake_scan(path, max_points=5000)
+    assert scan.point_count <= 5000
+    assert any(f"{len(points):,} points: more than the 5,000 used" in m for m in report.messages)
+    again, _ = intake_scan(path, max_points=5000)
+    np.testing.assert_array_equal(again.points, scan.points)  # seeded: the same subset every time
