@@ -581,3 +581,23 @@ def test_pattern_change_leaves_design_changes_free_and_its_gradient_checks():
     torch.testing.assert_close(
         pattern_change_loss(batch, template, panel), torch.tensor([value, 0.0]).double()
     )
+
+
+def test_seen_side_weights_leave_out_the_cloth_on_unseen_sides():
+    import trimesh
+
+    from torch_diffavatar.losses import seen_side_weights
+
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.3)
+    x = torch.as_tensor(sphere.vertices)
+    faces = torch.as_tensor(sphere.faces, dtype=torch.int64)
+    seen = torch.ones(8, dtype=torch.bool)
+    assert bool((seen_side_weights(x, faces, seen) == 1).all())
+    seen[4] = False  # the back (-Z) unseen, as from cameras in front
+    w = seen_side_weights(x, faces, seen)
+    n = x / x.norm(dim=1, keepdim=True)  # a sphere's normals are radial
+    back = (n[:, 2] < -0.95) & (n[:, 1].abs() < 0.3)
+    side = n[:, 0].abs() > 0.9
+    top = n[:, 1] > 0.8
+    assert bool((w[back] == 0).all()) and bool((w[side] == 1).all()) and bool((w[top] == 1).all())
+    assert 0.05 < float(1 - w.mean()) < 0.15  # about one eighth of the sphere's sides, less its poles

@@ -163,3 +163,16 @@ def test_the_fit_loop_script_reaches_diffavatar_fits_result(skirt_scan, tmp_path
     fitted = torch.load(tmp_path / "fit" / CHECKPOINT, weights_only=False)["params"]
     for name, value in params.state_dict().items():  # the cage handles (the pattern), the body, k_b
         torch.testing.assert_close(value, fitted[name], rtol=1e-5, atol=1e-7)
+
+
+def test_a_partial_scan_pulls_only_the_cloth_it_sees(skirt_problem):
+    garment, state, target = skirt_problem
+    config = _config()
+    params = FitParameters.from_config(garment, config, dtype=DT)
+    full = FitObjective(garment, target, config, dtype=DT)(params(), state)
+    every_side = replace(target, seen_sides=torch.ones(8, dtype=torch.bool))
+    assert torch.equal(FitObjective(garment, every_side, config, dtype=DT)(params(), state).loss, full.loss)
+    front = torch.tensor([True, True, True, False, False, False, True, True])  # one camera in front
+    partial = FitObjective(garment, replace(target, seen_sides=front), config, dtype=DT)(params(), state)
+    assert not torch.equal(partial.terms["interior"], full.terms["interior"])
+    assert torch.equal(partial.terms["boundary"], full.terms["boundary"])  # the openings are as they were

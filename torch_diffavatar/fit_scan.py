@@ -218,11 +218,18 @@ def fit_scan(
         raise SimulationError(f"{exc}; {first_sewing_advice(setup)}") from exc
     report = dict(result.report)
     report["warnings"] = report["warnings"] + scan_warnings(report, setup["target"].garment_points)
+    coverage = setup.get("scan_coverage")
+    if coverage and coverage["sectors_seen"] < coverage["sectors"]:
+        report["warnings"].append(
+            f"a partial scan: it sees {coverage['sectors_seen']} of {coverage['sectors']} sides of the "
+            "person; only the cloth on those sides was pulled toward it, the rest follows the simulation"
+        )
     report.update(
         scan=str(scan_path),
         scan_points=setup["scan_points"],
         scan_labelled=setup["labelled"],
         scan_boundaries=setup["scan_boundaries"],
+        scan_coverage=setup.get("scan_coverage"),
         spacing=spacing,
         upper_arm_angles_deg=setup.get("upper_arm_angles_deg"),
         body_fit_chamfer_m=setup["body_fit_chamfer_m"],

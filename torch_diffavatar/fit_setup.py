@@ -179,7 +179,7 @@ def remesh_for_arms(pattern, mesh, config, arm_angles: dict[str, float]):
 def load_fit_scan(scan_path, *, units: str | None = "m", up: str | None = "y"):
     """The scan of a fit through the intake (`scan_intake.intake_scan`: ``units`` None: from the height,
     ``up`` None: from the floor; floor, clutter and outliers removed), its messages and warnings printed
-    on stderr."""
+    on stderr. Returns (the `Scan`, the intake's `IntakeReport`)."""
     import warnings
 
     from torch_diffavatar.scan import ScanWarning
@@ -192,7 +192,7 @@ def load_fit_scan(scan_path, *, units: str | None = "m", up: str | None = "y"):
         print(f"diffavatar fit: {message}", file=sys.stderr)
     for message in scan.warnings:
         print(f"diffavatar fit: warning: {message}", file=sys.stderr)
-    return scan
+    return scan, report
 
 
 def initial_body(body, scan, mesh, body_params: dict | None = None) -> float | None:
@@ -235,6 +235,19 @@ def garment_mask(scan, seg_type: str, body, body_out, faces: np.ndarray, parts: 
     return seg.labels, False
 
 
+def scan_target(scan, mask: np.ndarray, boundaries: dict, coverage: dict | None):
+    """The `ScanTarget` of a fit: the (N,) bool ``mask``'s points of ``scan`` as the garment, the others
+    as skin, the matched ``boundaries`` and the sides the scan sees (``coverage["seen"]``)."""
+    from torch_diffavatar.objective import ScanTarget
+
+    return ScanTarget(
+        garment_points=torch.as_tensor(scan.points[mask]),
+        boundaries=boundaries,
+        body_points=torch.as_tensor(scan.points[~mask]),
+        seen_sides=torch.tensor(coverage["seen"]) if coverage else None,
+    )
+
+
 def prepare(
     scan_path,
     config,
@@ -262,20 +275,20 @@ def prepare(
         a dict with ``garment`` (placed `GarmentMesh`), ``pattern``, ``target`` (`ScanTarget`),
         ``body_params`` (`BodyModel.parameters_dict` of the initial body), ``sewing_fallback`` (the
         garment's `a_pose_route` onto it, None in the A-pose), ``body_fit_chamfer_m`` (the body fit's
-        residual [m]; None with ``body_params``), ``scan_points``, ``labelled``, ``spacing`` (the mesh's
+        residual [m]; None with ``body_params``), ``scan_points``, ``scan_coverage`` (the intake's
+        `scan_intake.coverage`), ``labelled``, ``spacing`` (the mesh's
         [m]), ``upper_arm_angles_deg`` (of the initial body, `BodyModel.upper_arm_angles`), ``setup_seconds``.
     """
     from torch_diffavatar.body.anny_model import load_anny
     from torch_diffavatar.body.facing import body_facing_yaw
     from torch_diffavatar.body.model import BodyModel
     from torch_diffavatar.body.parts import vertex_parts
-    from torch_diffavatar.objective import ScanTarget
     from torch_diffavatar.pattern import mesh_pattern
     from torch_diffavatar.pattern.library import resolve_pattern
     from torch_diffavatar.sim.placement import a_pose_route, place_garment_turned
 
     t0 = time.perf_counter()
-    scan = load_fit_scan(scan_path, units=units, up=up)
+    scan, intake = load_fit_scan(scan_path, units=units, up=up)
     anny_model = load_anny(dtype=torch.float32) if anny_model is None else anny_model
     body = BodyModel(anny_model=anny_model)
     pattern = resolve_pattern(config.template) if pattern is None else pattern
@@ -296,19 +309,15 @@ def prepare(
     yaw = body_facing_yaw(body.global_orient[0])  # a captured person faces any way (issue #29)
     arms = body.arm_joints(body_out.joints[0])
     garment = place_garment_turned(mesh, body_verts, body.faces, yaw, arm_joints=arms)
-    target = ScanTarget(
-        garment_points=torch.as_tensor(scan.points[mask]),
-        boundaries=match_boundaries(garment, loops),
-        body_points=torch.as_tensor(scan.points[~mask]),
-    )
     return {
         "garment": garment,
         "pattern": pattern,
-        "target": target,
+        "target": scan_target(scan, mask, match_boundaries(garment, loops), intake.coverage),
         "body_params": body.parameters_dict(),
         "sewing_fallback": a_pose_route(mesh, body, yaw),
         "body_fit_chamfer_m": body_fit_chamfer_m,
         "scan_points": scan.point_count,
+        "scan_coverage": intake.coverage,
         "scan_boundaries": sorted(loops),
         "labelled": labelled,
         "spacing": spacing,

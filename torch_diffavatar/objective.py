@@ -32,6 +32,7 @@ from torch_diffavatar.losses import (
     rest_area_loss,
     rest_distortion_loss,
     seam_length_loss,
+    seen_side_weights,
     signed_rest_areas,
     skin_loss,
     template_edge_inverse,
@@ -53,11 +54,15 @@ class ScanTarget:
         garment_points: (P, 3) scan points of the garment.
         boundaries: garment opening name (``GarmentMesh.boundary_loops`` names) -> (k, 3) scan points.
         body_points: (Q, 3) the other scan points (skin), may be empty.
+        seen_sides: (S,) bool, the sides of the person the scan sees (`scan_intake.coverage`), or None
+            (all: a full scan). With a side unseen, the garment on that side is not pulled toward the scan
+            (`losses.seen_side_weights`).
     """
 
     garment_points: torch.Tensor
     boundaries: dict[str, torch.Tensor] = field(default_factory=dict)
     body_points: torch.Tensor | None = None
+    seen_sides: torch.Tensor | None = None
 
     def __post_init__(self):
         g = self.garment_points
@@ -339,6 +344,9 @@ class FitObjective(nn.Module):
         skin = target.body_points
         use_skin = fit_body and skin is not None and skin.shape[0] > 0
         self.register_buffer("skin_points", subset(skin) if use_skin else None)
+        seen = getattr(target, "seen_sides", None)  # absent from set-ups saved before it existed
+        partial = seen is not None and not bool(seen.all())
+        self.register_buffer("seen_sides", seen.bool() if partial else None, persistent=False)
         self.boundary_names = list(target.boundaries)
         for k, points in enumerate(target.boundaries.values()):
             self.register_buffer(f"scan_boundary_{k}", points.to(dtype))
@@ -498,9 +506,17 @@ class FitObjective(nn.Module):
         matched ``openings`` (`openings`) when there are any."""
         cfg = self.config
         faces = self.garment.sim_faces if cfg.interior_to_surface else None
+        seen = None
+        if self.seen_sides is not None:  # a partial scan: only the cloth on the sides it sees is pulled
+            seen = seen_side_weights(x, self.garment.sim_faces, self.seen_sides)
         terms = {
             "interior": interior_loss(
-                x, self.scan_points, garment_faces=faces, robust=cfg.interior_robust, scale=cfg.robust_scale
+                x,
+                self.scan_points,
+                garment_faces=faces,
+                robust=cfg.interior_robust,
+                scale=cfg.robust_scale,
+                weights=seen,
             )
         }
         if openings:
