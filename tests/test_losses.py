@@ -601,3 +601,21 @@ def test_seen_side_weights_leave_out_the_cloth_on_unseen_sides():
     top = n[:, 1] > 0.8
     assert bool((w[back] == 0).all()) and bool((w[side] == 1).all()) and bool((w[top] == 1).all())
     assert 0.05 < float(1 - w.mean()) < 0.15  # about one eighth of the sphere's sides, less its poles
+
+
+def test_boundary_loss_on_a_partial_scan_pulls_only_the_seen_half():
+    from torch_diffavatar.losses import boundary_loss
+    from torch_diffavatar.pattern.garment_mesh import BoundaryLoop
+
+    angle = torch.linspace(0, 2 * math.pi, 33, dtype=torch.float64)[:-1]
+    ring = torch.stack([0.2 * torch.sin(angle), torch.zeros_like(angle), 0.2 * torch.cos(angle)], 1)
+    loop = [BoundaryLoop("hem", torch.arange(32))]
+    front_scan = {"hem": ring[ring[:, 2] > 0.05] + torch.tensor([0.0, -0.01, 0.0], dtype=torch.float64)}
+    seen = (ring[:, 2] > 0).double()
+    full = boundary_loss(ring, loop, front_scan, samples_per_edge=2)
+    partial = boundary_loss(ring, loop, front_scan, samples_per_edge=2, seen=seen)
+    assert float(partial) < 0.1 * float(full)  # the back half no longer pulled onto the front's points
+    assert torch.equal(
+        boundary_loss(ring, loop, front_scan, seen=torch.ones(32, dtype=torch.float64)),
+        boundary_loss(ring, loop, front_scan),
+    )

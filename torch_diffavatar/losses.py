@@ -149,6 +149,7 @@ def boundary_loss(
     robust: str = "l2",
     scale: float = 0.01,
     trim: float = 0.0,
+    seen: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Boundary feature matching: each named garment opening vs the scan's opening of the same name.
 
@@ -173,6 +174,10 @@ def boundary_loss(
         trim: fraction in [0, 1) of the largest point penalties dropped in each direction of each loop
             (a trimmed mean, as in trimmed ICP): the stray hole-rim points of a scan opening and the
             garment points facing a gap in it are left out while the rest keep their full pull.
+        seen: optional (Vs,) 0/1 per sim vertex (`seen_side_weights`): the garment → scan direction uses
+            only the loop points on the sides a partial scan sees (a loop with none seen keeps the scan →
+            garment direction alone), so the half of a hem the scan never saw is not pulled onto the half
+            it did.
 
     Returns:
         scalar, or (K,) for ``"none"`` [m²].
@@ -197,10 +202,19 @@ def boundary_loss(
     values = []
     for k in matched:
         loop = loops[k]
-        x = _resample_loop(garment_x[loop.vertices.to(garment_x.device)], samples_per_edge)
+        ids = loop.vertices.to(garment_x.device)
+        x = _resample_loop(garment_x[ids], samples_per_edge)
         y = scan_boundaries[loop.name].to(garment_x)
         xy, yx = chamfer_distance(x, y, robust=robust, scale=scale, reduction="none")
-        values.append(_trimmed_mean(xy[0], trim) + _trimmed_mean(yx[0], trim))
+        value = _trimmed_mean(yx[0], trim)
+        if seen is None:
+            value = value + _trimmed_mean(xy[0], trim)
+        else:  # a resampled point between two loop vertices is seen when both are
+            flags = seen[ids].to(garment_x)[:, None].expand(-1, 3)
+            on = _resample_loop(flags, samples_per_edge)[:, 0] > 0.999
+            if bool(on.any()):
+                value = value + _trimmed_mean(xy[0][on], trim)
+        values.append(value)
     values = torch.stack(values)  # (K,)
     if weights is not None:
         if weights.shape != (len(loops),):

@@ -528,6 +528,7 @@ class FitObjective(nn.Module):
                 robust=cfg.boundary_robust,
                 scale=cfg.robust_scale,
                 trim=cfg.boundary_trim,
+                seen=seen,
             )
         return terms
 
