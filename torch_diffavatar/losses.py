@@ -138,6 +138,30 @@ def folded_collar_loop(
     return BoundaryLoop(loop.name, top.to(loop.vertices))
 
 
+def _opening_chamfer(
+    garment_x: torch.Tensor,
+    vertices: torch.Tensor,
+    scan_points: torch.Tensor,
+    seen: torch.Tensor | None,
+    *,
+    samples_per_edge: int,
+    robust: str,
+    scale: float,
+    trim: float,
+) -> torch.Tensor:
+    """() `boundary_loss`'s term of one opening: the loop through ``vertices`` (L,) of ``garment_x`` vs its
+    (P, 3) ``scan_points``, both directions trimmed; with ``seen`` the garment → scan direction only from
+    the seen loop points (a resampled point between two loop vertices is seen when both are)."""
+    ids = vertices.to(garment_x.device)
+    x = _resample_loop(garment_x[ids], samples_per_edge)
+    xy, yx = chamfer_distance(x, scan_points.to(garment_x), robust=robust, scale=scale, reduction="none")
+    value = _trimmed_mean(yx[0], trim)
+    if seen is None:
+        return value + _trimmed_mean(xy[0], trim)
+    on = _resample_loop(seen[ids].to(garment_x)[:, None].expand(-1, 3), samples_per_edge)[:, 0] > 0.999
+    return value + _trimmed_mean(xy[0][on], trim) if bool(on.any()) else value
+
+
 def boundary_loss(
     garment_x: torch.Tensor,
     loops: Sequence[BoundaryLoop],
@@ -199,22 +223,11 @@ def boundary_loss(
             f"no garment opening matches a scan boundary: garment has {[lp.name for lp in loops]}, "
             f"scan has {sorted(scan_boundaries)}"
         )
-    values = []
-    for k in matched:
-        loop = loops[k]
-        ids = loop.vertices.to(garment_x.device)
-        x = _resample_loop(garment_x[ids], samples_per_edge)
-        y = scan_boundaries[loop.name].to(garment_x)
-        xy, yx = chamfer_distance(x, y, robust=robust, scale=scale, reduction="none")
-        value = _trimmed_mean(yx[0], trim)
-        if seen is None:
-            value = value + _trimmed_mean(xy[0], trim)
-        else:  # a resampled point between two loop vertices is seen when both are
-            flags = seen[ids].to(garment_x)[:, None].expand(-1, 3)
-            on = _resample_loop(flags, samples_per_edge)[:, 0] > 0.999
-            if bool(on.any()):
-                value = value + _trimmed_mean(xy[0][on], trim)
-        values.append(value)
+    kw = dict(samples_per_edge=samples_per_edge, robust=robust, scale=scale, trim=trim)
+    values = [
+        _opening_chamfer(garment_x, loops[k].vertices, scan_boundaries[loops[k].name], seen, **kw)
+        for k in matched
+    ]
     values = torch.stack(values)  # (K,)
     if weights is not None:
         if weights.shape != (len(loops),):
