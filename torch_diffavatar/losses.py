@@ -297,25 +297,22 @@ def interior_loss(
 def seen_side_weights(x: torch.Tensor, faces: torch.Tensor, seen: torch.Tensor) -> torch.Tensor:
     """(Vs,) 1 for the garment vertices whose surface faces a side of the person the scan sees, else 0.
 
-    A vertex's side is the horizontal direction of its (area-weighted) normal, in ``seen``'s S equal
-    sectors (sector 0 centred on +Z, the next toward +X: `scan_intake.coverage`'s); a vertex whose normal
-    is within 45° of vertical (a shoulder top) counts as seen. Without gradient: the weights only choose
-    which garment points the garment → scan direction of `interior_loss` asks to find a scan point near
-    them, so that a partial scan does not pull the cloth it never saw toward the points it did.
+    A vertex's side is `scan_intake.side_sector` of its area-weighted normal (`body.geometry.
+    vertex_normals`), the sectors of `scan_intake.coverage`'s ``seen``; a vertex whose normal is within 45°
+    of vertical (a shoulder top) counts as seen. Without gradient: the weights only choose which garment
+    points the garment → scan direction of `interior_loss` asks to find a scan point near them, so that a
+    partial scan does not pull the cloth it never saw toward the points it did.
 
     Args:
         x: (Vs, 3) garment vertices [m]; faces: (F, 3) int64; seen: (S,) bool.
     """
+    from torch_diffavatar.body.geometry import vertex_normals
+    from torch_diffavatar.scan_intake import side_sector
+
     with torch.no_grad():
-        a, b, c = x[faces[:, 0]], x[faces[:, 1]], x[faces[:, 2]]
-        face_n = torch.linalg.cross(b - a, c - a)
-        normal = torch.zeros_like(x).index_add_(0, faces.reshape(-1), face_n.repeat_interleave(3, dim=0))
-        normal = normal / normal.norm(dim=1, keepdim=True).clamp(min=1e-20)
-        sectors = seen.numel()
-        angle = torch.atan2(normal[:, 0], normal[:, 2])
-        index = torch.floor((angle / (2 * math.pi) + 0.5 / sectors) * sectors).long() % sectors
-        upright = normal[:, 1].abs() >= math.sqrt(0.5)
-        return (seen.to(x.device)[index] | upright).to(x.dtype)
+        side = side_sector(vertex_normals(x, faces).cpu().numpy(), seen.numel())
+        side = torch.from_numpy(side).to(x.device)
+        return (seen.to(x.device)[side.clamp(min=0)] | (side < 0)).to(x.dtype)
 
 
 def skin_loss(

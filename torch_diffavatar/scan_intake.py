@@ -310,11 +310,19 @@ def coverage(
     return _sectors(normal[side], sectors, min_share)
 
 
-def _sectors(normal: np.ndarray, sectors: int, min_share: float) -> dict:
-    """`coverage` from oriented normals (N, 3): the votes of those within 45° of horizontal."""
-    normal = normal[np.abs(normal[:, 1]) < math.sqrt(0.5)]
+def side_sector(normal: np.ndarray, sectors: int = SECTORS) -> np.ndarray:
+    """(N,) int64: the side of the person each unit normal (N, 3) faces, one of ``sectors`` equal sectors
+    of its horizontal direction (sector 0 centred on +Z, the next toward +X), or -1 for a normal within
+    45° of vertical (a shoulder top or a sole faces no side)."""
     angle = np.arctan2(normal[:, 0], normal[:, 2])  # 0 along +Z, +90° along +X
     index = np.floor((angle / (2 * math.pi) + 0.5 / sectors) * sectors).astype(np.int64) % sectors
+    return np.where(np.abs(normal[:, 1]) < math.sqrt(0.5), index, -1)
+
+
+def _sectors(normal: np.ndarray, sectors: int, min_share: float) -> dict:
+    """`coverage` from oriented normals (N, 3): the votes of those within 45° of horizontal."""
+    index = side_sector(normal, sectors)
+    index = index[index >= 0]
     counts = np.bincount(index, minlength=sectors)
     seen = counts >= min_share * max(len(index), 1) / sectors
     return {
