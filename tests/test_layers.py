@@ -20,6 +20,7 @@ LAYERS = {
     "render": (0, "base"),
     "chamfer": (0, "base"),
     "json_io": (0, "base"),
+    "atomic_file": (0, "base"),
     "pattern": (1, "pattern"),
     "mesh_io": (2, "io"),
     "scan": (2, "io"),

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torch_diffavatar.atomic_file import atomic_write
 from torch_diffavatar.errors import InputError
 from torch_diffavatar.objective import ScanTarget
 from torch_diffavatar.pattern.garment_mesh import BoundaryLoop, GarmentMesh
@@ -44,18 +45,11 @@ def atomic_save(obj, path: Path) -> None:
     Raises:
         OSError: the file could not be written (no space, not writable); no temporary is left behind.
     """
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        with open(tmp, "wb") as f:
-            try:
-                torch.save(obj, f)
-            except RuntimeError as exc:  # torch reports a failed write (ENOSPC) as an enforce failure
-                raise OSError(f"could not write {path}: {str(exc).splitlines()[0]}") from exc
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with atomic_write(path) as f:
+        try:
+            torch.save(obj, f)
+        except RuntimeError as exc:  # torch reports a failed write (ENOSPC) as an enforce failure
+            raise OSError(f"could not write {path}: {str(exc).splitlines()[0]}") from exc
 
 
 def _data_classes() -> list:

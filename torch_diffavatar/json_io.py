@@ -3,7 +3,7 @@
 Python's `json` writes ``Infinity`` and ``NaN`` for non-finite floats, which is not JSON (RFC 8259): a
 browser, ``jq`` or another language's parser refuses the file, and a number that was meant to be a
 measure silently is none. `dumps_json` refuses them instead and names where they are; `write_json`
-writes a file whole or not at all (a temporary beside it, then `os.replace`).
+writes a file whole or not at all (`atomic_file.atomic_write`).
 """
 
 from __future__ import annotations
@@ -12,6 +12,8 @@ import json
 import math
 import os
 from pathlib import Path
+
+from torch_diffavatar.atomic_file import atomic_write
 
 
 def _non_finite_path(obj, path: str = "$") -> str | None:
@@ -51,12 +53,7 @@ def write_json(path: str | os.PathLike, obj, *, indent: int | None = 1) -> Path:
 
     The text is made before the file is touched, so a refused value leaves any old file as it was.
     """
-    path = Path(path)
-    text = dumps_json(obj, indent=indent)
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        tmp.write_text(text)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
+    text = dumps_json(obj, indent=indent).encode()  # ASCII: json escapes every other character
+    with atomic_write(path) as f:
+        f.write(text)
+    return Path(path)
