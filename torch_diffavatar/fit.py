@@ -49,6 +49,7 @@ from torch_diffavatar.fit_checkpoint import (
     upgraded,
 )
 from torch_diffavatar.fit_config import (
+    BEND_STIFFNESS_RANGE,
     CONFIG_DIR,
     FIT_MAX_STRAIN,
     FitConfig,
@@ -186,12 +187,6 @@ def sanitize_grads(groups: list[dict]) -> int:
                 count += 1
                 p.grad = torch.nan_to_num(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
     return count
-
-
-# [N·m] a fit's bending stiffness stays in here: fabrics span about 1e-7 (silk) to 1e-4 (denim, leather)
-# (Kawabata B per unit width); a step beyond it is a runaway (lr_log_bend_stiffness: 1000 reached inf, and
-# material.json then held Infinity), rejected like any other
-BEND_STIFFNESS_RANGE = (1.0e-9, 1.0e-2)
 
 
 def drape_rejection(out: ObjectiveOutput, start: ClothState, max_jump: float) -> str | None:

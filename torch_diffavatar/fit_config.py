@@ -21,6 +21,12 @@ from torch_diffavatar.sim.solver import XPBDConfig
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"  # shipped in the package (wheel included)
 # strain limit of every drape of a fit, the sewing's (see `drape_config` for why it is above the solver's 3)
 FIT_MAX_STRAIN = SEW_MAX_STRAIN
+# a fit's resolved config in its output folder (`write_resolved_config`)
+RESOLVED_CONFIG = "config.yaml"
+# [N·m] a fit's bending stiffness stays in here: fabrics span about 1e-7 (silk) to 1e-4 (denim, leather)
+# (Kawabata B per unit width); a step beyond it is a runaway (lr_log_bend_stiffness: 1000 reached inf, and
+# material.json then held Infinity), rejected like any other (`fit.parameter_rejection`)
+BEND_STIFFNESS_RANGE = (1.0e-9, 1.0e-2)
 # guards that ``inf`` switches off; every other number of a config must be finite
 INFINITY_MEANS_OFF = ("max_drape_jump", "max_loss_rise")
 
@@ -229,11 +235,7 @@ class FitConfig:
             )
         if not 0 <= self.arms_low_angle <= 180:
             raise ValueError(f"FitConfig.arms_low_angle must be in [0, 180] [deg], got {self.arms_low_angle}")
-        if not 1e-9 <= self.initial_bend_stiffness <= 1e-2:  # `fit.BEND_STIFFNESS_RANGE`, cloth's
-            raise ValueError(
-                f"FitConfig.initial_bend_stiffness must be in [1e-9, 1e-2] N·m (cloth), got "
-                f"{self.initial_bend_stiffness}"
-            )
+        self._check_material()
         if not 1 < self.stretch_bound < math.inf:
             raise ValueError(f"FitConfig.stretch_bound must be a finite factor > 1, got {self.stretch_bound}")
         for name in (
@@ -291,6 +293,16 @@ class FitConfig:
             if not getattr(self, name) >= 0:
                 raise ValueError(f"FitConfig.{name} must be >= 0 (0 freezes the parameter)")
         self._check_numbers()
+
+    def _check_material(self) -> None:
+        """ValueError for an initial bending stiffness outside `BEND_STIFFNESS_RANGE`."""
+        low, high = BEND_STIFFNESS_RANGE
+        if not low <= self.initial_bend_stiffness <= high:
+            span = ", ".join(f"{v:.0e}".replace("e-0", "e-") for v in BEND_STIFFNESS_RANGE)  # 1e-9, 1e-2
+            raise ValueError(
+                f"FitConfig.initial_bend_stiffness must be in [{span}] N·m (cloth), got "
+                f"{self.initial_bend_stiffness}"
+            )
 
     def _check_numbers(self) -> None:
         """ValueError for a NaN, an infinity where it means nothing, or a negative count."""
@@ -458,7 +470,7 @@ def yaml_dump(data: dict) -> str:
 
 def write_resolved_config(config: FitConfig, out_dir: str | os.PathLike) -> Path:
     """Write the resolved config as ``<out_dir>/config.yaml`` (also into the TensorBoard text)."""
-    path = Path(out_dir) / "config.yaml"
+    path = Path(out_dir) / RESOLVED_CONFIG
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(yaml_dump(config_to_dict(config)))
     return path

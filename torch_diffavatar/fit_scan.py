@@ -25,8 +25,6 @@ import torch
 from torch_diffavatar.errors import InputError, SimulationError
 
 INCOMPLETE = "INCOMPLETE"  # marker file of a fit folder whose fit has not finished writing
-# what a fit writes besides `assets.ASSET_FILES` (a forced rerun removes these, and nothing else)
-RUN_FILES = ("setup.pt", "checkpoint.pt", "config.yaml", "eval_drapes.png", INCOMPLETE)
 
 
 def _file_sha256(path) -> str:
@@ -90,8 +88,12 @@ def prepare_out_folder(out: Path, *, resume: bool, force: bool) -> None:
         InputError: ``out`` holds another fit (finished or not) and neither ``resume`` nor ``force``.
     """
     from torch_diffavatar.assets import ASSET_FILES
+    from torch_diffavatar.evaluation import DRAPE_PICTURE
+    from torch_diffavatar.fit_checkpoint import CHECKPOINT, SETUP
+    from torch_diffavatar.fit_config import RESOLVED_CONFIG
 
-    ours = [*ASSET_FILES.values(), *RUN_FILES]
+    # the assets and what else a fit (and `diffavatar eval`) writes there: a forced rerun removes these only
+    ours = [*ASSET_FILES.values(), SETUP, CHECKPOINT, RESOLVED_CONFIG, DRAPE_PICTURE, INCOMPLETE]
     earlier = [name for name in ours if (out / name).exists()]
     if earlier and not resume:
         if not force:
