@@ -180,14 +180,21 @@ def scan_noise_sigma_m(points, neighbors: int = 16, max_points: int = 20000, see
         points: (N, 3) surface points [m] (a NumPy array or a tensor), N > ``neighbors``.
         max_points: a seeded random subset this large is used (the estimate is a median).
     """
-    from scipy.spatial import cKDTree
-
     pts = np.asarray(points.detach().cpu() if isinstance(points, torch.Tensor) else points, np.float64)
     if len(pts) <= neighbors:
         raise ValueError(f"need more than {neighbors} points to estimate the noise, got {len(pts)}")
     if len(pts) > max_points:
         pts = pts[np.random.default_rng(seed).choice(len(pts), max_points, replace=False)]
-    _, idx = cKDTree(pts).query(pts, k=neighbors)
-    local = pts[idx] - pts[idx].mean(axis=1, keepdims=True)
-    cov = np.einsum("nki,nkj->nij", local, local) / neighbors
-    return float(np.sqrt(max(float(np.median(np.linalg.eigvalsh(cov)[:, 0])), 0.0)))
+    variance_off_plane = np.linalg.eigvalsh(local_covariance(pts, neighbors))[:, 0]
+    return float(np.sqrt(max(float(np.median(variance_off_plane)), 0.0)))
+
+
+def local_covariance(points: np.ndarray, neighbors: int) -> np.ndarray:
+    """(N, 3, 3) the covariance [m²] of each point's ``neighbors`` nearest points (itself included) of
+    ``points`` (N, 3) [m]: its smallest eigenvector is the local surface normal (unoriented), its smallest
+    eigenvalue the variance off the local plane."""
+    from scipy.spatial import cKDTree
+
+    idx = cKDTree(points).query(points, k=neighbors)[1].reshape(len(points), neighbors)  # k = 1: (N,)
+    local = points[idx] - points[idx].mean(axis=1, keepdims=True)
+    return np.einsum("nki,nkj->nij", local, local) / neighbors

@@ -34,6 +34,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from torch_diffavatar.errors import ScanError
+from torch_diffavatar.metrics import local_covariance
 from torch_diffavatar.scan import (
     UNITS,
     UP_AXES,
@@ -292,11 +293,7 @@ def coverage(
     keys, cube = np.unique(np.floor(points / 0.02).astype(np.int64), axis=0, return_inverse=True)
     cube = cube.reshape(-1)
     points = np.stack([np.bincount(cube, points[:, a]) for a in range(3)], 1) / np.bincount(cube)[:, None]
-    k = min(12, len(points))
-    _, nbr = cKDTree(points).query(points, k=k)
-    local = points[nbr.reshape(len(points), k)]
-    local = local - local.mean(1, keepdims=True)
-    normal = np.linalg.eigh(np.einsum("nki,nkj->nij", local, local))[1][:, :, 0]  # (N, 3)
+    normal = np.linalg.eigh(local_covariance(points, min(12, len(points))))[1][:, :, 0]  # (N, 3)
     slab = np.floor(points[:, 1] / 0.1).astype(np.int64)  # 10 cm height slabs, each with its own centre
     slab_of = np.unique(slab, return_inverse=True)[1].reshape(-1)
     centre = np.stack([np.bincount(slab_of, points[:, a]) for a in (0, 2)], 1) / np.bincount(slab_of)[:, None]
