@@ -33,3 +33,12 @@ def test_a_fit_far_above_the_noise_and_a_stray_opening_are_flagged():
     far, hem = scan_warnings(report, points)
     assert "ends 23.0 mm from the scan, far above the scan's own noise (about 2." in far
     assert hem.startswith("the hem opening ends 20.0 cm from the scan's hem")
+
+
+def test_a_partial_scan_is_said():
+    points = torch.as_tensor(_noisy_sphere(0.003))
+    report = {"chamfer_final": 0.008, "boundary_chamfer_final": {"hem": 0.02}}
+    full = {"sectors_seen": 8, "sectors": 8}
+    assert scan_warnings(report, points, full) == []
+    (partial,) = scan_warnings(report, points, {"sectors_seen": 4, "sectors": 8})
+    assert partial.startswith("a partial scan: it sees 4 of 8 sides of the person")

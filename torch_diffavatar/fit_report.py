@@ -160,13 +160,14 @@ def result_warnings(
     return warnings
 
 
-def scan_warnings(report: dict, garment_points: torch.Tensor) -> list[str]:
+def scan_warnings(report: dict, garment_points: torch.Tensor, coverage: dict | None = None) -> list[str]:
     """What a fit's result says about the scan it was fitted to (empty when nothing): the fit ends far
-    above the scan's own noise, or an opening ends far from the scan's opening.
+    above the scan's own noise, an opening ends far from the scan's opening, or the scan is partial.
 
     Args:
         report: `fit_report`'s (``chamfer_final``, ``boundary_chamfer_final``) [m].
         garment_points: (P, 3) the scan's garment points [m].
+        coverage: the sides the scan sees (`scan_intake.coverage`), or None.
     """
     warnings = []
     sigma = scan_noise_sigma_m(garment_points) if len(garment_points) > 16 else 0.0
@@ -182,5 +183,10 @@ def scan_warnings(report: dict, garment_points: torch.Tensor) -> list[str]:
         warnings.append(
             f"the {name} opening ends {1e2 * distance:.1f} cm from the scan's {name}: that scan opening is "
             "probably misplaced (segmentation) and has pulled the pattern toward it"
+        )
+    if coverage and coverage["sectors_seen"] < coverage["sectors"]:
+        warnings.append(
+            f"a partial scan: it sees {coverage['sectors_seen']} of {coverage['sectors']} sides of the "
+            "person; only the cloth on those sides was pulled toward it, the rest follows the simulation"
         )
     return warnings

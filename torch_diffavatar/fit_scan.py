@@ -50,6 +50,11 @@ def fit_fingerprint(scan_path, config, **prepare_kw) -> dict:
     return {"scan_sha256": _file_sha256(scan_path), "config": settings, "options": options}
 
 
+def _changed_keys(a: dict, b: dict) -> list[str]:
+    """The keys whose values differ between ``a`` and ``b`` (missing on one side included), sorted."""
+    return sorted(k for k in {**a, **b} if a.get(k) != b.get(k))
+
+
 def _check_fingerprint(setup: dict, expected: dict, setup_path: Path) -> None:
     """InputError when the resumed set-up was made from another scan, garment or settings."""
     found = setup.get("fingerprint")
@@ -64,16 +69,7 @@ def _check_fingerprint(setup: dict, expected: dict, setup_path: Path) -> None:
     if found["scan_sha256"] != expected["scan_sha256"]:
         what = "another scan file"
     else:
-        keys = sorted(
-            k
-            for k in {**found["config"], **expected["config"]}
-            if found["config"].get(k) != expected["config"].get(k)
-        )
-        keys += sorted(
-            k
-            for k in {**found["options"], **expected["options"]}
-            if found["options"].get(k) != expected["options"].get(k)
-        )
+        keys = [k for part in ("config", "options") for k in _changed_keys(found[part], expected[part])]
         what = f"other settings ({', '.join(keys)})"
     raise InputError(
         f"--resume: {setup_path.parent} was made from {what}; resume with the same scan, garment and "
@@ -219,13 +215,8 @@ def fit_scan(
             raise
         raise SimulationError(f"{exc}; {first_sewing_advice(setup)}") from exc
     report = dict(result.report)
-    report["warnings"] = report["warnings"] + scan_warnings(report, setup["target"].garment_points)
     coverage = setup.get("scan_coverage")
-    if coverage and coverage["sectors_seen"] < coverage["sectors"]:
-        report["warnings"].append(
-            f"a partial scan: it sees {coverage['sectors_seen']} of {coverage['sectors']} sides of the "
-            "person; only the cloth on those sides was pulled toward it, the rest follows the simulation"
-        )
+    report["warnings"] = report["warnings"] + scan_warnings(report, setup["target"].garment_points, coverage)
     report.update(
         scan=str(scan_path),
         scan_points=setup["scan_points"],
