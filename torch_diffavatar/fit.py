@@ -117,6 +117,7 @@ def param_groups(params: FitParameters, config: FitConfig) -> list[dict]:
         ]
     spec.append(("log_bend_stiffness", [params.log_bend_stiffness], config.lr_log_bend_stiffness))
     spec.append(("log_stretch", [params.log_stretch], config.lr_log_stretch))
+    spec.append(("waist_shift", [params.raw_waist_shift], config.lr_waist_shift))
     for p in params.parameters():
         p.requires_grad_(False)
     groups = []
@@ -128,9 +129,12 @@ def param_groups(params: FitParameters, config: FitConfig) -> list[dict]:
     return groups
 
 
-def lr_factor(iteration: int, config: FitConfig) -> float:
+def lr_factor(iteration: int, config: FitConfig, group: str = "") -> float:
     """Learning-rate factor of iteration ``iteration`` (0-based): a cosine from 1 to ``config.lr_final``
-    over ``config.iterations``."""
+    over ``config.iterations``; 0 for the ``"cage"`` group during the first ``config.pattern_delay``
+    iterations (the physical variables move first)."""
+    if group == "cage" and iteration < config.pattern_delay:
+        return 0.0
     total = max(config.iterations - 1, 1)
     t = min(iteration / total, 1.0)
     return config.lr_final + (1.0 - config.lr_final) * 0.5 * (1.0 + math.cos(math.pi * t))
@@ -394,7 +398,8 @@ class Fitter:
         """The cage's Adam group when the proximal rest step is on and the handles have a gradient, the rest
         terms' gradient taken out of it (the proximal step handles them); else None."""
         group = next((g for g in self.optimizer.param_groups if g["name"] == "cage"), None)
-        if self.config.rest_prox_iterations == 0 or group is None or group["params"][0].grad is None:
+        off = self.config.rest_prox_iterations == 0 or self.iteration < self.config.pattern_delay
+        if off or group is None or group["params"][0].grad is None:
             return None
         with torch.enable_grad():
             (grad,) = torch.autograd.grad(self.rest_loss(), group["params"][0])
@@ -408,7 +413,7 @@ class Fitter:
         cage_group = self._prox_group()
         self.nan_gradients += sanitize_grads(self.groups)
         for g in self.optimizer.param_groups:
-            g["lr"] = g["base_lr"] * self.lr_scale * lr_factor(self.iteration, self.config)
+            g["lr"] = g["base_lr"] * self.lr_scale * lr_factor(self.iteration, self.config, g["name"])
         params = [p for g in self.groups for p in g["params"]]
         before = [p.detach().clone() for p in params]
         self.optimizer.step()

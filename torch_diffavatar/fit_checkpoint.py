@@ -93,13 +93,16 @@ def load_progress(driver, state: dict) -> None:
 
 def upgraded(state: dict) -> dict:
     """A checkpoint ``state`` of an older version in today's form: the parameters (and the best iteration's)
-    of a checkpoint written before the membrane stretch was a fit variable get ``log_stretch`` = 0, and its
-    first evaluation's summary the factor 1: the base membrane those fits used, so they resume exactly."""
+    of a checkpoint written before the membrane stretch or the waist height were fit variables get
+    ``log_stretch`` = 0 and ``raw_waist_shift`` = 0, and its first evaluation's summary the factor 1 and
+    no shift: the base membrane and the placed waist those fits used, so they resume exactly."""
     state = dict(state)
     for owner in (state, state.get("best")):
-        if owner is not None and "log_stretch" not in owner["params"]:
-            params = owner["params"]
-            owner["params"] = {**params, "log_stretch": params["log_bend_stiffness"].new_zeros(())}
-    if state.get("first") is not None and "stretch_scale" not in state["first"]:
-        state["first"] = {**state["first"], "stretch_scale": 1.0}
+        for name in ("log_stretch", "raw_waist_shift"):
+            if owner is not None and name not in owner["params"]:
+                params = owner["params"]
+                owner["params"] = {**params, name: params["log_bend_stiffness"].new_zeros(())}
+    for name, value in (("stretch_scale", 1.0), ("waist_shift_m", 0.0)):
+        if state.get("first") is not None and name not in state["first"]:
+            state["first"] = {**state["first"], name: value}
     return state

@@ -106,6 +106,16 @@ class FitConfig:
             softer than its nominal membrane and the factor runs past the truth.
         stretch_bound: the fitted membrane factor stays within (1/``stretch_bound``, ``stretch_bound``)
             (a smooth bound, `objective.bounded_stretch`) [-]; must be > 1.
+        lr_waist_shift: Adam step of the waist's height change [m]: a skirt's or trousers' waist
+            attachments are held that much above (below, negative) their placement height
+            (`objective.bounded_shift`, ``waist_shift_bound``). A real waistband settles where the body
+            and the fabric put it, often at the hips; held at the natural waist, the fit could only
+            lengthen the panels to reach a lower hem. 0 freezes it (garments without waist attachments
+            have nothing to move).
+        waist_shift_bound: the waist's height change stays within ±``waist_shift_bound`` [m] (smooth bound).
+        pattern_delay: iterations at the start in which the pattern stays as it is while the other
+            variables (material, waist, body) move: physics that the start cannot model is explained by
+            them before the pattern can absorb it.
         weights: the loss weights.
         adjoint: ``"trajectory"`` or ``"equilibrium"`` (see `sim.differentiable.drape`).
         drape_steps: frames of every warm-started drape [-]. Trajectory adjoint: exactly this many (the
@@ -187,6 +197,9 @@ class FitConfig:
     initial_bend_stiffness: float = 5.0e-6
     lr_log_stretch: float = 0.0
     stretch_bound: float = 30.0
+    lr_waist_shift: float = 0.0
+    waist_shift_bound: float = 0.15
+    pattern_delay: int = 0
     weights: LossWeights = field(default_factory=LossWeights)
     adjoint: str = "trajectory"
     drape_steps: int = 3
@@ -238,22 +251,11 @@ class FitConfig:
         self._check_material()
         if not 1 < self.stretch_bound < math.inf:
             raise ValueError(f"FitConfig.stretch_bound must be a finite factor > 1, got {self.stretch_bound}")
-        for name in (
-            "iterations",
-            "drape_steps",
-            "drape_substeps",
-            "first_max_steps",
-            "max_scan_points",
-            "polish_iterations",
-            "boundary_samples",
-            "rest_prox_iterations",
-            "first_race_iterations",
-        ):
-            value = getattr(self, name)
-            zero_ok = ("iterations", "polish_iterations", "rest_prox_iterations", "first_race_iterations")
-            low = 0 if name in zero_ok else 1
-            if not isinstance(value, int) or value < low:
-                raise ValueError(f"FitConfig.{name} must be an integer >= {low}")
+        if not 0 < self.waist_shift_bound < math.inf:
+            raise ValueError(
+                f"FitConfig.waist_shift_bound must be a finite length > 0 [m], got {self.waist_shift_bound}"
+            )
+        self._check_counts()
         scales = self.first_bend_scales
         if isinstance(scales, int | float) and not isinstance(scales, bool):
             scales = (scales,)
@@ -289,10 +291,34 @@ class FitConfig:
             "lr_pose",
             "lr_log_bend_stiffness",
             "lr_log_stretch",
+            "lr_waist_shift",
         ):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"FitConfig.{name} must be >= 0 (0 freezes the parameter)")
         self._check_numbers()
+
+    def _check_counts(self) -> None:
+        """ValueError for a count that is not an integer >= its least value (0 or 1)."""
+        for name in (
+            "iterations",
+            "drape_steps",
+            "drape_substeps",
+            "first_max_steps",
+            "max_scan_points",
+            "polish_iterations",
+            "boundary_samples",
+            "rest_prox_iterations",
+            "first_race_iterations",
+            "pattern_delay",
+        ):
+            value = getattr(self, name)
+            zero_ok = (
+                "iterations", "polish_iterations", "rest_prox_iterations", "first_race_iterations",
+                "pattern_delay",
+            )  # fmt: skip
+            low = 0 if name in zero_ok else 1
+            if not isinstance(value, int) or value < low:
+                raise ValueError(f"FitConfig.{name} must be an integer >= {low}")
 
     def _check_material(self) -> None:
         """ValueError for an initial bending stiffness outside `BEND_STIFFNESS_RANGE`."""

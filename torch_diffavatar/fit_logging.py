@@ -55,6 +55,7 @@ def fit_scalars(
     scalars["material/stretch_scale"] = float(params.stretch().detach())  # the factor of k_uu, k_vv, k_uv
     for name, value in membrane_stiffnesses(objective.material, out.stretch).items():
         scalars[f"material/{name}"] = value
+    scalars["placement/waist_shift_m"] = float(params.waist_shift().detach())
     body = params.body
     if body is not None:
         for label, value in zip(body.phenotype_labels, body.phenotypes[0].detach().tolist()):

@@ -62,6 +62,7 @@ def summarize(out: ObjectiveOutput, objective: FitObjective, garment_points: tor
         },
         "bend_stiffness": float(out.bend_stiffness.detach()),
         "stretch_scale": 1.0 if out.stretch is None else float(out.stretch.detach()),
+        "waist_shift_m": 0.0 if out.waist_shift is None else float(out.waist_shift.detach()),
         "phenotypes": None
         if body is None
         else dict(zip(body.phenotype_labels, body.phenotypes[0].detach().tolist())),
@@ -112,6 +113,9 @@ def fit_report(first: dict, final: dict, objective: FitObjective, run: dict) -> 
                 membrane_stiffnesses(objective.material, final["stretch_scale"]), unit="N/m"
             ),
         },
+        # the waist attachments' height change [m] (up positive), for garments held at the waist
+        "waist_shift_initial": first["waist_shift_m"],
+        "waist_shift_final": final["waist_shift_m"],
         "body_phenotypes_initial": first["phenotypes"],
         "body_phenotypes_final": final["phenotypes"],
         "rest_quality": {"min": float(q_rest.min()), "mean": float(q_rest.mean())},

@@ -84,6 +84,8 @@ class FitVariables:
             else None: the objective's phenotype prior holds fitted phenotypes only.
         stretch: () factor [-] of the base material's membrane stiffnesses k_uu, k_vv, k_uv
             (`stretch_material`), or None for the base material's.
+        waist_shift: () height change [m] of the waist attachments (up positive; `FitObjective.drape`), or
+            None for their placement height.
     """
 
     rest_uv: torch.Tensor
@@ -91,6 +93,7 @@ class FitVariables:
     bend_stiffness: torch.Tensor
     phenotypes: torch.Tensor | None = None
     stretch: torch.Tensor | None = None
+    waist_shift: torch.Tensor | None = None
 
 
 def bounded_stretch(log_stretch: torch.Tensor, bound: float) -> torch.Tensor:
@@ -109,6 +112,12 @@ def bounded_stretch(log_stretch: torch.Tensor, bound: float) -> torch.Tensor:
     """
     limit = math.log(bound)
     return torch.exp(limit * torch.tanh(log_stretch / limit))
+
+
+def bounded_shift(shift: torch.Tensor, bound: float) -> torch.Tensor:
+    """The waist height change ``bound``·tanh(t/``bound``) [m] of the unbounded variable t [m]: t near 0,
+    never beyond ±``bound``, with a gradient that fades smoothly (as `bounded_stretch`)."""
+    return bound * torch.tanh(shift / bound)
 
 
 def membrane_stiffnesses(material: ClothMaterial, stretch: torch.Tensor | float | None) -> dict[str, float]:
@@ -141,7 +150,9 @@ def stretch_material(material: ClothMaterial, bend_stiffness, stretch=None) -> C
 class FitParameters(nn.Module):
     """The fit variables: a `ControlCage` (pattern), an optional `BodyModel`, the log bending stiffness, the
     log membrane stretch scale s (the factor of the base material's k_uu, k_vv, k_uv is
-    `bounded_stretch` (s, ``stretch_bound``)).
+    `bounded_stretch` (s, ``stretch_bound``)) and the waist's height change (`bounded_shift` of
+    ``raw_waist_shift``, ``waist_shift_bound``; it moves a skirt's or trousers' waist attachments, and
+    nothing on a garment without any).
 
     Args:
         cage: the pattern's control cage, or `FreeVertices` (its ``handles`` parameter is optimised).
@@ -149,6 +160,7 @@ class FitParameters(nn.Module):
         log_bend_stiffness: initial log k_b (k_b in [N·m]).
         log_stretch: initial s [-] (0: the base material's membrane).
         stretch_bound: the factor stays within (1/``stretch_bound``, ``stretch_bound``) [-].
+        waist_shift_bound: the waist's height change stays within ±``waist_shift_bound`` [m].
 
     ``forward()`` returns `FitVariables`.
     """
@@ -160,6 +172,7 @@ class FitParameters(nn.Module):
         log_bend_stiffness: float,
         log_stretch: float = 0.0,
         stretch_bound: float = 30.0,
+        waist_shift_bound: float = 0.15,
     ):
         super().__init__()
         self.cage = cage
@@ -168,6 +181,8 @@ class FitParameters(nn.Module):
         self.log_bend_stiffness = nn.Parameter(torch.tensor(float(log_bend_stiffness), dtype=dtype))
         self.log_stretch = nn.Parameter(torch.tensor(float(log_stretch), dtype=dtype))
         self.stretch_bound = float(stretch_bound)
+        self.raw_waist_shift = nn.Parameter(torch.zeros((), dtype=dtype))
+        self.waist_shift_bound = float(waist_shift_bound)
 
     @classmethod
     def from_config(
@@ -179,7 +194,7 @@ class FitParameters(nn.Module):
     ) -> FitParameters:
         """The variables of a fit of ``garment``: its `ControlCage` with ``config``'s tying options (or
         `FreeVertices` when ``config.cage`` is False), ``body``, k_b = ``config.initial_bend_stiffness``, the
-        base membrane (s = 0) bounded by ``config.stretch_bound``."""
+        base membrane (s = 0) bounded by ``config.stretch_bound``, the waist at its placement height."""
         if config.cage:
             cage = ControlCage(
                 garment,
@@ -190,7 +205,13 @@ class FitParameters(nn.Module):
         else:
             cage = FreeVertices(garment)
         log_kb = math.log(config.initial_bend_stiffness)
-        return cls(cage.to(dtype), body, log_kb, stretch_bound=config.stretch_bound)
+        return cls(
+            cage.to(dtype),
+            body,
+            log_kb,
+            stretch_bound=config.stretch_bound,
+            waist_shift_bound=config.waist_shift_bound,
+        )
 
     def forward(self) -> FitVariables:
         rest_uv = self.cage()
@@ -198,11 +219,17 @@ class FitParameters(nn.Module):
         bend_stiffness = self.log_bend_stiffness.exp()
         fitted = self.body is not None and self.body.phenotype_logits.requires_grad
         phenotypes = self.body.phenotypes if fitted else None
-        return FitVariables(rest_uv, body_verts, bend_stiffness, phenotypes, self.stretch())
+        return FitVariables(
+            rest_uv, body_verts, bend_stiffness, phenotypes, self.stretch(), self.waist_shift()
+        )
 
     def stretch(self) -> torch.Tensor:
         """() the factor [-] of the base material's membrane stiffnesses (`bounded_stretch`)."""
         return bounded_stretch(self.log_stretch, self.stretch_bound)
+
+    def waist_shift(self) -> torch.Tensor:
+        """() the waist attachments' height change [m] (`bounded_shift`)."""
+        return bounded_shift(self.raw_waist_shift, self.waist_shift_bound)
 
 
 @dataclass
@@ -215,6 +242,7 @@ class ObjectiveOutput:
         x: (Vs, 3) the drape [m].
         rest_uv: (V, 2) [m]; body_verts: (Vb, 3) [m] or None; bend_stiffness: () [N·m]: the variables.
         stretch: () the membrane stiffness factor [-] (`FitVariables.stretch`), or None (the base's).
+        waist_shift: () the waist's height change [m] (`FitVariables.waist_shift`), or None (none).
         stats: the drape's diagnostics (`sim.differentiable.drape` ``stats``; the backward adds to it).
         openings: the garment's openings matched to the scan's, on ``x`` (`FitObjective.openings`).
     """
@@ -226,6 +254,7 @@ class ObjectiveOutput:
     body_verts: torch.Tensor | None
     bend_stiffness: torch.Tensor
     stretch: torch.Tensor | None
+    waist_shift: torch.Tensor | None
     stats: dict
     openings: list[BoundaryLoop]
 
@@ -423,13 +452,15 @@ class FitObjective(nn.Module):
         start: ClothState,
         *,
         stretch: torch.Tensor | None = None,
+        waist_shift: torch.Tensor | None = None,
         adjoint: str | None = None,
         drape_steps: int | None = None,
         stats: dict | None = None,
     ) -> torch.Tensor:
         """(Vs, 3) the differentiable drape [m] from ``start`` (`sim.differentiable.drape`) at `material_at`
-        (``bend_stiffness``, ``stretch``), with ``config``'s adjoint and frames, or ``adjoint`` /
-        ``drape_steps`` instead."""
+        (``bend_stiffness``, ``stretch``), the waist attachments ``waist_shift`` [m] above their placement
+        height (None: at it), with ``config``'s adjoint and frames, or ``adjoint`` / ``drape_steps``
+        instead."""
         from torch_diffavatar.sim.differentiable import drape
 
         adjoint = self.config.adjoint if adjoint is None else adjoint
@@ -444,7 +475,16 @@ class FitObjective(nn.Module):
             adjoint=adjoint,
             options=adjoint_options(self.config, adjoint),
             stats=stats,
+            attach_height=self.attach_height(waist_shift),
         )
+
+    def attach_height(self, waist_shift: torch.Tensor | None) -> torch.Tensor | None:
+        """(A,) the waist attachments' target heights [m] ``waist_shift`` [m] above their placement, or
+        None (the model's own) without a shift or without attachments."""
+        model = self.cloth_model
+        if waist_shift is None or model.attach_vertices.numel() == 0:
+            return None
+        return model.attach_height + waist_shift.to(model.attach_height.dtype)
 
     def material_at(self, bend_stiffness, stretch=None) -> ClothMaterial:
         """The base ``material`` at the fit's material variables (`stretch_material`): k_b
@@ -462,6 +502,7 @@ class FitObjective(nn.Module):
         bend_stiffness: torch.Tensor | None = None,
         phenotypes: torch.Tensor | None = None,
         stretch: torch.Tensor | None = None,
+        waist_shift: torch.Tensor | None = None,
         adjoint: str | None = None,
         drape_steps: int | None = None,
     ) -> ObjectiveOutput:
@@ -473,7 +514,8 @@ class FitObjective(nn.Module):
             start: the drape's start (warm start: the previous drape, velocities zeroed).
             body_verts: (Vb, 3) [m] (default: the fixed body); bend_stiffness: () [N·m] (required with
                 a tensor ``variables``); phenotypes: (1, P) fitted phenotypes (the prior), or None;
-                stretch: () membrane stiffness factor [-] or None (the base material's).
+                stretch: () membrane stiffness factor [-] or None (the base material's); waist_shift: ()
+                the waist's height change [m] or None.
             adjoint, drape_steps: override ``config.adjoint`` / ``config.drape_steps`` for this drape
                 (e.g. a short trajectory replay when the equilibrium adjoint fails).
 
@@ -483,7 +525,7 @@ class FitObjective(nn.Module):
         if isinstance(variables, FitVariables):
             rest_uv, body_verts = variables.rest_uv, variables.body_verts
             bend_stiffness, phenotypes = variables.bend_stiffness, variables.phenotypes
-            stretch = variables.stretch
+            stretch, waist_shift = variables.stretch, variables.waist_shift
         else:
             rest_uv = variables
             if bend_stiffness is None:
@@ -491,15 +533,17 @@ class FitObjective(nn.Module):
         body_verts = self.body_or_fixed(body_verts)
         stats: dict = {}
         x = self.drape(
-            rest_uv, body_verts, bend_stiffness, start, stretch=stretch, adjoint=adjoint,
-            drape_steps=drape_steps, stats=stats,
+            rest_uv, body_verts, bend_stiffness, start, stretch=stretch, waist_shift=waist_shift,
+            adjoint=adjoint, drape_steps=drape_steps, stats=stats,
         )  # fmt: skip
         openings = self.openings(x)
         terms = self.drape_terms(x, openings)
         terms.update(self.rest_terms(rest_uv))
         terms.update(self.body_terms(body_verts, phenotypes))
         loss = self.weighted_sum(terms)
-        return ObjectiveOutput(loss, terms, x, rest_uv, body_verts, bend_stiffness, stretch, stats, openings)
+        return ObjectiveOutput(
+            loss, terms, x, rest_uv, body_verts, bend_stiffness, stretch, waist_shift, stats, openings
+        )
 
     def drape_terms(self, x: torch.Tensor, openings: list[BoundaryLoop]) -> dict[str, torch.Tensor]:
         """The unweighted terms of the drape ``x`` (Vs, 3) [m]: ``interior``, and ``boundary`` over the

@@ -59,6 +59,16 @@ def pinned_tube(n: int = 5):
     return g, model
 
 
+def attached_tube(n: int = 5):
+    """A two-panel tube held by its waist attachments (soft height constraints), with one waist vertex
+    per panel pinned so that nothing slides or turns freely (the equilibrium adjoint needs a minimiser)."""
+    g = tube_garment(n, n, 0.3, 0.3, gap=0.06, y0=0.0)
+    mid = (n - 1) * n + n // 2
+    pins = torch.tensor([mid, mid + n * n])
+    model = ClothModelBuilder(material()).add_garment(g, pinned=pins).finalize(dtype=DT)
+    return g, model
+
+
 def short_config(frames: int = 3, substeps: int = 2, iterations: int = 2) -> DrapeConfig:
     """A fixed-length drape (for the trajectory adjoint's gradchecks)."""
     return DrapeConfig(
@@ -112,6 +122,8 @@ def _fn(scene, group, adjoint, config, options=None, stats=None):
         "stretch": torch.tensor(KUU, dtype=DT),
         "membrane": torch.tensor(LOG_STRETCH, dtype=DT),
         "body": body,
+        # the waist attachments' target heights, 2 cm below their placement (the fit's waist drop)
+        "attach": model.attach_height - 0.02,
     }
 
     def f(t):
@@ -121,7 +133,7 @@ def _fn(scene, group, adjoint, config, options=None, stats=None):
             mat = stretch_material(mat, mat.bend_stiffness, bounded_stretch(v["membrane"], 30.0))
         return drape(
             v["rest_uv"], model, v["body"], mat, body_faces=faces, config=config, adjoint=adjoint,
-            options=options, stats=stats,
+            options=options, stats=stats, attach_height=v["attach"] if group == "attach" else None,
         )  # fmt: skip
 
     return f, nominal[group].clone().requires_grad_(True)
@@ -163,6 +175,50 @@ def test_trajectory_gradcheck_jacobi(sheet, group):
 def test_trajectory_gradcheck_tube(tube):
     f, t = _fn(tube, "rest_uv", "trajectory", short_config(2), TrajectoryOptions(checkpoint_every=1))
     _gradcheck(f, t)
+
+
+@pytest.fixture(scope="module")
+def waist_tube():
+    g, model = attached_tube()
+    assert model.attach_vertices.numel() >= 4  # the waist rows minus the stitched corners and the pins
+    return g, model, None, None
+
+
+@pytest.mark.parametrize("group", ("attach", "rest_uv"))
+def test_trajectory_gradcheck_attached_waist(waist_tube, group):
+    f, t = _fn(waist_tube, group, "trajectory", short_config(3), TrajectoryOptions(checkpoint_every=2))
+    _gradcheck(f, t)
+    _assert_nonzero_gradient(f, t)
+
+
+def _assert_nonzero_gradient(f, t):
+    """The heights move the drape (a gradcheck of a zero Jacobian would pass too)."""
+    (grad,) = torch.autograd.grad(f(t)[:, 1].sum(), t)
+    assert float(grad.abs().max()) > 0.1
+
+
+@pytest.mark.parametrize("group", ("attach", "rest_uv"))
+def test_equilibrium_gradcheck_attached_waist(waist_tube, group):
+    stats = {}
+    f, t = _fn(waist_tube, group, "equilibrium", settle_config(40), TIGHT, stats)
+    _gradcheck(f, t)
+    _assert_nonzero_gradient(f, t)
+    assert stats["newton_force_residual"] < 1e-10
+
+
+def test_lowered_waist_hangs_lower(waist_tube):
+    """The drape holds the attached waist at the given heights (the fit's waist-drop variable moves the
+    garment, not only its gradient)."""
+    g, model, _, _ = waist_tube
+    uv = g.vert_uv.to(DT)
+    cfg = settle_config(60)
+    x0 = drape(uv, model, None, material(), config=cfg)
+    x1 = drape(uv, model, None, material(), config=cfg, attach_height=model.attach_height - 0.03)
+    free = ~model.vert_pinned[model.attach_vertices]
+    dy = x1[model.attach_vertices[free], 1] - x0[model.attach_vertices[free], 1]
+    assert float(dy.mean()) < -0.02  # the waist follows its targets (the pins hold it back near them)
+    with pytest.raises(ValueError, match="attach_height must be a tensor of shape"):
+        drape(uv, model, None, material(), config=cfg, attach_height=model.attach_height[:-1])
 
 
 def test_trajectory_adjoint_matches_unrolled_autograd(sheet):

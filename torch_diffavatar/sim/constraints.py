@@ -96,6 +96,8 @@ class RestData:
         tri_rest_inv: (F, 2, 2) [1/m]; tri_area: (F,) [m²]; tri_compliance: (F, 3, 3) [1/(N·m)];
         edge_rest_angle: (E,) [rad]; edge_weight: (E,) [-]; edge_compliance: (E,) [1/(N·m)];
         vert_mass: (Vs,) [kg]; vert_inv_mass: (Vs,) [1/kg] (0 for pinned vertices);
+        attach_height: (A,) target heights y of the attached vertices [m] (`ClothModel.attach_height`, or
+        the drape's own, e.g. a fitted waistband height);
         material: the `ClothMaterial` used.
     """
 
@@ -107,6 +109,7 @@ class RestData:
     edge_compliance: torch.Tensor
     vert_mass: torch.Tensor
     vert_inv_mass: torch.Tensor
+    attach_height: torch.Tensor
     material: ClothMaterial
 
 

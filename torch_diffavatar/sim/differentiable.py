@@ -2,9 +2,10 @@
 
 ``x = drape(rest_uv, garment, body_verts, material, body_faces=..., adjoint="equilibrium")`` runs the XPBD
 drape under ``no_grad`` and returns the final (Vs, 3) positions; ``x.backward(...)`` (or any loss of x)
-reaches ``rest_uv`` (the 2D pattern), ``body_verts`` (through the body contacts) and every material
-tensor that requires grad (``bend_stiffness``, ``k_uu``, ``k_vv``, ``k_uv``, ``poisson``,
-``areal_density``; e.g. ``ClothMaterial(bend_stiffness=log_kb.exp())``). Two adjoints, chosen by name:
+reaches ``rest_uv`` (the 2D pattern), ``body_verts`` (through the body contacts), ``attach_height`` (the
+waist attachments' target heights, when given) and every material tensor that requires grad
+(``bend_stiffness``, ``k_uu``, ``k_vv``, ``k_uv``, ``poisson``, ``areal_density``; e.g.
+``ClothMaterial(bend_stiffness=log_kb.exp())``). Two adjoints, chosen by name:
 
 * ``"trajectory"`` — DiffXPBD (`sim/adjoint/trajectory.py`): reverse-mode through every frame of the
   discrete drape from checkpoints; exact for the discrete trajectory; cost grows with the frames.
@@ -38,18 +39,19 @@ __all__ = ["ADJOINTS", "drape"]
 
 
 class _Drape(torch.autograd.Function):
-    """XPBD drape with an adjoint backward. Inputs: setup (on ctx), rest_uv, body_verts, *material tensors."""
+    """XPBD drape with an adjoint backward. Inputs: setup (on ctx), rest_uv, body_verts, attach_height,
+    *material tensors."""
 
     @staticmethod
-    def forward(ctx, setup: DrapeSetup, rest_uv, body_verts, *material_values):
+    def forward(ctx, setup: DrapeSetup, rest_uv, body_verts, attach_height, *material_values):
         t0 = time.perf_counter()
         adjoint = ADJOINTS[setup.saved["adjoint"]]
         with torch.no_grad():
-            x = adjoint.forward(setup, rest_uv, body_verts, material_values)
+            x = adjoint.forward(setup, rest_uv, body_verts, attach_height, material_values)
         ro = setup.saved.get("rollout")
         frames = ro.frames if ro is not None and ro.frames is not None else x.new_zeros(0, *x.shape)
         ctx.setup = setup
-        ctx.save_for_backward(rest_uv, body_verts, *material_values)
+        ctx.save_for_backward(rest_uv, body_verts, attach_height, *material_values)
         if frames.shape[0] == 0:
             ctx.mark_non_differentiable(frames)
         setup.record(forward_seconds=time.perf_counter() - t0)
@@ -60,12 +62,13 @@ class _Drape(torch.autograd.Function):
     def backward(ctx, grad_x, grad_frames):
         t0 = time.perf_counter()
         setup: DrapeSetup = ctx.setup
-        rest_uv, body_verts, *material_values = ctx.saved_tensors
+        rest_uv, body_verts, attach_height, *material_values = ctx.saved_tensors
         needs = ctx.needs_input_grad
         need_uv = needs[1]
         need_body = body_verts is not None and needs[2]
-        need_mat = tuple(needs[3:])
-        if not (need_uv or need_body or any(need_mat)):
+        need_attach = needs[3]
+        need_mat = tuple(needs[4:])
+        if not (need_uv or need_body or need_attach or any(need_mat)):
             return (None,) * len(needs)
         if grad_frames is not None and grad_frames.numel() == 0:
             grad_frames = None
@@ -73,13 +76,20 @@ class _Drape(torch.autograd.Function):
             setup,
             rest_uv,
             body_verts,
+            attach_height,
             tuple(material_values),
             grad_x,
-            (need_uv, need_body, need_mat),
+            (need_uv, need_body, need_attach, need_mat),
             grad_frames,
         )
         setup.record(backward_seconds=time.perf_counter() - t0)
-        return (None, g.rest_uv if need_uv else None, g.body_verts if need_body else None, *g.material)
+        return (
+            None,
+            g.rest_uv if need_uv else None,
+            g.body_verts if need_body else None,
+            g.attach_height if need_attach else None,
+            *g.material,
+        )
 
 
 def _check_inputs(model: ClothModel, rest_uv, body_verts, body_faces):
@@ -110,6 +120,21 @@ def _check_inputs(model: ClothModel, rest_uv, body_verts, body_faces):
             raise ValueError(
                 f"body_faces must be (Fb, 3) int64, got {tuple(body_faces.shape)} {body_faces.dtype}"
             )
+
+
+def _attach_height(model: ClothModel, attach_height) -> torch.Tensor:
+    """``attach_height`` checked and on the CPU (differentiably), or the model's."""
+    if attach_height is None:
+        return model.attach_height
+    expected = tuple(model.attach_height.shape)
+    if not isinstance(attach_height, torch.Tensor) or tuple(attach_height.shape) != expected:
+        got = tuple(attach_height.shape) if isinstance(attach_height, torch.Tensor) else type(attach_height)
+        raise ValueError(
+            f"attach_height must be a tensor of shape {expected} (one per attached vertex), got {got}"
+        )
+    if attach_height.dtype != model.dtype:
+        raise ValueError(f"attach_height is {attach_height.dtype} but the model is {model.dtype}")
+    return attach_height.cpu()
 
 
 def _drape_batch(rest_uv, garment, body_verts, material, *, state, stats, **kwargs):
@@ -189,6 +214,7 @@ def drape(
     adjoint: str = "equilibrium",
     options=None,
     stats: dict | None = None,
+    attach_height: torch.Tensor | None = None,
 ):
     """Differentiable drape of a garment on a body.
 
@@ -214,6 +240,9 @@ def drape(
         options: the adjoint's options (`TrajectoryOptions` / `EquilibriumOptions`; default: theirs).
         stats: a dict that the forward and backward fill with diagnostics (steps, Newton residual,
             solve residual, timings); with a batch, ``stats["batch"]`` holds one such dict per element.
+        attach_height: (A,) target heights y [m] of the model's attached vertices (the waist of a skirt or
+            trousers; differentiable), default ``model.attach_height`` (their placement height). One
+            vector for every element of a batch.
 
     Returns:
         x: (Vs, 3) draped positions [m] (a batch: (B, Vs, 3)); with ``TrajectoryOptions(return_trajectory=
@@ -235,6 +264,7 @@ def drape(
             adjoint=adjoint,
             options=options,
             stats=stats,
+            attach_height=attach_height,
         )
     setup, values = _drape_setup(
         rest_uv, garment, body_verts, material, body_faces, state, config, adjoint, options, stats
@@ -243,7 +273,8 @@ def drape(
     # to the simulator's device; `Tensor.cpu` is differentiable, so gradients flow back to ``device``
     rest_uv = rest_uv.cpu()
     body_verts = None if body_verts is None else body_verts.cpu()
-    x, frames = _Drape.apply(setup, rest_uv, body_verts, *values)
+    attach_height = _attach_height(setup.model, attach_height)
+    x, frames = _Drape.apply(setup, rest_uv, body_verts, attach_height, *values)
     if getattr(setup.options, "return_trajectory", False):
         return x.to(device), frames.to(device)
     return x.to(device)

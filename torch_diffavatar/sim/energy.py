@@ -70,7 +70,7 @@ def drape_energy(
         a, b = model.stitch_vertices[:, 0], model.stitch_vertices[:, 1]
         u = u + 0.5 / params.stitch_compliance * ((x[a] - x[b]) ** 2).sum()
     if model.attach_vertices.shape[0]:
-        dy = x[model.attach_vertices, 1] - model.attach_height
+        dy = x[model.attach_vertices, 1] - rest.attach_height
         u = u + 0.5 / params.attach_compliance * (dy**2).sum()
     if contacts is not None and contacts.count:
         s = collision.signed_distance_along_normal(x, body_verts, body_faces, contacts)

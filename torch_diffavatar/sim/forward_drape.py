@@ -185,6 +185,7 @@ def drape_to_equilibrium(
     material: ClothMaterial | None = None,
     state: ClothState | None = None,
     config: DrapeConfig | None = None,
+    attach_height: torch.Tensor | None = None,
 ) -> DrapeResult:
     """Step until quasi-equilibrium (largest vertex speed < ``speed_tol`` for ``settle_steps`` frames).
 
@@ -195,6 +196,7 @@ def drape_to_equilibrium(
         material: overrides ``model.material``.
         state: start state (warm start, e.g. ``previous_result.state``); default: the placement at rest.
         config: drape options.
+        attach_height: (A,) target heights of the attached vertices [m] (default ``model.attach_height``).
 
     Returns:
         a `DrapeResult` (``converged`` False when ``max_steps`` ran out).
@@ -205,7 +207,7 @@ def drape_to_equilibrium(
     config = DrapeConfig() if config is None else config
     body_verts, body_faces = _check_body(body_verts, body_faces, model)
     t0 = time.perf_counter()
-    rest = model.rest_data(rest_uv, material)
+    rest = model.rest_data(rest_uv, material, attach_height)
     solver = XPBDSolver(model, config.xpbd)
     state = model.initial_state() if state is None else state
     if state.x.shape != (model.vert_count, 3):

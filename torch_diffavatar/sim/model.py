@@ -78,17 +78,32 @@ class ClothModel:
     def device(self) -> torch.device:
         return self.vert_init_pos.device
 
-    def rest_data(self, rest_uv: torch.Tensor, material: ClothMaterial | None = None) -> constraints.RestData:
-        """Rest data from the panel rest coordinates (differentiable in ``rest_uv`` and the material).
+    def rest_data(
+        self,
+        rest_uv: torch.Tensor,
+        material: ClothMaterial | None = None,
+        attach_height: torch.Tensor | None = None,
+    ) -> constraints.RestData:
+        """Rest data from the panel rest coordinates (differentiable in ``rest_uv``, the material and
+        ``attach_height``).
 
         Args:
             rest_uv: (V, 2) panel-vertex rest coordinates [m] (e.g. ``GarmentMesh.vert_uv``).
             material: overrides the model's material (e.g. with a bending stiffness being fitted).
+            attach_height: (A,) target heights of the attached vertices [m], overriding
+                ``attach_height`` (e.g. a waistband lowered by a fitted offset).
         """
         material = self.material if material is None else material
         if rest_uv.shape != (self.panel_vert_count, 2):
             raise ValueError(
                 f"rest_uv must have shape ({self.panel_vert_count}, 2), got {tuple(rest_uv.shape)}"
+            )
+        if attach_height is None:
+            attach_height = self.attach_height
+        elif attach_height.shape != self.attach_height.shape:
+            raise ValueError(
+                f"attach_height must have shape {tuple(self.attach_height.shape)} (one height per attached "
+                f"vertex), got {tuple(attach_height.shape)}"
             )
         rest_uv = rest_uv.to(device=self.device, dtype=self.dtype)  # differentiable cast
         rest_inv, area = constraints.tri_rest_geometry(rest_uv, self.tri_panel_vertices)
@@ -104,6 +119,7 @@ class ClothModel:
             edge_compliance=constraints.edge_bend_compliance(weight, material),
             vert_mass=mass,
             vert_inv_mass=inv_mass,
+            attach_height=attach_height.to(device=self.device, dtype=self.dtype),
             material=material,
         )
 

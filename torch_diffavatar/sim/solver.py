@@ -347,7 +347,7 @@ def substep_inputs(
             ec.order,
             ec.color_offsets,
         ),  # fmt: skip
-        seams=SeamInputs(model.stitch_vertices, model.attach_vertices, model.attach_height),
+        seams=SeamInputs(model.stitch_vertices, model.attach_vertices, rest.attach_height.contiguous()),
         body=body,
         params=params,
     )

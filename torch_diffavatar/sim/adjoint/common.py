@@ -1,9 +1,9 @@
 """Pieces shared by the two adjoints: the material split, the saved forward data, gradient bookkeeping.
 
 The differentiable inputs of a drape are the panel rest coordinates ``rest_uv`` (V, 2), the body vertices
-(Vb, 3) and the material tensors that require grad (0-dim fields of `ClothMaterial`). They travel through
-`_Drape.apply` as explicit tensors; `material_with` rebuilds the material from them inside the
-forward/backward so autograd sees every leaf.
+(Vb, 3), the attached vertices' target heights (A,) and the material tensors that require grad (0-dim
+fields of `ClothMaterial`). They travel through `_Drape.apply` as explicit tensors; `material_with`
+rebuilds the material from them inside the forward/backward so autograd sees every leaf.
 """
 
 from __future__ import annotations
@@ -87,6 +87,7 @@ class Gradients:
 
     rest_uv: torch.Tensor | None = None
     body_verts: torch.Tensor | None = None
+    attach_height: torch.Tensor | None = None
     material: tuple[torch.Tensor | None, ...] = ()
 
 

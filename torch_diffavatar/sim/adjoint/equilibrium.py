@@ -246,7 +246,9 @@ def _update_active_set(x, setup, rest, material, body_verts, contacts, opts):
     return contacts, changed
 
 
-def equilibrium_forward(setup: DrapeSetup, rest_uv, body_verts, material_values) -> torch.Tensor:
+def equilibrium_forward(
+    setup: DrapeSetup, rest_uv, body_verts, attach_height, material_values
+) -> torch.Tensor:
     """XPBD drape, active set, Newton polish. Saves x* and the contact set in ``setup.saved``."""
     opts: EquilibriumOptions = setup.options
     model = setup.model
@@ -259,8 +261,9 @@ def equilibrium_forward(setup: DrapeSetup, rest_uv, body_verts, material_values)
         material=material,
         state=ClothState(setup.x0, setup.v0),
         config=setup.config,
+        attach_height=attach_height,
     )
-    rest = model.rest_data(rest_uv, material)
+    rest = model.rest_data(rest_uv, material, attach_height)
     params = _params(setup, opts)
     x = res.x
     contacts = initial_contacts(x, setup, material, body_verts, opts)
@@ -288,16 +291,16 @@ def equilibrium_forward(setup: DrapeSetup, rest_uv, body_verts, material_values)
 
 
 def equilibrium_backward(
-    setup: DrapeSetup, rest_uv, body_verts, material_values, grad_x, needs, grad_frames=None
+    setup: DrapeSetup, rest_uv, body_verts, attach_height, material_values, grad_x, needs, grad_frames=None
 ) -> Gradients:
     """``−λᵀ ∂(∇ₓU)/∂θ`` with ``H λ = grad_x`` (free dofs)."""
     opts: EquilibriumOptions = setup.options
     model = setup.model
     x, contacts = setup.saved["x"], setup.saved["contacts"]
-    need_uv, need_body, need_mat = needs
+    need_uv, need_body, need_attach, need_mat = needs
     material = material_with(setup.material, setup.material_names, material_values)
     params = _params(setup, opts)
-    rest = model.rest_data(rest_uv.detach(), material)
+    rest = model.rest_data(rest_uv.detach(), material, attach_height)
     free_dof, _, nfree = _free(rest, model)
     project = opts.hessian == "projected"
     # float64 element Hessians, assembled through the model's cached CSR pattern (exactly symmetric)
@@ -333,8 +336,9 @@ def equilibrium_backward(
         uv_l = rest_uv.detach().requires_grad_(need_uv)
         mats = tuple(m.detach().requires_grad_(n) for m, n in zip(material_values, need_mat))
         body_l = body_verts.detach().requires_grad_(need_body) if body_verts is not None else None
+        attach_l = attach_height.detach().requires_grad_(need_attach)
         mat_l = material_with(setup.material, setup.material_names, mats)
-        rest_l = model.rest_data(uv_l, mat_l)
+        rest_l = model.rest_data(uv_l, mat_l, attach_l)
         xl = x.detach().requires_grad_(True)
         u = drape_energy(
             xl,
@@ -350,6 +354,7 @@ def equilibrium_backward(
         wrt = (
             ([uv_l] if need_uv else [])
             + ([body_l] if need_body and body_l is not None else [])
+            + ([attach_l] if need_attach else [])
             + [m for m, n in zip(mats, need_mat) if n]
         )
         if not wrt:
@@ -360,5 +365,7 @@ def equilibrium_backward(
         out.rest_uv = grads.pop(0)
     if need_body and body_l is not None:
         out.body_verts = grads.pop(0)
+    if need_attach:
+        out.attach_height = grads.pop(0)
     out.material = tuple(grads.pop(0) if n else None for n in need_mat)
     return out

@@ -62,7 +62,7 @@ class TrajectoryOptions:
             raise ValueError(f"checkpoint_every must be >= 1, got {self.checkpoint_every}")
 
 
-_REST_LEAVES = ("tri_rest_inv", "tri_compliance", "edge_compliance", "vert_inv_mass")
+_REST_LEAVES = ("tri_rest_inv", "tri_compliance", "edge_compliance", "vert_inv_mass", "attach_height")
 
 
 def replay_frame(
@@ -166,10 +166,10 @@ def rollout(
     )
 
 
-def trajectory_forward(setup: DrapeSetup, rest_uv, body_verts, material_values):
+def trajectory_forward(setup: DrapeSetup, rest_uv, body_verts, attach_height, material_values):
     """XPBD rollout with checkpoints; returns the final positions (Vs, 3) (frames in ``setup.saved``)."""
     material = material_with(setup.material, setup.material_names, material_values)
-    rest = setup.model.rest_data(rest_uv, material)
+    rest = setup.model.rest_data(rest_uv, material, attach_height)
     ro = rollout(setup, rest, body_verts, setup.options)
     setup.saved["rollout"] = ro
     setup.record(
@@ -186,9 +186,10 @@ def trajectory_backward(
     setup: DrapeSetup,
     rest_uv: torch.Tensor,
     body_verts: torch.Tensor | None,
+    attach_height: torch.Tensor,
     material_values: tuple[torch.Tensor, ...],
     grad_x: torch.Tensor,
-    needs: tuple[bool, bool, tuple[bool, ...]],
+    needs: tuple[bool, bool, bool, tuple[bool, ...]],
     grad_frames: torch.Tensor | None = None,
 ) -> Gradients:
     """Vector–Jacobian product of the drape with ``grad_x`` (Vs, 3) (and ``grad_frames`` (T+1, Vs, 3)).
@@ -201,15 +202,15 @@ def trajectory_backward(
 
     Args:
         setup: forward data; ``setup.saved["rollout"]`` is the `Rollout`.
-        rest_uv: (V, 2) [m]; body_verts: (Vb, 3) [m] or None; material_values: differentiable material
-            tensors (names in ``setup.material_names``).
-        needs: whether rest_uv, body_verts and each material tensor need a gradient.
+        rest_uv: (V, 2) [m]; body_verts: (Vb, 3) [m] or None; attach_height: (A,) [m];
+            material_values: differentiable material tensors (names in ``setup.material_names``).
+        needs: whether rest_uv, body_verts, attach_height and each material tensor need a gradient.
 
     Records in ``setup.stats``: ``replay_max_deviation_m``, the largest difference between a replayed
     segment end and the forward's state there (rounding of the C++ forward vs the replay; a larger value
     means the replay does not reproduce the forward and the gradient is not that of the forward).
     """
-    leaves = _ReplayLeaves.build(setup, rest_uv, body_verts, material_values, needs)
+    leaves = _ReplayLeaves.build(setup, rest_uv, body_verts, attach_height, material_values, needs)
     acc, deviation = _reverse_sweep(setup, leaves, grad_x, grad_frames)
     setup.record(replay_max_deviation_m=deviation)
     return leaves.gradients(acc)
@@ -218,10 +219,11 @@ def trajectory_backward(
 @dataclass
 class _ReplayLeaves:
     """The backward's leaves: the rest data as detached leaves (``_REST_LEAVES``) of the graph
-    ``rest_uv``, material → rest data, and the body vertices.
+    ``rest_uv``, attachment heights, material → rest data, and the body vertices.
 
     Attributes:
-        needs: as `trajectory_backward`; uv, materials: leaves of ``rest_uv`` and the material tensors;
+        needs: as `trajectory_backward`; uv, attach, materials: leaves of ``rest_uv``, the attachment
+            heights and the material tensors;
         rest_graph: `RestData` computed from them (with grad); rest: the replay's `RestData`, its
         ``_REST_LEAVES`` detached leaves; body: (Vb, 3) leaf or None; inputs: the tensors whose gradients
         the sweep accumulates (the rest leaves when needed, then the body when needed).
@@ -229,6 +231,7 @@ class _ReplayLeaves:
 
     needs: tuple
     uv: torch.Tensor
+    attach: torch.Tensor
     materials: tuple[torch.Tensor, ...]
     rest_graph: RestData
     rest: RestData
@@ -236,32 +239,38 @@ class _ReplayLeaves:
     inputs: list[torch.Tensor]
 
     @staticmethod
-    def build(setup: DrapeSetup, rest_uv, body_verts, material_values, needs) -> _ReplayLeaves:
-        need_uv, need_body, need_mat = needs
-        need_rest = need_uv or any(need_mat)
+    def build(setup: DrapeSetup, rest_uv, body_verts, attach_height, material_values, needs) -> _ReplayLeaves:
+        need_uv, need_body, need_attach, need_mat = needs
+        need_rest = need_uv or need_attach or any(need_mat)
         with torch.enable_grad():
             uv_leaf = rest_uv.detach().requires_grad_(need_uv)
+            attach_leaf = attach_height.detach().requires_grad_(need_attach)
             mat_leaves = tuple(m.detach().requires_grad_(n) for m, n in zip(material_values, need_mat))
             material = material_with(setup.material, setup.material_names, mat_leaves)
-            rest_graph = setup.model.rest_data(uv_leaf, material)
+            rest_graph = setup.model.rest_data(uv_leaf, material, attach_leaf)
         leaves = {name: getattr(rest_graph, name).detach().requires_grad_(need_rest) for name in _REST_LEAVES}
         rest = dataclasses.replace(rest_graph, material=_floats(material), **leaves)
         body = body_verts.detach().requires_grad_(need_body) if body_verts is not None else None
         inputs = [leaves[n] for n in _REST_LEAVES] if need_rest else []
         if need_body and body is not None:
             inputs.append(body)
-        return _ReplayLeaves(needs, uv_leaf, mat_leaves, rest_graph, rest, body, inputs)
+        return _ReplayLeaves(needs, uv_leaf, attach_leaf, mat_leaves, rest_graph, rest, body, inputs)
 
     def gradients(self, acc: list[torch.Tensor]) -> Gradients:
         """`Gradients` from the accumulated gradients ``acc`` of ``inputs``: the body's as they are, the
-        rest data's pulled back to ``rest_uv`` and the material through ``rest_graph``."""
-        need_uv, need_body, need_mat = self.needs
+        rest data's pulled back to ``rest_uv``, the attachment heights and the material through
+        ``rest_graph``."""
+        need_uv, need_body, need_attach, need_mat = self.needs
         out = Gradients(body_verts=None, material=tuple(None for _ in need_mat))
         if need_body and self.body is not None:
             out.body_verts = acc[-1]
-        if not (need_uv or any(need_mat)):
+        if not (need_uv or need_attach or any(need_mat)):
             return out
-        wrt = ([self.uv] if need_uv else []) + [m for m, n in zip(self.materials, need_mat) if n]
+        wrt = (
+            ([self.uv] if need_uv else [])
+            + ([self.attach] if need_attach else [])
+            + [m for m, n in zip(self.materials, need_mat) if n]
+        )
         pairs = [
             (getattr(self.rest_graph, name), acc[i])
             for i, name in enumerate(_REST_LEAVES)
@@ -272,6 +281,8 @@ class _ReplayLeaves:
         grads = [_zero_if_none(gr, t) for gr, t in zip(grads, wrt)]
         if need_uv:
             out.rest_uv = grads.pop(0)
+        if need_attach:
+            out.attach_height = grads.pop(0)
         out.material = tuple(grads.pop(0) if n else None for n in need_mat)
         return out
 
