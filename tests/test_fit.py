@@ -203,7 +203,8 @@ def test_a_runaway_bending_stiffness_is_rejected_not_written(skirt_problem):
 
 
 def test_checkpoint_resume_gives_the_same_state(skirt_problem, tmp_path):
-    config = _config(iterations=2, lr_log_stretch=0.05)  # every kind of fitted variable, the membrane too
+    # every kind of fitted variable, the membrane and the waist too, and the pattern held for an iteration
+    config = _config(iterations=2, lr_log_stretch=0.05, lr_waist_shift=0.005, pattern_delay=1)
     straight = _fitter(skirt_problem, config, out_dir=tmp_path / "a", tensorboard=False).run()
     _fitter(skirt_problem, config, out_dir=tmp_path / "b", tensorboard=False).run(iterations=1)
     assert (tmp_path / "b" / "checkpoint.pt").is_file()
@@ -218,6 +219,11 @@ def test_checkpoint_resume_gives_the_same_state(skirt_problem, tmp_path):
     log_stretch = straight.params.log_stretch
     assert float(log_stretch.detach()) != 0.0  # it was fitted
     torch.testing.assert_close(resumed_fitter.params.log_stretch, log_stretch, rtol=0, atol=1e-12)
+    waist = straight.params.raw_waist_shift
+    assert float(waist.detach()) != 0.0  # it was fitted
+    torch.testing.assert_close(resumed_fitter.params.raw_waist_shift, waist, rtol=0, atol=1e-12)
+    shift = float(straight.params.waist_shift())
+    assert resumed.report["waist_shift_final"] == pytest.approx(shift, rel=1e-12)
     assert resumed.report["chamfer_initial"] == straight.report["chamfer_initial"]
     material = resumed.report["material"]
     assert material["stretch_scale_initial"] == 1.0
@@ -230,21 +236,23 @@ def test_checkpoint_resume_gives_the_same_state(skirt_problem, tmp_path):
 
 
 def test_a_checkpoint_from_before_the_membrane_resumes_exactly(skirt_problem, tmp_path):
-    """A checkpoint written before ``log_stretch`` existed (no such parameter, no factor in its first
-    summary) resumes at the base membrane, as its fit ran, to the same result as a straight run."""
+    """A checkpoint written before ``log_stretch`` and ``raw_waist_shift`` existed (no such parameters, no
+    factor or shift in its first summary) resumes at the base membrane and the placed waist, as its fit ran,
+    to the same result as a straight run."""
     config = _config(iterations=2)
     straight = _fitter(skirt_problem, config, out_dir=tmp_path / "a", tensorboard=False).run()
     _fitter(skirt_problem, config, out_dir=tmp_path / "b", tensorboard=False).run(iterations=1)
     path = tmp_path / "b" / "checkpoint.pt"
     state = torch.load(path, weights_only=False)
     for params in (state["params"], state["best"]["params"]):
-        del params["log_stretch"]
-    del state["first"]["stretch_scale"]
+        del params["log_stretch"], params["raw_waist_shift"]
+    del state["first"]["stretch_scale"], state["first"]["waist_shift_m"]
     torch.save(state, path)
     resumed = _fitter(skirt_problem, config, out_dir=tmp_path / "b", tensorboard=False).run(resume=True)
     torch.testing.assert_close(resumed.x, straight.x, rtol=0, atol=1e-12)
     assert resumed.report["material"]["stretch_scale_initial"] == 1.0
     assert resumed.report["material"]["stretch_scale_final"] == 1.0
+    assert resumed.report["waist_shift_final"] == 0.0
 
 
 def test_tensorboard_logs_written(skirt_problem, tmp_path):
