@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import errno
 import os
+from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -59,3 +61,34 @@ def test_no_space_reads_as_one_line():
     assert cli._os_error_line(exc) == (
         "No space left on device: /out/draped.obj (free some space, or choose another --out)"
     )
+
+
+def test_a_failed_picture_leaves_the_old_file_and_no_temporary(tmp_path, monkeypatch):
+    from PIL import Image
+
+    from torch_diffavatar.render import save_png
+
+    path = save_png(np.zeros((4, 4, 3), np.uint8), tmp_path / "p.png")
+    before = path.read_bytes()
+
+    def full(self, fp, *args, **kwargs):
+        Path(fp).write_bytes(b"partial")
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(fp))
+
+    monkeypatch.setattr(Image.Image, "save", full)
+    with pytest.raises(OSError):
+        save_png(np.full((4, 4, 3), 255, np.uint8), path)
+    assert path.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["p.png"]
+
+
+def test_meshes_and_point_clouds_are_written_whole(tmp_path):
+    from torch_diffavatar.mesh_io import read_obj, write_obj
+    from torch_diffavatar.scan import load_scan, save_ply
+
+    verts, faces = np.eye(3), np.array([[0, 1, 2]])
+    write_obj(tmp_path / "m.obj", verts, faces)
+    save_ply(tmp_path / "c.ply", verts, binary=True)
+    assert read_obj(tmp_path / "m.obj").verts.shape == (3, 3)
+    assert load_scan(tmp_path / "c.ply", check=False).point_count == 3
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.ply", "m.obj"]

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import torch
 
+from torch_diffavatar.atomic_file import atomic_write_text
 from torch_diffavatar.errors import InputError, SimulationError
 
 INCOMPLETE = "INCOMPLETE"  # marker file of a fit folder whose fit has not finished writing
@@ -102,7 +103,9 @@ def prepare_out_folder(out: Path, *, resume: bool, force: bool) -> None:
             (out / name).unlink()
         shutil.rmtree(out / "tb", ignore_errors=True)
     out.mkdir(parents=True, exist_ok=True)
-    (out / INCOMPLETE).write_text("a fit is writing into this folder; it is not a finished asset folder\n")
+    atomic_write_text(
+        out / INCOMPLETE, "a fit is writing into this folder; it is not a finished asset folder\n"
+    )
 
 
 def load_setup(scan_path, config, out: Path, *, resume: bool, anny_model, **prepare_kw) -> dict:

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
+from torch_diffavatar.atomic_file import atomic_write
 from torch_diffavatar.errors import ScanError
 
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}
@@ -346,7 +347,7 @@ def save_ply(
     if colors is not None:
         cols.append(np.asarray(colors)[:, :3].astype(np.int64))
     cols += [np.asarray(v).reshape(-1, 1).astype(np.int64) for v in props.values()]
-    with open(path, "w") as f:
+    with atomic_write(path, "w") as f:
         f.write("\n".join(header) + "\n")
         for row in zip(*cols):
             f.write(" ".join(np.format_float_positional(x, 7, trim="-") for x in row[0]))
@@ -391,6 +392,6 @@ def save_point_cloud_ply(
     header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(points)}"]
     header += [f"property {ply_types[t]} {name}" for name, t in fields]
     header.append("end_header")
-    with open(path, "wb") as f:
+    with atomic_write(path) as f:
         f.write(("\n".join(header) + "\n").encode("ascii"))
         f.write(record.tobytes())
