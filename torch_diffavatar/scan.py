@@ -29,6 +29,10 @@ UP_AXES = {
 }
 LABEL_PROPERTIES = ("label", "labels", "garment", "segment", "segmentation", "class")
 SCAN_SUFFIXES = (".ply", ".obj", ".glb", ".gltf", ".off", ".stl", ".xyz")
+# The largest scan file read [bytes]: 100M points of a binary PLY with colours (15 B each) is 1.5 GB, and
+# reading one holds about 4 times its size in memory; the intake keeps 2M points anyway
+# (`scan_intake.MAX_POINTS`)
+MAX_SCAN_BYTES = 4 * 1024**3
 
 
 class ScanWarning(UserWarning):
@@ -82,8 +86,14 @@ class Scan:
 def _read_geometry(path: Path):
     import trimesh
 
-    if path.stat().st_size == 0:
+    size = path.stat().st_size
+    if size == 0:
         raise ScanError(f"{path}: the file is empty")
+    if size > MAX_SCAN_BYTES:
+        raise ScanError(
+            f"{path}: {size / 1e9:.3g} GB, more than the {MAX_SCAN_BYTES / 1e9:.3g} GB read here; subsample "
+            "the scan first (a fit uses at most 2,000,000 points)"
+        )
     try:
         geom = trimesh.load(str(path), process=False)
     except Exception as exc:  # trimesh raises many types for unreadable files
@@ -91,7 +101,7 @@ def _read_geometry(path: Path):
     if isinstance(geom, trimesh.Scene):
         parts = [g for g in geom.dump() if hasattr(g, "vertices")]
         if not parts:
-            raise ScanError(f"{path}: the scene holds no geometry")
+            raise ScanError(f"{path}: the scan has no points (the file holds no geometry)")
         meshes = [g for g in parts if isinstance(g, trimesh.Trimesh)]
         geom = trimesh.util.concatenate(meshes) if len(meshes) == len(parts) else parts[0]
     return geom
