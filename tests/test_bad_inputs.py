@@ -75,6 +75,7 @@ SCAN_CASES = {
     "mm_as_m": ("mm", ["--units", "m"], "would be 16"),
     "sphere": ("sphere", [], "does not look like a standing person"),
     "float32_far_away": ("far32", [], "the person is lost"),
+    "lying_down": ("zup", [], "or --up if the person is not along Y"),
 }
 
 
@@ -94,6 +95,8 @@ def _scan_file(tmp_path: Path, kind, person: np.ndarray) -> Path:
         save_ply(path, person * 1000.0, binary=True)
     elif kind == "sphere":
         save_ply(path, _sphere(), binary=True)
+    elif kind == "zup":  # Z up, read as Y up: a person 0.45 m "tall"
+        save_ply(path, person[:, [0, 2, 1]], binary=True)
     elif kind == "far32":  # float32 a billion metres out: 64 m between representable numbers
         save_ply(path, person + 1e9, binary=True)
     return path

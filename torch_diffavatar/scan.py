@@ -268,7 +268,9 @@ def check_scan_frame(points: np.ndarray) -> list[str]:
         guess = "mm" if height > 250 else "cm" if height > 25 else "a smaller unit"
         out.append(f"the scan is {height:.3g} m tall; is it in {guess}? (pass --units)")
     elif height < 0.5:
-        out.append(f"the scan is only {height:.3g} m tall; wrong --units?")
+        out.append(
+            f"the scan is only {height:.3g} m tall; wrong --units, or --up (lying along another axis)?"
+        )
     if max(extent[0], extent[2]) > 1.3 * height:
         out.append(
             f"the scan is wider ({max(extent[0], extent[2]):.3g}) than tall ({height:.3g}); wrong --up axis?"

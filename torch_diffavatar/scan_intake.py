@@ -226,7 +226,10 @@ def infer_units(points: np.ndarray) -> str:
     for unit, scale in UNITS.items():
         if HEIGHT_RANGE_M[0] <= height * scale <= HEIGHT_RANGE_M[1]:
             return unit
-    raise ScanError(f"cannot infer the units from a height of {height:.4g}; pass --units m, cm or mm")
+    raise ScanError(
+        f"cannot infer the units from a height of {height:.4g} (a person is {HEIGHT_RANGE_M[0]}-"
+        f"{HEIGHT_RANGE_M[1]} m tall): pass --units m, cm or mm, or --up if the person is not along Y"
+    )
 
 
 def _plane(p: np.ndarray) -> tuple[np.ndarray, float] | None:
