@@ -247,3 +247,20 @@ def test_segment_finding_no_garment_writes_nothing(tmp_path, capsys, default_bod
     argv = ["segment", str(bare), "--garment", "skirt", "--body", str(body_dir), "--out", str(out)]
     _refused(argv, capsys, "no skirt points found", "nothing written", progress=True)
     assert not out.exists() and not out.with_suffix(".boundaries.json").exists()
+
+
+def test_a_non_finite_result_is_one_line_and_no_file(tmp_path, capsys, monkeypatch):
+    """A fit whose result holds a NaN (a blown-up material) ends in one line; the JSON is not written."""
+    import torch_diffavatar.commands.fit as commands
+    from torch_diffavatar.json_io import write_json
+
+    out = tmp_path / "fit"
+    monkeypatch.setattr(
+        commands,
+        "fit_scan",
+        lambda *a, **k: write_json(out / "material.json", {"bend_stiffness": float("inf")}),
+    )
+    out.mkdir()
+    argv = ["fit", str(DEMO_SCAN), "--garment", "skirt", "--out", str(out)]
+    _refused(argv, capsys, "$.bend_stiffness is not a finite number")
+    assert list(out.iterdir()) == []

@@ -7,7 +7,7 @@ import errno
 import importlib
 import sys
 
-from torch_diffavatar.errors import InputError, SimulationError
+from torch_diffavatar.errors import InputError, NonFiniteError, SimulationError
 from torch_diffavatar.json_io import dumps_json
 
 # Each module defines `register(subparsers)`; its sub-commands set `func(args) -> int | dict`.
@@ -93,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(_join_signed_values(sys.argv[1:] if argv is None else list(argv)))
     try:
         result = args.func(args)
-    except (InputError, SimulationError) as exc:
+    except (InputError, SimulationError, NonFiniteError) as exc:  # NaN in a result: no file written with it
         return _error(args.command, str(exc))
     except OSError as exc:  # a path or the disk (not found, a file where a folder goes, full, read-only)
         return _error(args.command, _os_error_line(exc))

@@ -11,7 +11,7 @@ import numpy as np
 
 from torch_diffavatar.commands.out_paths import check_out_folder
 from torch_diffavatar.errors import InputError, ScanError
-from torch_diffavatar.json_io import write_json
+from torch_diffavatar.json_io import dumps_json, write_json
 from torch_diffavatar.mesh_io import write_obj
 from torch_diffavatar.scan import UNITS, UP_AXES
 
@@ -108,10 +108,8 @@ def fit_body_command(args) -> dict:
     check_out_folder(out)
     scan = _load_clean_scan(args)
     result = fit_body(scan.points)
-    out.mkdir(parents=True, exist_ok=True)
     body = result.body
     verts = body().vertices[0].detach().cpu().numpy()
-    write_obj(out / BODY_OBJ, verts, body.faces)
     phenotypes = dict(zip(body.phenotype_labels, body.phenotypes[0].detach().tolist()))
     summary = {
         "points": scan.point_count,
@@ -129,6 +127,9 @@ def fit_body_command(args) -> dict:
     # `BodyModel.load_parameters_dict` (fit --body, segment --body) reads back
     params = dict(summary, scan=str(args.scan), units=args.units, up=args.up, **body.parameters_dict())
     params["phenotypes_by_name"] = phenotypes
+    dumps_json(params)  # a NaN refused before either file is written: never a body.obj alone
+    out.mkdir(parents=True, exist_ok=True)
+    write_obj(out / BODY_OBJ, verts, body.faces)
     write_json(out / BODY_JSON, params)
     return summary
 
