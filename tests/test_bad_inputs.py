@@ -7,6 +7,7 @@ suite stays fast; what needs a body fit to show (a body fit far from the scan) i
 from __future__ import annotations
 
 import copy
+import json
 import os
 from pathlib import Path
 
@@ -18,6 +19,7 @@ from torch_diffavatar.fit_checkpoint import SETUP, atomic_save
 from torch_diffavatar.fit_config import RESOLVED_CONFIG, load_config
 from torch_diffavatar.fit_scan import INCOMPLETE, body_fit_warnings, fit_fingerprint
 from torch_diffavatar.pattern import load_template, save_pattern
+from torch_diffavatar.pattern.garmentcode import MAX_PANELS, pattern_to_dict
 from torch_diffavatar.scan import load_scan, save_ply
 from torch_diffavatar.scan_intake import intake_scan
 
@@ -158,12 +160,19 @@ def _scaled_pattern(tmp_path: Path, factor: float) -> Path:
         ("nested", "nested too deeply"),
         ("huge", "vertices at spacing"),
         ("tiny", "less than the mesh spacing"),
+        ("many", "more than the 200 read here"),
     ],
 )
 @pytest.mark.parametrize("garment_type", [None, "skirt"])
 def test_a_bad_pattern_is_refused(case, words, garment_type, tmp_path, capsys):
     if case == "nested":
         pattern = _write(tmp_path / "pattern.json", "[" * 100000 + "]" * 100000)
+    elif case == "many":
+        data = pattern_to_dict(load_template("skirt"))
+        panel = next(iter(data["pattern"]["panels"].values()))
+        data["pattern"]["panels"] = {f"p{k}": panel for k in range(MAX_PANELS + 1)}
+        data["pattern"]["stitches"] = []
+        pattern = _write(tmp_path / "pattern.json", json.dumps(data))
     else:
         pattern = _scaled_pattern(tmp_path, 1000.0 if case == "huge" else 1e-6)
     out = tmp_path / "fit"
