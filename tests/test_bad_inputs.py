@@ -192,6 +192,9 @@ def test_a_bad_pattern_is_refused(case, words, garment_type, tmp_path, capsys):
         ("lr_cage: .inf", "lr_cage must be a finite number"),
         ("max_drape_jump: .nan", "max_drape_jump must be a finite number"),
         ("iterations: many", "iterations"),
+        ("initial_bend_stiffness: .inf", "initial_bend_stiffness must be in"),
+        ('cage: "no"', "cage must be true or false"),
+        ("spacing: 100", "less than the mesh spacing 100 m"),
         ("[1, 2", "config.yaml"),
     ],
 )
@@ -273,3 +276,13 @@ def test_a_non_finite_result_is_one_line_and_no_file(tmp_path, capsys, monkeypat
     argv = ["fit", str(DEMO_SCAN), "--garment", "skirt", "--out", str(out)]
     _refused(argv, capsys, "$.bend_stiffness is not a finite number")
     assert list(out.iterdir()) == []
+
+
+def test_a_doubtful_shape_warns_and_a_person_passes(person):
+    from torch_diffavatar.scan_intake import check_person_shape
+
+    assert check_person_shape(person, "scan.ply") == []
+    # a box 1.7 m tall, 1.2 m wide and 0.9 m deep: its depth is about 0.5 of its height
+    column = np.random.default_rng(0).uniform([-0.6, 0.0, -0.45], [0.6, 1.7, 0.45], (5000, 3))
+    (message,) = check_person_shape(column, "scan.ply")
+    assert "unusually deep for a person" in message
