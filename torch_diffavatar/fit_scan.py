@@ -279,6 +279,7 @@ def full_report(fit_report: dict, setup: dict, scan_path, spacing: float, second
         scan_labelled=setup["labelled"],
         scan_boundaries=setup["scan_boundaries"],
         scan_coverage=coverage,
+        scan_shift=setup.get("scan_shift"),
         spacing=spacing,
         upper_arm_angles_deg=setup.get("upper_arm_angles_deg"),
         body_fit_chamfer_m=setup["body_fit_chamfer_m"],

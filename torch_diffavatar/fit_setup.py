@@ -277,9 +277,8 @@ def prepare(
         ``body_params`` (`BodyModel.parameters_dict` of the initial body), ``sewing_fallback`` (the
         garment's `a_pose_route` onto it, None in the A-pose), ``body_fit_chamfer_m`` (the body fit's
         residual [m]; None with ``body_params``), ``scan_points``, ``scan_coverage`` (the intake's
-        `scan_intake.coverage`), ``scan_warnings`` (the intake's doubts about the scan), ``labelled``,
-        ``spacing`` (the mesh's [m]), ``upper_arm_angles_deg`` (of the initial body,
-        `BodyModel.upper_arm_angles`), ``setup_seconds``.
+        `scan_intake.coverage`), ``scan_warnings`` (its doubts), ``scan_shift`` (`IntakeReport.shift`),
+        ``labelled``, ``spacing`` (mesh [m]), ``upper_arm_angles_deg`` (initial body), ``setup_seconds``.
     """
     from torch_diffavatar.body.anny_model import load_anny
     from torch_diffavatar.body.facing import body_facing_yaw
@@ -321,6 +320,7 @@ def prepare(
         "scan_points": scan.point_count,
         "scan_coverage": intake.coverage,
         "scan_warnings": list(intake.warnings),
+        "scan_shift": intake.shift,
         "scan_boundaries": sorted(loops),
         "labelled": labelled,
         "spacing": spacing,

@@ -125,7 +125,8 @@ def fit_body_command(args) -> dict:
         print(f"diffavatar fit-body: warning: {message}", file=sys.stderr)
     # the body parameters last: the summary's phenotypes by name must not replace their list, which
     # `BodyModel.load_parameters_dict` (fit --body, segment --body) reads back
-    params = dict(summary, scan=str(args.scan), units=args.units, up=args.up, **body.parameters_dict())
+    params = dict(summary, scan=str(args.scan), units=args.units, up=args.up, scan_shift=args.intake["shift"])
+    params.update(body.parameters_dict())
     params["phenotypes_by_name"] = phenotypes
     dumps_json(params)  # a NaN refused before either file is written: never a body.obj alone
     out.mkdir(parents=True, exist_ok=True)
