@@ -7,7 +7,8 @@ the assets (`torch_diffavatar.assets.write_assets`) with ``report.json``.
 A folder is never a mix of two fits: while a fit runs, ``DIR/INCOMPLETE`` says so (it goes once the last
 file is written); a new fit into a folder that holds another refuses unless ``force``, which first removes
 the earlier fit's files; a resumed fit checks that the scan, the garment and the settings are the ones its
-``setup.pt`` was made from (`fit_fingerprint`).
+``setup.pt`` was made from (`fit_fingerprint`). What can refuse the input (that check, the scan's intake)
+runs before the folder is touched, so a refused fit leaves it as it was.
 """
 
 from __future__ import annotations
