@@ -57,3 +57,17 @@ def skirt_problem():
     from helpers_fit import skirt_problem
 
     return skirt_problem()
+
+
+@pytest.fixture
+def read_only_folder(tmp_path):
+    """A folder that cannot be written into (skipped as root, who writes anyway); writable again after."""
+    import os
+
+    if os.geteuid() == 0:
+        pytest.skip("root writes into read-only folders")
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o500)
+    yield locked
+    locked.chmod(0o700)

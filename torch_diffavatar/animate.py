@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torch_diffavatar.atomic_file import atomic_path
 from torch_diffavatar.errors import InputError
 from torch_diffavatar.json_io import write_json
 from torch_diffavatar.mesh_io import write_ply
@@ -247,7 +248,8 @@ class _FrameWriter:
         from PIL import Image
 
         pil = [Image.fromarray(im) for im in self.images]
-        pil[0].save(path, save_all=True, append_images=pil[1:], duration=int(round(1000 / fps)), loop=0)
+        with atomic_path(path) as tmp:
+            pil[0].save(tmp, save_all=True, append_images=pil[1:], duration=int(round(1000 / fps)), loop=0)
         return path
 
 

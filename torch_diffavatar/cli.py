@@ -7,7 +7,7 @@ import errno
 import importlib
 import sys
 
-from torch_diffavatar.errors import InputError, SimulationError
+from torch_diffavatar.errors import InputError, NonFiniteError, SimulationError
 from torch_diffavatar.json_io import dumps_json
 
 # Each module defines `register(subparsers)`; its sub-commands set `func(args) -> int | dict`.
@@ -76,24 +76,33 @@ def _os_error_line(exc: OSError) -> str:
     return f"{exc.strerror}{where}{hint}"
 
 
+def _one_line(text: str) -> str:
+    """``text`` on one line: a message that quotes a library's error (YAML marks its place on three lines)
+    must not break the CLI's one-line contract."""
+    return " ".join(part.strip() for part in text.splitlines() if part.strip())
+
+
+def _error(command: str, message: str) -> int:
+    """Print ``message`` as the command's one error line on stderr; returns the exit status, 2."""
+    print(f"diffavatar {command}: error: {_one_line(message)}", file=sys.stderr)
+    return 2
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(_join_signed_values(sys.argv[1:] if argv is None else list(argv)))
     try:
         result = args.func(args)
-    except (InputError, SimulationError) as exc:
-        print(f"diffavatar {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+    except (InputError, SimulationError, NonFiniteError) as exc:  # NaN in a result: no file written with it
+        return _error(args.command, str(exc))
     except OSError as exc:  # a path or the disk (not found, a file where a folder goes, full, read-only)
-        print(f"diffavatar {args.command}: error: {_os_error_line(exc)}", file=sys.stderr)
-        return 2
+        return _error(args.command, _os_error_line(exc))
     if isinstance(result, dict):
         if getattr(args, "json", False):
             try:
                 emit_json(result)
             except ValueError as exc:  # NaN or inf: refused rather than printed as non-JSON
-                print(f"diffavatar {args.command}: error: {exc}", file=sys.stderr)
-                return 2
+                return _error(args.command, str(exc))
         return 0
     return int(result or 0)
 

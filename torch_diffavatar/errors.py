@@ -18,6 +18,11 @@ class ScanError(InputError):
     """A scan that cannot be read or is unusable (empty, NaN, wrong units…)."""
 
 
+class NonFiniteError(ValueError):
+    """A number to write out is NaN or infinite (`json_io.dumps_json`): the result is broken, and no file
+    is written with it."""
+
+
 class SimulationError(RuntimeError):
     """The simulation blew up (NaN, runaway speed or stretch) and returned nothing usable."""
 

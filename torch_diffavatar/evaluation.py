@@ -27,6 +27,7 @@ from pathlib import Path
 
 import torch
 
+from torch_diffavatar.atomic_file import atomic_path
 from torch_diffavatar.errors import InputError
 
 
@@ -296,7 +297,8 @@ def save_drape_comparison(assets_dir, gt_dir, path, *, size: int = 320, frame: f
         draw.text((2 * k * width + 4, 2), f"{name} (front, back)", fill=(0, 0, 0))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    canvas.save(path)
+    with atomic_path(path) as tmp:
+        canvas.save(tmp)
     return path
 
 
@@ -337,4 +339,5 @@ def save_pattern_overlay(patterns: dict, path, scale: float = 400.0) -> None:
             draw.polygon(pts, outline=OVERLAY_COLOURS.get(key, (0, 0, 0)), width=2)
         draw.text((x0, 2), panel, fill=(0, 0, 0))
         x0 += column + pad
-    img.save(path)
+    with atomic_path(path) as tmp:
+        img.save(tmp)

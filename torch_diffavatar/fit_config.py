@@ -13,6 +13,7 @@ import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+from torch_diffavatar.atomic_file import atomic_write_text
 from torch_diffavatar.chamfer import ROBUST_KERNELS
 from torch_diffavatar.errors import InputError
 from torch_diffavatar.sim.forward_drape import SEW_MAX_STRAIN, DrapeConfig
@@ -498,7 +499,7 @@ def write_resolved_config(config: FitConfig, out_dir: str | os.PathLike) -> Path
     """Write the resolved config as ``<out_dir>/config.yaml`` (also into the TensorBoard text)."""
     path = Path(out_dir) / RESOLVED_CONFIG
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(yaml_dump(config_to_dict(config)))
+    atomic_write_text(path, yaml_dump(config_to_dict(config)))
     return path
 
 

@@ -7,7 +7,8 @@ the assets (`torch_diffavatar.assets.write_assets`) with ``report.json``.
 A folder is never a mix of two fits: while a fit runs, ``DIR/INCOMPLETE`` says so (it goes once the last
 file is written); a new fit into a folder that holds another refuses unless ``force``, which first removes
 the earlier fit's files; a resumed fit checks that the scan, the garment and the settings are the ones its
-``setup.pt`` was made from (`fit_fingerprint`).
+``setup.pt`` was made from (`fit_fingerprint`). What can refuse the input (that check, the scan's intake)
+runs before the folder is touched, so a refused fit leaves it as it was.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from pathlib import Path
 
 import torch
 
+from torch_diffavatar.atomic_file import atomic_write_text
 from torch_diffavatar.errors import InputError, SimulationError
 
 INCOMPLETE = "INCOMPLETE"  # marker file of a fit folder whose fit has not finished writing
@@ -102,29 +104,50 @@ def prepare_out_folder(out: Path, *, resume: bool, force: bool) -> None:
             (out / name).unlink()
         shutil.rmtree(out / "tb", ignore_errors=True)
     out.mkdir(parents=True, exist_ok=True)
-    (out / INCOMPLETE).write_text("a fit is writing into this folder; it is not a finished asset folder\n")
+    atomic_write_text(
+        out / INCOMPLETE, "a fit is writing into this folder; it is not a finished asset folder\n"
+    )
+
+
+def resumed_setup(out: Path, fingerprint: dict) -> dict | None:
+    """``out/setup.pt`` when it is there, checked against ``fingerprint`` (`fit_fingerprint`), else None.
+
+    Raises:
+        InputError: it was made from another scan, garment or settings.
+    """
+    from torch_diffavatar.fit_checkpoint import SETUP, safe_load
+
+    setup_path = out / SETUP
+    if not setup_path.is_file():
+        return None
+    setup = safe_load(setup_path)
+    _check_fingerprint(setup, fingerprint, setup_path)
+    return setup
+
+
+def new_setup(scan_path, config, out: Path, fingerprint: dict, *, anny_model, loaded_scan=None, **prepare_kw):
+    """`fit_setup.prepare` of the scan (``prepare_kw``: its options; ``loaded_scan``: the scan through the
+    intake already), saved as ``out/setup.pt`` with its ``fingerprint``."""
+    from torch_diffavatar.fit_checkpoint import SETUP, atomic_save
+    from torch_diffavatar.fit_setup import prepare
+
+    setup = prepare(scan_path, config, anny_model=anny_model, loaded_scan=loaded_scan, **prepare_kw)
+    setup["fingerprint"] = fingerprint
+    atomic_save(setup, out / SETUP)
+    return setup
 
 
 def load_setup(scan_path, config, out: Path, *, resume: bool, anny_model, **prepare_kw) -> dict:
     """The fit's set-up: ``out/setup.pt`` with ``resume`` when it is there (made from the same scan and
-    settings, `fit_fingerprint`), else `fit_setup.prepare` of the scan (``prepare_kw``: its options), saved
-    there with its fingerprint.
+    settings, `resumed_setup`), else a `new_setup` of the scan (``prepare_kw``: its options).
 
     Raises:
         InputError: the set-up to resume was made from another scan, garment or settings.
     """
-    from torch_diffavatar.fit_checkpoint import SETUP, atomic_save, safe_load
-    from torch_diffavatar.fit_setup import prepare
-
-    setup_path = out / SETUP
     fingerprint = fit_fingerprint(scan_path, config, **prepare_kw)
-    if resume and setup_path.is_file():
-        setup = safe_load(setup_path)
-        _check_fingerprint(setup, fingerprint, setup_path)
-        return setup
-    setup = prepare(scan_path, config, anny_model=anny_model, **prepare_kw)
-    setup["fingerprint"] = fingerprint
-    atomic_save(setup, setup_path)
+    setup = resumed_setup(out, fingerprint) if resume else None
+    if setup is None:
+        setup = new_setup(scan_path, config, out, fingerprint, anny_model=anny_model, **prepare_kw)
     return setup
 
 
@@ -132,6 +155,17 @@ def load_setup(scan_path, config, out: Path, *, resume: bool, anny_model, **prep
 # garment: on our synthetic clothed scans body fits end 1.4-2.0 cm from the scan; on real captures the
 # wrong-facing and floor-reaching ones ended at 3.3-7.5 cm
 BODY_FIT_DOUBT_M = 0.03
+
+
+def body_fit_warnings(chamfer_m: float | None) -> list[str]:
+    """A warning when a body fit ended `BODY_FIT_DOUBT_M` or farther from the scan (none for None: a given
+    body)."""
+    if chamfer_m is None or chamfer_m <= BODY_FIT_DOUBT_M:
+        return []
+    return [
+        f"the body fit ends {1e2 * chamfer_m:.1f} cm from the scan (good ones end within 2 cm): the body is "
+        "probably wrong; check --up and --units, remove clutter from the scan, or give a body (--body)"
+    ]
 
 
 def first_sewing_advice(setup: dict) -> str:
@@ -181,17 +215,25 @@ def fit_scan(
     from torch_diffavatar.body.model import BodyModel
     from torch_diffavatar.fit import Fitter
     from torch_diffavatar.fit_config import write_resolved_config
-    from torch_diffavatar.fit_report import scan_warnings
+    from torch_diffavatar.fit_setup import load_fit_scan
     from torch_diffavatar.sim.material import ClothMaterial
 
     torch.set_num_threads(1)
     t0 = time.perf_counter()
     out = Path(out_dir)
+    prepare_kw = dict(units=units, up=up, pattern=pattern, garment_type=garment_type, body_params=body_params)
+    # what can refuse the input goes before --out is touched: the set-up to resume (made from another
+    # scan?) and the scan's intake (no person there?)
+    fingerprint = fit_fingerprint(scan_path, config, **prepare_kw)
+    setup = resumed_setup(out, fingerprint) if resume else None
+    loaded_scan = load_fit_scan(scan_path, units=units, up=up) if setup is None else None
     prepare_out_folder(out, resume=resume, force=force)
     write_resolved_config(config, out)
     anny_model = load_anny(dtype=torch.float32) if anny_model is None else anny_model
-    prepare_kw = dict(units=units, up=up, pattern=pattern, garment_type=garment_type, body_params=body_params)
-    setup = load_setup(scan_path, config, out, resume=resume, anny_model=anny_model, **prepare_kw)
+    if setup is None:
+        setup = new_setup(
+            scan_path, config, out, fingerprint, anny_model=anny_model, loaded_scan=loaded_scan, **prepare_kw
+        )
     spacing = setup.get("spacing", config.spacing)
     if spacing != config.spacing:  # meshed finer for arms held low: the resolved config says so
         config = replace(config, spacing=spacing)
@@ -214,22 +256,38 @@ def fit_scan(
         if fitter.first is not None:  # failed after the fit had started: the message says where
             raise
         raise SimulationError(f"{exc}; {first_sewing_advice(setup)}") from exc
-    report = dict(result.report)
+    report = full_report(result.report, setup, scan_path, spacing, time.perf_counter() - t0)
+    return write_fit_assets(out, setup, fitter, result, report)
+
+
+def full_report(fit_report: dict, setup: dict, scan_path, spacing: float, seconds: float) -> dict:
+    """``report.json`` of a fit: the fit loop's ``fit_report`` with the warnings about the scan and the
+    body fit, and what the set-up (`fit_setup.prepare`'s ``setup``) found; ``spacing``: the mesh's [m];
+    ``seconds``: this run's (a resumed one: since the resume)."""
+    from torch_diffavatar.fit_report import scan_warnings
+
+    report = dict(fit_report)
     coverage = setup.get("scan_coverage")
-    report["warnings"] = report["warnings"] + scan_warnings(report, setup["target"].garment_points, coverage)
+    report["warnings"] = (
+        report["warnings"]
+        + setup.get("scan_warnings", [])
+        + body_fit_warnings(setup["body_fit_chamfer_m"])
+        + scan_warnings(report, setup["target"].garment_points, coverage)
+    )
     report.update(
         scan=str(scan_path),
         scan_points=setup["scan_points"],
         scan_labelled=setup["labelled"],
         scan_boundaries=setup["scan_boundaries"],
-        scan_coverage=setup.get("scan_coverage"),
+        scan_coverage=coverage,
+        scan_shift=setup.get("scan_shift"),
         spacing=spacing,
         upper_arm_angles_deg=setup.get("upper_arm_angles_deg"),
         body_fit_chamfer_m=setup["body_fit_chamfer_m"],
         setup_seconds=round(setup["setup_seconds"], 2),
-        total_seconds=round(time.perf_counter() - t0, 2),  # this run's (a resumed one: since the resume)
+        total_seconds=round(seconds, 2),
     )
-    return write_fit_assets(out, setup, fitter, result, report)
+    return report
 
 
 def write_fit_assets(out: Path, setup: dict, fitter, result, report: dict) -> dict:

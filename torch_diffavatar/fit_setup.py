@@ -258,6 +258,7 @@ def prepare(
     pattern=None,
     garment_type=None,
     body_params=None,
+    loaded_scan=None,
 ) -> dict:
     """The slow set-up of a fit: scan, body fit, segmentation, openings, meshed and placed template.
 
@@ -268,16 +269,16 @@ def prepare(
     `BodyModel.parameters_dict`, e.g. the ``body.json`` of ``diffavatar fit-body`` or of an earlier fit, in
     the scan's world frame) is the body to start from instead of fitting one to the scan.
 
-    The pattern is meshed at ``config.spacing``, or at ``config.arms_low_spacing`` when the body holds an
-    arm low (`arms_spacing`).
+    ``loaded_scan``: the scan through the intake already (`load_fit_scan`'s). The pattern is meshed at
+    ``config.spacing``, or at ``config.arms_low_spacing`` when the body holds an arm low (`arms_spacing`).
 
     Returns:
         a dict with ``garment`` (placed `GarmentMesh`), ``pattern``, ``target`` (`ScanTarget`),
         ``body_params`` (`BodyModel.parameters_dict` of the initial body), ``sewing_fallback`` (the
         garment's `a_pose_route` onto it, None in the A-pose), ``body_fit_chamfer_m`` (the body fit's
         residual [m]; None with ``body_params``), ``scan_points``, ``scan_coverage`` (the intake's
-        `scan_intake.coverage`), ``labelled``, ``spacing`` (the mesh's
-        [m]), ``upper_arm_angles_deg`` (of the initial body, `BodyModel.upper_arm_angles`), ``setup_seconds``.
+        `scan_intake.coverage`), ``scan_warnings`` (its doubts), ``scan_shift`` (`IntakeReport.shift`),
+        ``labelled``, ``spacing`` (mesh [m]), ``upper_arm_angles_deg`` (initial body), ``setup_seconds``.
     """
     from torch_diffavatar.body.anny_model import load_anny
     from torch_diffavatar.body.facing import body_facing_yaw
@@ -288,7 +289,7 @@ def prepare(
     from torch_diffavatar.sim.placement import a_pose_route, place_garment_turned
 
     t0 = time.perf_counter()
-    scan, intake = load_fit_scan(scan_path, units=units, up=up)
+    scan, intake = load_fit_scan(scan_path, units=units, up=up) if loaded_scan is None else loaded_scan
     anny_model = load_anny(dtype=torch.float32) if anny_model is None else anny_model
     body = BodyModel(anny_model=anny_model)
     pattern = resolve_pattern(config.template) if pattern is None else pattern
@@ -318,6 +319,8 @@ def prepare(
         "body_fit_chamfer_m": body_fit_chamfer_m,
         "scan_points": scan.point_count,
         "scan_coverage": intake.coverage,
+        "scan_warnings": list(intake.warnings),
+        "scan_shift": intake.shift,
         "scan_boundaries": sorted(loops),
         "labelled": labelled,
         "spacing": spacing,

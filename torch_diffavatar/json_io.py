@@ -14,6 +14,7 @@ import os
 from pathlib import Path
 
 from torch_diffavatar.atomic_file import atomic_write
+from torch_diffavatar.errors import NonFiniteError
 
 
 def _non_finite_path(obj, path: str = "$") -> str | None:
@@ -37,7 +38,8 @@ def dumps_json(obj, **kwargs) -> str:
     """``json.dumps(obj, **kwargs)`` that refuses non-finite numbers.
 
     Raises:
-        ValueError: ``obj`` holds NaN or ±inf; the message gives its path (``$.material.k_uu``).
+        NonFiniteError: (a ValueError) ``obj`` holds NaN or ±inf; the message gives its path
+            (``$.material.k_uu``).
     """
     try:
         return json.dumps(obj, allow_nan=False, **kwargs)
@@ -45,7 +47,7 @@ def dumps_json(obj, **kwargs) -> str:
         where = _non_finite_path(obj)
         if where is None:
             raise
-        raise ValueError(f"not JSON: {where} is not a finite number") from exc
+        raise NonFiniteError(f"not JSON: {where} is not a finite number") from exc
 
 
 def write_json(path: str | os.PathLike, obj, *, indent: int | None = 1) -> Path:

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torch_diffavatar.atomic_file import atomic_write, atomic_write_text
 from torch_diffavatar.errors import InputError
 from torch_diffavatar.pattern.garment_mesh import GarmentMesh
 
@@ -82,7 +83,7 @@ def write_obj(path, verts, faces, uv=None, uv_faces=None, normals=None) -> None:
         lines += [f"f {a}//{a} {b}//{b} {c}//{c}" for a, b, c in f1]
     else:
         lines += [f"f {a} {b} {c}" for a, b, c in f1]
-    Path(path).write_text("\n".join(lines) + "\n")
+    atomic_write_text(path, "\n".join(lines) + "\n")
 
 
 def read_obj(path: str | os.PathLike) -> ObjMesh:
@@ -165,7 +166,7 @@ def write_ply(path, verts: np.ndarray, faces: np.ndarray) -> None:
     )
     face_rec = np.zeros(len(faces), dtype=[("n", "u1"), ("i", "<i4", (3,))])
     face_rec["n"], face_rec["i"] = 3, faces
-    with open(path, "wb") as fh:
+    with atomic_write(path) as fh:
         fh.write(header.encode("ascii"))
         fh.write(np.ascontiguousarray(verts, dtype="<f4").tobytes())
         fh.write(face_rec.tobytes())

@@ -26,6 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+from torch_diffavatar.atomic_file import atomic_path
+
 __all__ = [
     "BODY_COLOR",
     "CLOTH_COLOR",
@@ -412,5 +414,6 @@ def save_png(image: np.ndarray, path: str | Path) -> Path:
         raise ValueError(f"image must be (H, W, 3) uint8, got {image.shape} {image.dtype}")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(image).save(path)
+    with atomic_path(path) as tmp:
+        Image.fromarray(image).save(tmp)
     return path

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
+from torch_diffavatar.atomic_file import atomic_write
 from torch_diffavatar.errors import ScanError
 
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}
@@ -28,6 +29,10 @@ UP_AXES = {
 }
 LABEL_PROPERTIES = ("label", "labels", "garment", "segment", "segmentation", "class")
 SCAN_SUFFIXES = (".ply", ".obj", ".glb", ".gltf", ".off", ".stl", ".xyz")
+# The largest scan file read [bytes]: 100M points of a binary PLY with colours (15 B each) is 1.5 GB, and
+# reading one holds about 4 times its size in memory; the intake keeps 2M points anyway
+# (`scan_intake.MAX_POINTS`)
+MAX_SCAN_BYTES = 4 * 1024**3
 
 
 class ScanWarning(UserWarning):
@@ -81,8 +86,14 @@ class Scan:
 def _read_geometry(path: Path):
     import trimesh
 
-    if path.stat().st_size == 0:
+    size = path.stat().st_size
+    if size == 0:
         raise ScanError(f"{path}: the file is empty")
+    if size > MAX_SCAN_BYTES:
+        raise ScanError(
+            f"{path}: {size / 1e9:.3g} GB, more than the {MAX_SCAN_BYTES / 1e9:.3g} GB read here; subsample "
+            "the scan first (a fit uses at most 2,000,000 points)"
+        )
     try:
         geom = trimesh.load(str(path), process=False)
     except Exception as exc:  # trimesh raises many types for unreadable files
@@ -90,7 +101,7 @@ def _read_geometry(path: Path):
     if isinstance(geom, trimesh.Scene):
         parts = [g for g in geom.dump() if hasattr(g, "vertices")]
         if not parts:
-            raise ScanError(f"{path}: the scene holds no geometry")
+            raise ScanError(f"{path}: the scan has no points (the file holds no geometry)")
         meshes = [g for g in parts if isinstance(g, trimesh.Trimesh)]
         geom = trimesh.util.concatenate(meshes) if len(meshes) == len(parts) else parts[0]
     return geom
@@ -257,7 +268,9 @@ def check_scan_frame(points: np.ndarray) -> list[str]:
         guess = "mm" if height > 250 else "cm" if height > 25 else "a smaller unit"
         out.append(f"the scan is {height:.3g} m tall; is it in {guess}? (pass --units)")
     elif height < 0.5:
-        out.append(f"the scan is only {height:.3g} m tall; wrong --units?")
+        out.append(
+            f"the scan is only {height:.3g} m tall; wrong --units, or --up (lying along another axis)?"
+        )
     if max(extent[0], extent[2]) > 1.3 * height:
         out.append(
             f"the scan is wider ({max(extent[0], extent[2]):.3g}) than tall ({height:.3g}); wrong --up axis?"
@@ -346,7 +359,7 @@ def save_ply(
     if colors is not None:
         cols.append(np.asarray(colors)[:, :3].astype(np.int64))
     cols += [np.asarray(v).reshape(-1, 1).astype(np.int64) for v in props.values()]
-    with open(path, "w") as f:
+    with atomic_write(path, "w") as f:
         f.write("\n".join(header) + "\n")
         for row in zip(*cols):
             f.write(" ".join(np.format_float_positional(x, 7, trim="-") for x in row[0]))
@@ -391,6 +404,6 @@ def save_point_cloud_ply(
     header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(points)}"]
     header += [f"property {ply_types[t]} {name}" for name, t in fields]
     header.append("end_header")
-    with open(path, "wb") as f:
+    with atomic_write(path) as f:
         f.write(("\n".join(header) + "\n").encode("ascii"))
         f.write(record.tobytes())

@@ -2,7 +2,11 @@
 
 `intake_scan` loads a scan (`scan.load_scan`) and, in this order:
 
-1. infers its length unit from its height when none is given (`infer_units`), and says so;
+0. refuses what cannot be a scan of a person (`check_point_count`) and moves coordinates that lie so far
+   from the origin that float32 (the fit's precision) would lose millimetres there to the origin, and says
+   so (`recentre_far_points`);
+1. infers its length unit from its height when none is given (`infer_units`), and says so; refuses a
+   height no person has in the unit given (`check_height`);
 2. with no up axis given, takes Y up, or Y down when the floor is found above the person (and says so);
 3. finds the floor as a plane (`find_floor`: RANSAC among the lowest points, a tilt up to
    `MAX_FLOOR_TILT_DEG` allowed) and removes it (`remove_floor_plane`): every point less than a margin
@@ -12,13 +16,15 @@
 4. keeps the person as the largest connected cluster (`largest_cluster`: points closer than
    ``cluster_radius`` are connected), dropping stray points and clutter, then statistical outliers
    (`scan.remove_outliers`);
-5. checks the frame (`scan.check_scan_frame`) on what is left: a floor makes a scan wider than tall, so
-   the check must come after its removal;
+5. checks the frame (`scan.check_scan_frame`) and the shape (`check_person_shape`: a sphere or a box is
+   refused) on what is left: a floor makes a scan wider than tall, so the checks must come after its
+   removal;
 6. estimates the coverage (`coverage`): which of 8 horizontal directions around the person hold points.
 
 The frame: the intake converts units and axes and shifts vertically (floor at y = 0); it never rotates
-(a tilted floor is reported, not levelled) nor shifts horizontally, so a capture simulated in a frame
-(`capture.capture_scene`) comes back in that same frame.
+(a tilted floor is reported, not levelled) nor shifts horizontally (but for coordinates far from the
+origin, `recentre_far_points`), so a capture simulated in a frame (`capture.capture_scene`) comes back in
+that same frame.
 """
 
 from __future__ import annotations
@@ -81,6 +87,7 @@ class IntakeReport:
 
     Attributes:
         units, up: the file's unit and up axis used; units_inferred: whether the height chose the unit.
+        shift: what was subtracted from the file's coordinates (`recentre_far_points`), or None.
         floor: the removed `Floor` as a dict (None when there was none) with ``removed`` points.
         clutter_removed: points outside the person's cluster; outliers_removed: statistical outliers.
         coverage: `coverage` of the result. messages: what the intake decided, in words.
@@ -92,6 +99,7 @@ class IntakeReport:
     units_inferred: bool = False
     floor: dict | None = None
     clutter_removed: int = 0
+    shift: list[float] | None = None
     outliers_removed: int = 0
     coverage: dict = field(default_factory=dict)
     messages: list[str] = field(default_factory=list)
@@ -99,6 +107,105 @@ class IntakeReport:
 
     def as_dict(self) -> dict:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+
+# A height beyond this factor of `HEIGHT_RANGE_M` in the unit given is no person (strong evidence: refused);
+# within it but outside the range, `scan.check_scan_frame` warns.
+HEIGHT_REFUSE_FACTOR = 4.0
+MIN_POINTS = 100  # a scan with fewer points cannot show a person (the intake's result needs as many)
+# The shape of a standing person (`person_shape`): the smaller horizontal extent of the body between 20 %
+# and 90 % of its height, over that height. Measured on 60 synthetic and simulated-capture scans (bare,
+# skirt, dress, tshirt, pants; one camera or a ring): 0.15-0.26; a sphere or a ball of points: 0.97-0.98.
+# Above `PERSON_DEPTH_WARN` a warning, above `PERSON_DEPTH_REFUSE` refused (a ball gown 1.2 m across on a
+# 1.7 m person would be 0.7).
+PERSON_DEPTH_WARN = 0.45
+PERSON_DEPTH_REFUSE = 0.8
+# float32 (the fit's precision) keeps at least this resolution, relative to the scan's size, at the
+# coordinates of a scan that is not moved (`recentre_far_points`): 1e-4 of a 1.7 m person is 0.17 mm
+FLOAT32_RESOLUTION = 1e-4
+
+
+def check_point_count(points: np.ndarray, path) -> None:
+    """ScanError when (N, 3) ``points`` are too few to show a person (`MIN_POINTS`)."""
+    if len(points) < MIN_POINTS:
+        raise ScanError(
+            f"{path}: only {len(points)} points; a scan of a person needs at least {MIN_POINTS} "
+            "(is this the right file?)"
+        )
+
+
+def recentre_far_points(points: np.ndarray, path) -> tuple[np.ndarray, np.ndarray | None]:
+    """(N, 3) ``points`` moved to the origin when they lie so far from it, for their size, that float32
+    would lose resolution there (coarser than `FLOAT32_RESOLUTION` of their extent: a person 1 km from the
+    origin keeps 0.06 mm, at 1e9 m only 64 m), with the shift subtracted (None when not moved).
+
+    Raises:
+        ScanError: the file's own numbers have already lost the person there (most of its points share
+            a height: coordinates stored in float32 far from the origin).
+    """
+    extent = float(np.max(np.quantile(points, 0.995, axis=0) - np.quantile(points, 0.005, axis=0)))
+    far = float(np.abs(points).max())
+    if np.spacing(np.float32(far)) <= FLOAT32_RESOLUTION * max(extent, 1e-12):
+        return points, None
+    shift = np.median(points, axis=0)
+    if len(np.unique(points[:, 1])) < 0.1 * len(points):
+        raise ScanError(
+            f"{path}: the coordinates lie {far:.3g} from the origin, where the file's numbers keep only "
+            f"about {np.spacing(np.float32(far)):.3g}: the person is lost; export the scan near the origin"
+        )
+    return points - shift, shift
+
+
+def check_height(points: np.ndarray, units: str, path) -> None:
+    """ScanError when (N, 3) Y-up ``points`` in the file's ``units`` make a person no person is
+    (`HEIGHT_REFUSE_FACTOR` beyond `HEIGHT_RANGE_M`): a scan in mm read as m is 1,700 m tall."""
+    height = robust_height(points) * UNITS[units]
+    lo, hi = HEIGHT_RANGE_M[0] / HEIGHT_REFUSE_FACTOR, HEIGHT_RANGE_M[1] * HEIGHT_REFUSE_FACTOR
+    if lo <= height <= hi:
+        return
+    fits = [
+        u
+        for u, scale in UNITS.items()
+        if HEIGHT_RANGE_M[0] <= height / UNITS[units] * scale <= HEIGHT_RANGE_M[1]
+    ]
+    fix = f"is it in {fits[0]}? pass --units {fits[0]}" if fits else "check the file and its --up axis"
+    raise ScanError(
+        f"{path}: with --units {units} the person would be {height:.4g} m tall; {fix} "
+        "(or leave --units out to infer it)"
+    )
+
+
+def person_shape(points: np.ndarray) -> float:
+    """The smaller horizontal extent (2-98 % quantiles, along the horizontal principal axes) of (N, 3) Y-up
+    ``points`` between 20 % and 90 % of their height (no floor, no feet), over that height: 0.15-0.26 for
+    a standing person (`PERSON_DEPTH_WARN`), about 1 for a sphere; NaN for fewer than 20 points there."""
+    height = max(robust_height(points), 1e-12)
+    lo = float(np.quantile(points[:, 1], 0.005))
+    middle = points[(points[:, 1] > lo + 0.2 * height) & (points[:, 1] < lo + 0.9 * height)][:, [0, 2]]
+    if len(middle) < 20:
+        return float("nan")
+    middle = middle - middle.mean(0)
+    flat = middle @ np.linalg.eigh(middle.T @ middle)[1]  # (k, 2): minor axis, major axis
+    extent = np.quantile(flat, 0.98, axis=0) - np.quantile(flat, 0.02, axis=0)
+    return float(extent.min() / height)
+
+
+def check_person_shape(points: np.ndarray, path) -> list[str]:
+    """Whether (N, 3) Y-up points [m] have a standing person's shape (`person_shape`): a ScanError when
+    they clearly do not (a sphere, a box, a person lying down), a warning (in the list) when doubtful."""
+    depth = person_shape(points)
+    if depth > PERSON_DEPTH_REFUSE:
+        raise ScanError(
+            f"{path}: this does not look like a standing person: its middle is {depth:.2f} times as deep as "
+            f"it is tall (a person: under {PERSON_DEPTH_WARN}); a sphere or a box, or a person lying down "
+            "(then pass --up z or --up -z)"
+        )
+    if depth > PERSON_DEPTH_WARN:
+        return [
+            f"the scan is unusually deep for a person ({depth:.2f} of its height; a person: under "
+            f"{PERSON_DEPTH_WARN}): is it a person, standing, with --up right?"
+        ]
+    return []
 
 
 # points a scan is thinned to before the clean-up (`intake_scan`): 2M points on a person are one every
@@ -119,7 +226,10 @@ def infer_units(points: np.ndarray) -> str:
     for unit, scale in UNITS.items():
         if HEIGHT_RANGE_M[0] <= height * scale <= HEIGHT_RANGE_M[1]:
             return unit
-    raise ScanError(f"cannot infer the units from a height of {height:.4g}; pass --units m, cm or mm")
+    raise ScanError(
+        f"cannot infer the units from a height of {height:.4g} (a person is {HEIGHT_RANGE_M[0]}-"
+        f"{HEIGHT_RANGE_M[1]} m tall): pass --units m, cm or mm, or --up if the person is not along Y"
+    )
 
 
 def _plane(p: np.ndarray) -> tuple[np.ndarray, float] | None:
@@ -357,7 +467,8 @@ def intake_scan(
         (the `Scan` [m], Y up, the floor at y = 0 when there was one; an `IntakeReport`).
 
     Raises:
-        ScanError: unreadable file, units not inferable, too few points left.
+        ScanError: unreadable file, too few points, the person lost to far coordinates, units not
+            inferable, a height no person has in the given ``units``, not a person's shape.
     """
     if units is not None and units not in UNITS:
         raise ScanError(f"unknown units {units!r}; use one of {sorted(UNITS)}")
@@ -365,6 +476,7 @@ def intake_scan(
         raise ScanError(f"unknown up axis {up!r}; use one of {sorted(UP_AXES)}")
     scan = load_scan(path, units="m", up=up or "y", check=False, **load_kw)
     report = IntakeReport(units=units or "m", up=up or "y")
+    check_point_count(scan.points, path)
     if scan.point_count > max_points:
         keep = np.zeros(scan.point_count, bool)
         keep[np.random.default_rng(0).choice(scan.point_count, max_points, replace=False)] = True
@@ -372,6 +484,7 @@ def intake_scan(
             f"{scan.point_count:,} points: more than the {max_points:,} used; a random {max_points:,} kept"
         )
         scan = scan.subset(keep)
+    scan = _recentre(scan, report, path)
     if up is None:
         scan = _choose_up(scan, report)
     if units is None:
@@ -380,17 +493,33 @@ def intake_scan(
             f"units: {report.units} (inferred from the height, {robust_height(scan.points):.4g}; "
             "pass --units to override)"
         )
+    else:
+        check_height(scan.points, units, path)
     scan = replace(scan, points=scan.points * UNITS[report.units])
     if clean:
         scan = _clean(scan, report, cluster_radius)
-    if scan.point_count < 100:
-        raise ScanError(f"{path}: only {scan.point_count} points left after the intake; need >= 100")
-    report.warnings = check_scan_frame(scan.points)
+    if scan.point_count < MIN_POINTS:
+        raise ScanError(f"{path}: only {scan.point_count} points left after the intake; need >= {MIN_POINTS}")
+    report.warnings = check_scan_frame(scan.points) + check_person_shape(scan.points, path)
     scan.warnings = list(report.warnings)
     for message in report.warnings:
         warnings.warn(f"{path}: {message}", ScanWarning, stacklevel=2)
     report.coverage = coverage(scan.points, scan.normals)
     return scan, report
+
+
+def _recentre(scan: Scan, report: IntakeReport, path) -> Scan:
+    """``scan`` moved to the origin when its coordinates are too far for float32 (`recentre_far_points`);
+    the shift and a message go into ``report``."""
+    points, shift = recentre_far_points(scan.points, path)
+    if shift is None:
+        return scan
+    report.shift = shift.tolist()
+    report.messages.append(
+        f"coordinates up to {np.abs(scan.points).max():.3g} from the origin, too far for float32: moved "
+        f"by {np.round(-shift, 3).tolist()} (the outputs are in the moved frame)"
+    )
+    return replace(scan, points=points)
 
 
 def _choose_up(scan: Scan, report: IntakeReport) -> Scan:

@@ -43,7 +43,9 @@ def test_fit_body_cli_contract(capsys, tmp_path, dressed_scan, anny_model, monke
         "phenotypes",
         "yaw_deg",
         "coverage",
+        "warnings",
     ]
+    assert isinstance(summary["warnings"], list)
     assert summary["points"] > 0.9 * len(scan.points)
     assert set(summary["phenotypes"]) == {"gender", "age", "muscle", "weight", "height", "proportions"}
     assert 1.0 < summary["height_m"] < 2.3

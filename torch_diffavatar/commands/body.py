@@ -9,8 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
+from torch_diffavatar.commands.out_paths import check_out_folder
 from torch_diffavatar.errors import InputError, ScanError
-from torch_diffavatar.json_io import write_json
+from torch_diffavatar.json_io import dumps_json, write_json
 from torch_diffavatar.mesh_io import write_obj
 from torch_diffavatar.scan import UNITS, UP_AXES
 
@@ -101,16 +102,14 @@ def _single_thread():
 def fit_body_command(args) -> dict:
     _single_thread()
     from torch_diffavatar.body.fit import fit_body
+    from torch_diffavatar.fit_scan import body_fit_warnings
 
-    scan = _load_clean_scan(args)
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise InputError(f"--out {out} exists and is not a directory")
+    check_out_folder(out)
+    scan = _load_clean_scan(args)
     result = fit_body(scan.points)
-    out.mkdir(parents=True, exist_ok=True)
     body = result.body
     verts = body().vertices[0].detach().cpu().numpy()
-    write_obj(out / BODY_OBJ, verts, body.faces)
     phenotypes = dict(zip(body.phenotype_labels, body.phenotypes[0].detach().tolist()))
     summary = {
         "points": scan.point_count,
@@ -120,11 +119,18 @@ def fit_body_command(args) -> dict:
         "phenotypes": phenotypes,
         "yaw_deg": result.yaw_deg,
         "coverage": args.intake["coverage"],
+        "warnings": args.intake["warnings"] + body_fit_warnings(result.chamfer_m),
     }
+    for message in body_fit_warnings(result.chamfer_m):  # the intake's are printed already
+        print(f"diffavatar fit-body: warning: {message}", file=sys.stderr)
     # the body parameters last: the summary's phenotypes by name must not replace their list, which
     # `BodyModel.load_parameters_dict` (fit --body, segment --body) reads back
-    params = dict(summary, scan=str(args.scan), units=args.units, up=args.up, **body.parameters_dict())
+    params = dict(summary, scan=str(args.scan), units=args.units, up=args.up, scan_shift=args.intake["shift"])
+    params.update(body.parameters_dict())
     params["phenotypes_by_name"] = phenotypes
+    dumps_json(params)  # a NaN refused before either file is written: never a body.obj alone
+    out.mkdir(parents=True, exist_ok=True)
+    write_obj(out / BODY_OBJ, verts, body.faces)
     write_json(out / BODY_JSON, params)
     return summary
 
@@ -146,7 +152,10 @@ def _body_from_dir(directory: str, anny_model) -> np.ndarray:
 def segment_command(args) -> dict:
     from torch_diffavatar.body.segment import garment_type
 
-    kind = garment_type(args.garment)  # fail on a bad type before any heavy work
+    kind = garment_type(args.garment)  # fail on a bad type or output before any heavy work
+    check_out_folder(Path(args.out).parent)
+    if Path(args.out).is_dir():
+        raise InputError(f"--out {args.out} is a folder; give the PLY file to write")
     _single_thread()
     import torch
 
@@ -183,6 +192,11 @@ def segment_command(args) -> dict:
     faces = anny_model.faces.cpu().numpy()
     parts = vertex_parts(anny_model).cpu().numpy()
     seg = segment_garment(scan.points, kind, body_verts, faces, parts, colors=scan.colors, support_top=waist)
+    if len(seg.garment_indices) == 0:
+        raise ScanError(
+            f"{args.scan}: no {kind} points found on this body (a bare body, or another garment?): check "
+            "--garment, or give the fitted body with --body; nothing written"
+        )
     loop_id = np.full(len(seg.garment_indices), -1, dtype=np.int64)
     for k, loop in enumerate(seg.loops):
         loop_id[loop.point_indices] = k

@@ -20,6 +20,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from torch_diffavatar.commands.body import add_frame_args
+from torch_diffavatar.commands.out_paths import check_out_folder
 from torch_diffavatar.errors import InputError
 from torch_diffavatar.fit_scan import fit_scan
 from torch_diffavatar.fit_setup import SEGMENT_TYPES, TYPE_CONFIGS, infer_garment_type
@@ -96,9 +97,9 @@ def fit_command(args) -> dict:
     )
     if args.spacing is not None:  # the user's spacing, whatever the arms
         config = replace(config, arms_low_spacing=None)
+    check_pattern_size(pattern, config)
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise InputError(f"--out {out} exists and is not a directory")
+    check_out_folder(out)
     body_params = None if args.body is None else read_body_params(args.body)
     with contextlib.redirect_stdout(sys.stderr):  # warp prints on stdout; keep --json one clean line
         report = fit_scan(
@@ -126,6 +127,17 @@ def fit_command(args) -> dict:
             print(f"{key}: {report[key]}")
         print(f"assets: {out}")
     return report
+
+
+def check_pattern_size(pattern, config) -> None:
+    """PatternError, before any heavy work, for a ``pattern`` (None: ``config.template``'s) with a panel
+    smaller than the finest spacing the fit may mesh it at, or too many vertices there
+    (`pattern.mesher.check_mesh_budget`)."""
+    from torch_diffavatar.pattern.library import resolve_pattern
+    from torch_diffavatar.pattern.mesher import check_mesh_budget
+
+    pattern = resolve_pattern(config.template) if pattern is None else pattern
+    check_mesh_budget(pattern, min(config.spacing, config.arms_low_spacing or config.spacing))
 
 
 # the keys `BodyModel.load_parameters_dict` reads

@@ -85,6 +85,11 @@ def save_pattern(pattern: Pattern, path: str | os.PathLike) -> None:
     write_json(path, pattern_to_dict(pattern))
 
 
+# Panels of a pattern read here: the templates and GarmentCode's examples have at most 12; 10,000 asked
+# the drape for gigabytes and the fit for 128 GB (issue #33)
+MAX_PANELS = 200
+
+
 def _fail(source: str | None, msg: str):
     raise PatternError(f"{source or '<pattern>'}: {msg}")
 
@@ -272,6 +277,12 @@ def pattern_from_dict(data: dict, source: str | None = None) -> Pattern:
     raw_panels = data["pattern"].get("panels")
     if not isinstance(raw_panels, dict) or not raw_panels:
         _fail(source, "pattern.panels must be a non-empty object of named panels")
+    if len(raw_panels) > MAX_PANELS:
+        _fail(
+            source,
+            f"{len(raw_panels):,} panels, more than the {MAX_PANELS} read here (the templates and "
+            "GarmentCode's examples have at most 12): is this a sewing pattern?",
+        )
     panels = {name: _parse_panel(name, raw, units, absolute, source) for name, raw in raw_panels.items()}
     stitches = _parse_stitches(data["pattern"].get("stitches", []), panels, source)
 

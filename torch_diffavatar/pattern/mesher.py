@@ -338,7 +338,7 @@ def _check_mesh_args(spacing, min_angle) -> None:
 MAX_MESH_VERTICES = 1_000_000
 
 
-def _check_mesh_budget(pattern: Pattern, spacing: float) -> None:
+def check_mesh_budget(pattern: Pattern, spacing: float) -> None:
     """PatternError, before any meshing, for a panel smaller than ``spacing`` [m] or a pattern whose mesh
     would exceed `MAX_MESH_VERTICES` (estimated from the panels' corner polygons: an equilateral mesh of
     edge ``spacing`` holds 2/√3 vertices per spacing², plus one per spacing of outline)."""
@@ -487,7 +487,7 @@ def mesh_pattern(pattern: Pattern, spacing: float = 0.015, min_angle: float = 25
             collapse a triangle when merged.
     """
     _check_mesh_args(spacing, min_angle)
-    _check_mesh_budget(pattern, spacing)
+    check_mesh_budget(pattern, spacing)
     pattern.validate()
     meshes = _mesh_panels(pattern, edge_sample_fractions(pattern, spacing), spacing, min_angle)
     stitch_pairs = _pattern_stitch_pairs(pattern, meshes.edge_vertices)

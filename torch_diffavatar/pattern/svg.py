@@ -11,11 +11,11 @@ from __future__ import annotations
 import colorsys
 import os
 from dataclasses import dataclass
-from pathlib import Path
 from xml.sax.saxutils import escape  # names and labels come from user files: text, never markup
 
 import numpy as np
 
+from torch_diffavatar.atomic_file import atomic_path, atomic_write_text
 from torch_diffavatar.pattern.spec import EdgeRef, Pattern
 
 _GAP_CM = 6.0
@@ -150,7 +150,7 @@ def pattern_svg(pattern: Pattern) -> str:
 
 def save_pattern_svg(pattern: Pattern, path: str | os.PathLike) -> None:
     """Write `pattern_svg` to ``path``."""
-    Path(path).write_text(pattern_svg(pattern))
+    atomic_write_text(path, pattern_svg(pattern))
 
 
 def save_pattern_png(pattern: Pattern, path: str | os.PathLike, px_per_cm: float = 5.0) -> None:
@@ -182,4 +182,5 @@ def save_pattern_png(pattern: Pattern, path: str | os.PathLike, px_per_cm: float
                 draw.text((x, y), label, fill=(51, 51, 51), font=label_font, anchor="mm")
         x, y = d.centre * s
         draw.text((x, y), d.name, fill=(0, 0, 0), font=name_font, anchor="mm")
-    img.save(path)
+    with atomic_path(path) as tmp:
+        img.save(tmp)
