@@ -200,13 +200,19 @@ class NewtonDrapeResult:
 def pattern_edge_strain(x: torch.Tensor, model, rest_uv: torch.Tensor) -> np.ndarray:
     """(3F,) strain ``|e| / |ē| − 1`` [-] of every triangle edge at positions ``x`` (Vs, 3) [m] against
     its rest length in its own panel (``rest_uv`` (V, 2) [m]; ``model``: the `ClothModel`)."""
-    tri, tri_panel = model.tri_vertices.cpu(), model.tri_panel_vertices.cpu()
-    xd, ud = x.double().cpu(), rest_uv.double().cpu()
+    uv = rest_uv.double().cpu()[model.tri_panel_vertices.cpu()]  # (F, 3, 2)
+    return tri_edge_strain(x, model.tri_vertices.cpu(), uv)
+
+
+def tri_edge_strain(x: torch.Tensor, tri_vertices, tri_rest_uv) -> np.ndarray:
+    """(3F,) strain ``|e| / |ē| − 1`` [-] of every edge of the triangles ``tri_vertices`` (F, 3) of ``x``
+    (Vs, 3) [m] against the rest corners ``tri_rest_uv`` (F, 3, 2) [m] (edges 0-1, then 1-2, then 2-0)."""
+    tri, ud = torch.as_tensor(tri_vertices), torch.as_tensor(tri_rest_uv).double()
+    xd = x.double().cpu()
     out = []
     for a, b in ((0, 1), (1, 2), (2, 0)):
         length = (xd[tri[:, a]] - xd[tri[:, b]]).norm(dim=1)
-        rest = (ud[tri_panel[:, a]] - ud[tri_panel[:, b]]).norm(dim=1)
-        out.append(length / rest - 1.0)
+        out.append(length / (ud[:, a] - ud[:, b]).norm(dim=1) - 1.0)
     return torch.cat(out).numpy()
 
 
