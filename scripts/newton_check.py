@@ -1,8 +1,8 @@
 #!/usr/bin/env python
 """Cross-simulator check: an exported asset folder draped by NVIDIA Newton's VBD cloth, in-process.
 
-    PYTHONPATH=. python scripts/newton_check.py ASSET_DIR                   # from our drape
-    PYTHONPATH=. python scripts/newton_check.py ASSET_DIR --start placement --json
+    PYTHONPATH=. python scripts/newton_check.py ASSET_DIR
+    PYTHONPATH=. python scripts/newton_check.py ASSET_DIR --membrane stretch --json --out newton.obj
 
 Needs the ``newton`` extra (``pip install -e ".[newton]"``: Newton 1.8, Warp 1.19); without it, one line
 says so. The Newton model is built from the exported files alone (`load_assets` +
@@ -11,11 +11,11 @@ rest.obj's ``vt``, the material in Newton's units from ``material_newton.json`` 
 edge_ke, density, friction, radius; docs/ASSETS.md "Material in Newton's units") and body.obj as a
 static mesh. The waist of a skirt or trousers (``held_vertices``) is pinned on the body surface
 (`sim_newton.waist_anchors`). It then settles with `sim_newton.newton_drape` (the machinery of
-``make-scan --simulator newton``) from:
-
-* ``draped`` (default): our drape (draped.obj), at rest: how far Newton's physics moves our equilibrium;
-* ``placement``: the panels as placed in 3D (rest.obj ``v``, each merged vertex at the mean of its panel
-  vertices): Newton sews and drapes the garment from the start, as our fit's first drape does.
+``make-scan --simulator newton``) from our drape (draped.obj), at rest: how far Newton's physics moves our
+equilibrium. (Not from the panels' 3D placement, rest.obj ``v``: on the merged mesh each seam vertex would
+start at the mean of its panel vertices, the triangles along the seams far from their rest shape, and the
+settle blew up at frame 1 at 10 and 40 substeps on a 3 cm dress; sewing from the placement needs the
+unmerged mesh with seam springs.)
 
 Measured with our tools: penetration (cloth vertices behind their closest body triangle,
 `penetration_diagnostics`), the surface Chamfer distance to our drape (`chamfer.surface_chamfer_m`), the
@@ -38,8 +38,6 @@ import torch
 
 from torch_diffavatar.errors import InputError
 
-STARTS = ("draped", "placement")
-
 
 def _strain(strain: np.ndarray) -> dict:
     """Mean, mean absolute, 99th percentile and max of (K,) edge strains [-]."""
@@ -49,22 +47,6 @@ def _strain(strain: np.ndarray) -> dict:
         "p99": float(np.percentile(strain, 99)),
         "max": float(strain.max()),
     }
-
-
-def start_positions(assets, start: str) -> torch.Tensor:
-    """(Vs, 3) float64 start of the Newton settle [m] (``start`` in `STARTS`, see the module docstring)."""
-    if start not in STARTS:
-        raise InputError(f"unknown start {start!r}; use one of {', '.join(STARTS)}")
-    g = assets.garment
-    if start == "draped":
-        return assets.draped_x.double()
-    count = torch.zeros(g.sim_vert_count, dtype=torch.float64).index_add_(
-        0, g.vert_to_sim, torch.ones(g.vert_count, dtype=torch.float64)
-    )
-    total = torch.zeros(g.sim_vert_count, 3, dtype=torch.float64).index_add_(
-        0, g.vert_to_sim, assets.rest_pos.double()
-    )
-    return total / count[:, None]
 
 
 def seam_edge_strain(assets, x: torch.Tensor) -> np.ndarray:
@@ -112,12 +94,13 @@ def measure(assets, export, x: torch.Tensor, samples: int = 20000) -> dict:
     }
 
 
-def check_assets(asset_dir, *, start: str = "draped", config=None, samples: int = 20000) -> dict:
+def check_assets(asset_dir, *, membrane: str = "shear", config=None, samples: int = 20000) -> dict:
     """Drape the asset folder ``asset_dir`` with Newton (module docstring) and measure it.
 
     Args:
         asset_dir: a folder written by `assets.write_assets` (with ``material_newton.json``).
-        start: ``"draped"`` or ``"placement"``; config: `sim_newton.NewtonDrapeConfig` (default its own).
+        membrane: ``"shear"`` (the export's tri_ke / tri_ka) or ``"stretch"`` (its ``membrane_alternative``).
+        config: `sim_newton.NewtonDrapeConfig` (default its own).
         samples: surface samples of our drape for the Chamfer distance.
 
     Returns:
@@ -133,8 +116,8 @@ def check_assets(asset_dir, *, start: str = "draped", config=None, samples: int 
 
     sn.import_newton()  # before any work: the one-line error without it
     assets = load_assets(asset_dir)
-    export = read_newton_material(assets)
-    x0 = start_positions(assets, start)
+    export = read_newton_material(assets, membrane)
+    x0 = assets.draped_x.double()
     held = torch.from_numpy(export.held_vertices)
     radius = export.material.particle_radius
     targets = sn.waist_anchors(x0, held, assets.body_verts, assets.body_faces, radius) if len(held) else None
@@ -152,7 +135,7 @@ def check_assets(asset_dir, *, start: str = "draped", config=None, samples: int 
         "triangles": g.tri_count,
         "bending_edges": export.cloth.edge_count,
         "held_vertices": int(len(held)),
-        "start": start,
+        "membrane": membrane,
         "newton_material": export.material.summary(),
         "settle": dict(drape.diagnostics(), cpu_seconds=round(cpu, 2)),
         **measure(assets, export, drape.x, samples),
@@ -168,7 +151,8 @@ def _summary(r: dict) -> str:
         "none" if seam is None else f"mean |.| {100 * seam['mean_abs']:.2f} %, max {100 * seam['max']:.1f} %"
     )
     return (
-        f"{r['garment']} ({r['draped_vertices']} vertices), Newton VBD from {r['start']}: "
+        f"{r['garment']} ({r['draped_vertices']} vertices), Newton VBD from our drape, "
+        f"membrane keeping our {r['membrane']}: "
         f"{state} in {s['frames']} frames, {s['seconds']:.1f} s wall / "
         f"{s['cpu_seconds']:.1f} s CPU; Chamfer to ours {1e3 * r['chamfer_to_ours_m']:.2f} mm, displacement "
         f"mean/max {1e3 * r['displacement_mean_m']:.1f}/{1e3 * r['displacement_max_m']:.1f} mm; "
@@ -184,7 +168,12 @@ def main(argv=None) -> int:
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("assets", help="asset folder (asset.json, seams.json, OBJs, material_newton.json)")
-    p.add_argument("--start", choices=STARTS, default="draped", help="start of the settle (default draped)")
+    p.add_argument(
+        "--membrane",
+        choices=("shear", "stretch"),
+        default="shear",
+        help="Newton's membrane: the export's (keeps our shear; default) or its alternative (our stretch)",
+    )
     p.add_argument("--max-frames", type=int, default=400, help="frames at most at 60 frames/s (default 400)")
     p.add_argument("--substeps", type=int, default=10, help="VBD steps per frame (default 10)")
     p.add_argument("--iterations", type=int, default=5, help="VBD iterations per step (default 5)")
@@ -194,7 +183,7 @@ def main(argv=None) -> int:
     torch.set_num_threads(1)
     config = NewtonDrapeConfig(max_frames=args.max_frames, substeps=args.substeps, iterations=args.iterations)
     try:
-        result = check_assets(args.assets, start=args.start, config=config)
+        result = check_assets(args.assets, membrane=args.membrane, config=config)
     except (InputError, SimulationError) as exc:
         print(f"newton_check: {exc}", file=sys.stderr)
         return 2

@@ -81,12 +81,27 @@ def test_exported_newton_material_is_the_conversion(skirt_asset):
     assert len(export.held_vertices) > 0  # a skirt: its waist
 
 
-def test_isotropic_material_round_trips_exactly():
+def test_isotropic_material_round_trips_exactly_under_both_conversions():
     mu, lam = 700.0, 6.0e3
     material = ClothMaterial(**nu.membrane_from_newton(mu, lam))
-    assert nu.membrane_to_newton(material.k_uu, material.k_vv, material.k_uv) == pytest.approx((mu, lam))
-    loss = nu.membrane_conversion_loss(material)
-    assert loss["stiffness_relative_error"] < 1e-12 and loss["k_uu_relative_change"] == pytest.approx(0.0)
+    for keep in nu.MEMBRANE_KEEPS:
+        args = (material.k_uu, material.k_vv, material.k_uv, material.poisson)
+        assert nu.membrane_to_newton(*args, keep=keep) == pytest.approx((mu, lam))
+        loss = nu.membrane_conversion_loss(material, keep)
+        assert loss["stiffness_relative_error"] < 1e-12 and loss["k_uu_relative_change"] == pytest.approx(0.0)
+    with pytest.raises(ValueError, match="shear, stretch"):
+        nu.membrane_to_newton(1.0, 1.0, 0.1, keep="bulk")
+
+
+def test_stretch_alternative_keeps_our_strip_stiffness(skirt_asset):
+    out = skirt_asset[0]
+    alt = json.loads((out / "material_newton.json").read_text())["membrane_alternative"]
+    loss = alt["membrane_conversion_loss"]
+    axial = np.sqrt(2.0e4 * 1.5e4)
+    assert loss["uniaxial_newton_N_per_m"] == pytest.approx(axial)  # ν = 0: no coupling, as ours
+    assert loss["shear_newton_N_per_m"] == pytest.approx(axial / 2)  # the shear pays
+    export = read_newton_material(load_assets(out), "stretch")
+    assert (export.material.tri_ke, export.material.tri_ka) == pytest.approx((axial / 2, 0.0))
 
 
 def test_check_without_newton_says_how_to_install(skirt_asset, monkeypatch, capsys):

@@ -11,6 +11,7 @@ Layout (SI; indices 0-based into draped.obj's vertices):
   ``particle_radius``, each ``{"value", "unit", "meaning"}`` (Newton's argument names);
 * ``bending``: our ``bend_stiffness`` [N·m], the rule ``edge_ke = k_b · 3|e|/(A1+A2)`` and edge_ke's range;
 * ``membrane_conversion_loss``: what the isotropic membrane changes (`newton_units.membrane_conversion_loss`);
+* ``membrane_alternative``: tri_ke / tri_ka keeping our stretch instead of our shear, and its loss;
 * ``edges``: ``indices`` (E, 4) in ``ModelBuilder.add_edges`` order (o0, o1, v0, v1), ``rest_length_m``
   (E,) and ``edge_ke_N`` (E,), per interior edge of draped.obj's seam-merged mesh;
 * ``held_vertices``: (A,) vertices a waist-held garment (skirt, trousers) is pinned by on the body.
@@ -27,11 +28,13 @@ import torch
 from torch_diffavatar.pattern.garment_mesh import GarmentMesh
 from torch_diffavatar.sim.material import ClothMaterial
 from torch_diffavatar.sim.newton_units import (
+    MEMBRANE_KEEPS,
     NewtonCloth,
     NewtonMaterial,
     edge_geometry,
     material_to_newton,
     membrane_conversion_loss,
+    membrane_to_newton,
     newton_cloth,
     newton_cloth_from_arrays,
 )
@@ -83,6 +86,7 @@ def newton_material_dict(garment: GarmentMesh, rest_uv: torch.Tensor, material: 
             "edge_ke_N": newton.summary()["edge_ke_N"],
         },
         "membrane_conversion_loss": membrane_conversion_loss(material),
+        "membrane_alternative": _membrane_alternative(material),
         "edges": {
             "order": "(o0, o1, v0, v1) as newton.ModelBuilder.add_edges takes them: edge v0-v1, o0 and o1 "
             "the opposite corners",
@@ -91,6 +95,22 @@ def newton_material_dict(garment: GarmentMesh, rest_uv: torch.Tensor, material: 
             "edge_ke_N": newton.edge_ke.tolist(),
         },
         "held_vertices": model.attach_vertices.cpu().tolist(),
+    }
+
+
+def _membrane_alternative(material: ClothMaterial) -> dict:
+    """The ``keep="stretch"`` membrane (`newton_units.membrane_to_newton`): tri_ke, tri_ka and its loss."""
+    mu, lam = membrane_to_newton(
+        *(float(getattr(material, k)) for k in ("k_uu", "k_vv", "k_uv", "poisson")), keep="stretch"
+    )
+    return {
+        "keep": "stretch",
+        "note": "lambda = poisson sqrt(k_uu k_vv), mu = (sqrt(k_uu k_vv) - lambda) / 2: a strip pulled with "
+        "its width free is as stiff as ours, the shear is sqrt(k_uu k_vv)/k_uv times ours; "
+        "scripts/newton_check.py --membrane stretch",
+        "tri_ke": {"value": mu, "unit": "N/m"},
+        "tri_ka": {"value": lam, "unit": "N/m"},
+        "membrane_conversion_loss": membrane_conversion_loss(material, keep="stretch"),
     }
 
 
@@ -109,9 +129,10 @@ class NewtonExport:
     held_vertices: np.ndarray
 
 
-def read_newton_material(assets) -> NewtonExport:
+def read_newton_material(assets, membrane: str = "shear") -> NewtonExport:
     """The `NewtonExport` of an asset folder read by `assets.load_assets`: ``material_newton.json`` with
-    draped.obj's triangles and their rest.obj ``vt`` corners.
+    draped.obj's triangles and their rest.obj ``vt`` corners; ``membrane="stretch"`` takes the file's
+    ``membrane_alternative`` tri_ke / tri_ka instead of ``parameters``' (``"shear"``).
 
     Raises:
         InputError: no ``material_newton.json`` (an asset written before it existed) or edges that do not
@@ -141,6 +162,10 @@ def read_newton_material(assets) -> NewtonExport:
         p["density"]["value"],
         g.sim_vert_count,
     )
+    if membrane not in MEMBRANE_KEEPS:
+        raise InputError(f"unknown membrane {membrane!r}; use one of {', '.join(MEMBRANE_KEEPS)}")
+    if membrane != "shear":
+        p = dict(p, **{k: data["membrane_alternative"][k] for k in ("tri_ke", "tri_ka")})
     material = NewtonMaterial(
         **{attr: float(p[name]["value"]) for name, (attr, _, _) in NEWTON_PARAMETERS.items()}, edge_ke=edge_ke
     )

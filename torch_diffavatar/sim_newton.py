@@ -10,7 +10,9 @@ a merged seam vertex has different (u, v) in its two panels, so each triangle's 
 (Newton's ``tri_poses``, ``tri_areas``) are set from its own panel's 2D coordinates, the bending rest
 angles are 0 (a flat pattern), and the particle masses are our lumped ``density × rest area / 3``.
 
-Newton's energies (read in ``newton/_src/solvers/vbd/particle_vbd_kernels.py``) and ours:
+Newton's energies (read in ``newton/_src/solvers/vbd/particle_vbd_kernels.py``) and ours (the conversion
+lives in `sim.newton_units`, pure numpy, re-exported here; the asset export writes it as
+``material_newton.json``, docs/ASSETS.md):
 
 * Membrane. Newton's VBD triangle is the *stable Neo-Hookean* membrane of Smith et al. 2018 (not StVK):
   per rest area ``ψ = μ/2 (I_c − 2) + λ'/2 (J − α)²`` with ``I_c = tr FᵀF``, ``J = |f0 × f1|``,

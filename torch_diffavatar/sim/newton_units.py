@@ -21,13 +21,28 @@ import torch
 
 from torch_diffavatar.sim.material import ClothMaterial
 
+# what ours -> Newton keeps besides the axial stiffness λ + 2μ = √(k_uu k_vv) (`membrane_to_newton`)
+MEMBRANE_KEEPS = ("shear", "stretch")
 
-def membrane_to_newton(k_uu: float, k_vv: float, k_uv: float) -> tuple[float, float]:
-    """Our membrane stiffnesses [N/m] -> Newton's (tri_ke = μ, tri_ka = λ) [N/m]: μ = k_uv and
-    λ + 2μ = √(k_uu k_vv) (λ >= 0); our Poisson coupling has no counterpart and is dropped."""
-    mu = float(k_uv)
-    lam = max(float(np.sqrt(k_uu * k_vv)) - 2.0 * mu, 0.0)
-    return mu, lam
+
+def membrane_to_newton(
+    k_uu: float, k_vv: float, k_uv: float, poisson: float = 0.0, *, keep: str = "shear"
+) -> tuple[float, float]:
+    """Our membrane stiffnesses [N/m] (and coupling ν [-]) -> Newton's (tri_ke = μ, tri_ka = λ) [N/m].
+
+    Both keep the axial stiffness ``λ + 2μ = √(k_uu k_vv)``. ``keep="shear"``: μ = k_uv (λ >= 0), our
+    coupling ν is dropped (Newton's is then λ); ``keep="stretch"``: λ = ν√(k_uu k_vv) (our coupling, so a
+    strip pulled with its width free is as stiff as ours), μ = (√(k_uu k_vv) − λ)/2 (the shear is dropped).
+    Both are exact on ours' isotropic subset (k_uu = k_vv, ν = (k − 2k_uv)/k).
+    """
+    axial = float(np.sqrt(k_uu * k_vv))
+    if keep == "shear":
+        mu = float(k_uv)
+        return mu, max(axial - 2.0 * mu, 0.0)
+    if keep == "stretch":
+        lam = float(poisson) * axial
+        return 0.5 * (axial - lam), lam
+    raise ValueError(f"unknown keep {keep!r}; use one of {', '.join(MEMBRANE_KEEPS)}")
 
 
 def membrane_from_newton(tri_ke: float, tri_ka: float) -> dict[str, float]:
@@ -93,9 +108,13 @@ def material_to_newton(
     *,
     tri_kd: float = 1.0e-5,
     edge_kd: float = 0.0,
+    keep: str = "shear",
 ) -> NewtonMaterial:
-    """Our `ClothMaterial` (floats) on edges (E,) weights / (E,) rest lengths [m] -> `NewtonMaterial`."""
-    mu, lam = membrane_to_newton(float(material.k_uu), float(material.k_vv), float(material.k_uv))
+    """Our `ClothMaterial` (floats) on edges (E,) weights / (E,) rest lengths [m] -> `NewtonMaterial`
+    (``keep``: the membrane conversion, `membrane_to_newton`)."""
+    mu, lam = membrane_to_newton(
+        *(float(getattr(material, k)) for k in ("k_uu", "k_vv", "k_uv", "poisson")), keep=keep
+    )
     return NewtonMaterial(
         tri_ke=mu,
         tri_ka=lam,
@@ -137,18 +156,20 @@ def _voigt_stiffness(axial_u: float, axial_v: float, coupling: float, shear: flo
     return np.array([[axial_u, coupling, 0.0], [coupling, axial_v, 0.0], [0.0, 0.0, 4.0 * shear]])
 
 
-def membrane_conversion_loss(material: ClothMaterial) -> dict[str, float]:
-    """What ours → Newton (`membrane_to_newton`) changes of ``material``'s membrane, at small strain.
+def membrane_conversion_loss(material: ClothMaterial, keep: str = "shear") -> dict[str, float]:
+    """What ours → Newton (`membrane_to_newton` with ``keep``) changes of ``material``'s membrane, at small
+    strain.
 
-    Newton's membrane is isotropic: both axial stiffnesses become ``λ + 2μ = √(k_uu k_vv)``, the shear
-    stays ``k_uv`` and the coupling becomes ``λ`` (ours: ``ν√(k_uu k_vv)``). ``uniaxial_*`` is the stiffness
-    of a strip pulled along one axis with its width free (``a − c²/b`` of the 2×2 axial block) [N/m]: what a
-    hanging panel feels, and where the coupling Newton adds shows (λ ≫ μ for woven cloth, whose shear is
-    soft, so Newton's strip is several times softer than ours). ``stiffness_relative_error``: the spectral
-    norm of the difference of the two (3, 3) stiffnesses over ours'.
+    Newton's membrane is isotropic: both axial stiffnesses become ``λ + 2μ = √(k_uu k_vv)``; with
+    ``keep="shear"`` the shear stays ``k_uv`` and the coupling becomes ``λ`` (ours: ``ν√(k_uu k_vv)``).
+    ``uniaxial_*`` is the stiffness of a strip pulled along one axis with its width free (``a − c²/b`` of
+    the 2×2 axial block) [N/m]: what a hanging panel feels, and where the coupling Newton adds shows (λ ≫ μ
+    for woven cloth, whose shear is soft, so Newton's strip is several times softer than ours); with
+    ``keep="stretch"`` it is kept and ``shear_newton_N_per_m`` is what changes. ``stiffness_relative_error``:
+    the spectral norm of the difference of the two (3, 3) stiffnesses over ours'.
     """
     kuu, kvv, kuv, nu = (float(getattr(material, k)) for k in ("k_uu", "k_vv", "k_uv", "poisson"))
-    mu, lam = membrane_to_newton(kuu, kvv, kuv)
+    mu, lam = membrane_to_newton(kuu, kvv, kuv, nu, keep=keep)
     axial, coupling = lam + 2.0 * mu, nu * float(np.sqrt(kuu * kvv))
     ours = _voigt_stiffness(kuu, kvv, coupling, kuv)
     newton = _voigt_stiffness(axial, axial, lam, mu)
@@ -160,6 +181,8 @@ def membrane_conversion_loss(material: ClothMaterial) -> dict[str, float]:
         "uniaxial_u_ours_N_per_m": kuu - coupling**2 / kvv,
         "uniaxial_v_ours_N_per_m": kvv - coupling**2 / kuu,
         "uniaxial_newton_N_per_m": axial - lam**2 / axial,
+        "shear_ours_N_per_m": kuv,
+        "shear_newton_N_per_m": mu,
         "lambda_clamped_at_zero": bool(np.sqrt(kuu * kvv) < 2.0 * kuv),
         "stiffness_relative_error": float(np.linalg.norm(ours - newton, 2) / np.linalg.norm(ours, 2)),
     }
