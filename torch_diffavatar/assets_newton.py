@@ -165,6 +165,8 @@ def read_newton_material(assets, membrane: str = "shear") -> NewtonExport:
     if membrane not in MEMBRANE_KEEPS:
         raise InputError(f"unknown membrane {membrane!r}; use one of {', '.join(MEMBRANE_KEEPS)}")
     if membrane != "shear":
+        if "membrane_alternative" not in data:
+            raise InputError(f"{path}: no membrane_alternative; write the assets again")
         p = dict(p, **{k: data["membrane_alternative"][k] for k in ("tri_ke", "tri_ka")})
     material = NewtonMaterial(
         **{attr: float(p[name]["value"]) for name, (attr, _, _) in NEWTON_PARAMETERS.items()}, edge_ke=edge_ke
