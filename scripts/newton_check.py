@@ -39,16 +39,6 @@ import torch
 from torch_diffavatar.errors import InputError
 
 
-def _strain(strain: np.ndarray) -> dict:
-    """Mean, mean absolute, 99th percentile and max of (K,) edge strains [-]."""
-    return {
-        "mean": float(strain.mean()),
-        "mean_abs": float(np.abs(strain).mean()),
-        "p99": float(np.percentile(strain, 99)),
-        "max": float(strain.max()),
-    }
-
-
 def seam_edge_strain(assets, x: torch.Tensor) -> np.ndarray:
     """(2 Se,) strain [-] of the sewn boundary edges (seams.json ``stitched_edges``, both sides) at ``x``
     (Vs, 3) [m] against their rest lengths in their panels."""
@@ -67,7 +57,7 @@ def measure(assets, export, x: torch.Tensor, samples: int = 20000) -> dict:
     edge strain (both drapes) and seam-edge strain."""
     from torch_diffavatar.chamfer import sample_surface, surface_chamfer_m
     from torch_diffavatar.sim.forward_drape import penetration_diagnostics
-    from torch_diffavatar.sim_newton import tri_edge_strain
+    from torch_diffavatar.sim_newton import strain_summary, tri_edge_strain
 
     g, ours = assets.garment, assets.draped_x.double()
     faces = g.sim_faces
@@ -87,10 +77,10 @@ def measure(assets, export, x: torch.Tensor, samples: int = 20000) -> dict:
         "displacement_max_m": float(disp.max()),
         "lowest_point_drop_m": float(ours[:, 1].min() - x[:, 1].min()),
         "edge_strain": {
-            "newton": _strain(tri_edge_strain(x, cloth.tri_vertices, cloth.tri_rest_uv)),
-            "ours": _strain(tri_edge_strain(ours, cloth.tri_vertices, cloth.tri_rest_uv)),
+            "newton": strain_summary(tri_edge_strain(x, cloth.tri_vertices, cloth.tri_rest_uv)),
+            "ours": strain_summary(tri_edge_strain(ours, cloth.tri_vertices, cloth.tri_rest_uv)),
         },
-        "seam_edge_strain": _strain(seam) if len(seam) else None,
+        "seam_edge_strain": strain_summary(seam) if len(seam) else None,
     }
 
 

@@ -10,6 +10,7 @@ import sys
 import numpy as np
 import pytest
 import torch
+from helpers_fit import TETRA_F, TETRA_V
 from helpers_scripts import load_script
 
 from torch_diffavatar.assets import load_assets, write_assets
@@ -20,11 +21,6 @@ from torch_diffavatar.sim.material import ClothMaterial
 from torch_diffavatar.sim.model import ClothModelBuilder
 
 requires_newton = pytest.mark.skipif(importlib.util.find_spec("newton") is None, reason="needs newton")
-
-TETRA_V = torch.tensor(
-    [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64
-)
-TETRA_F = torch.tensor([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
 
 
 @pytest.fixture(scope="module")

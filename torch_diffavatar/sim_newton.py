@@ -218,6 +218,16 @@ def tri_edge_strain(x: torch.Tensor, tri_vertices, tri_rest_uv) -> np.ndarray:
     return torch.cat(out).numpy()
 
 
+def strain_summary(strain: np.ndarray) -> dict:
+    """Mean, mean absolute, 99th percentile and max of (K,) edge strains [-]."""
+    return {
+        "mean": float(strain.mean()),
+        "mean_abs": float(np.abs(strain).mean()),
+        "p99": float(np.percentile(strain, 99)),
+        "max": float(strain.max()),
+    }
+
+
 def lower_onto_body(
     x: torch.Tensor, drop: float, body_verts: torch.Tensor, body_faces: torch.Tensor, thickness
 ):
