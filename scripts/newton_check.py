@@ -2,7 +2,7 @@
 """Cross-simulator check: an exported asset folder draped by NVIDIA Newton's VBD cloth, in-process.
 
     PYTHONPATH=. python scripts/newton_check.py ASSET_DIR
-    PYTHONPATH=. python scripts/newton_check.py ASSET_DIR --membrane stretch --json --out newton.obj
+    PYTHONPATH=. python scripts/newton_check.py ASSET_DIR --membrane shear --json --out newton.obj
 
 Needs the ``newton`` extra (``pip install -e ".[newton]"``: Newton 1.8, Warp 1.19); without it, one line
 says so. The Newton model is built from the exported files alone (`load_assets` +
@@ -84,12 +84,13 @@ def measure(assets, export, x: torch.Tensor, samples: int = 20000) -> dict:
     }
 
 
-def check_assets(asset_dir, *, membrane: str = "shear", config=None, samples: int = 20000) -> dict:
+def check_assets(asset_dir, *, membrane: str | None = None, config=None, samples: int = 20000) -> dict:
     """Drape the asset folder ``asset_dir`` with Newton (module docstring) and measure it.
 
     Args:
         asset_dir: a folder written by `assets.write_assets` (with ``material_newton.json``).
-        membrane: ``"shear"`` (the export's tri_ke / tri_ka) or ``"stretch"`` (its ``membrane_alternative``).
+        membrane: ``"shear"`` or ``"stretch"``: the membrane conversion
+            (`assets_newton.read_newton_material`); None: the export's (``parameters``).
         config: `sim_newton.NewtonDrapeConfig` (default its own).
         samples: surface samples of our drape for the Chamfer distance.
 
@@ -125,7 +126,7 @@ def check_assets(asset_dir, *, membrane: str = "shear", config=None, samples: in
         "triangles": g.tri_count,
         "bending_edges": export.cloth.edge_count,
         "held_vertices": int(len(held)),
-        "membrane": membrane,
+        "membrane": export.membrane_keep,
         "newton_material": export.material.summary(),
         "settle": dict(drape.diagnostics(), cpu_seconds=round(cpu, 2)),
         **measure(assets, export, drape.x, samples),
@@ -161,8 +162,7 @@ def main(argv=None) -> int:
     p.add_argument(
         "--membrane",
         choices=("shear", "stretch"),
-        default="shear",
-        help="Newton's membrane: the export's (keeps our shear; default) or its alternative (our stretch)",
+        help="Newton's membrane conversion: keep our shear or our stretch (default: the export's, stretch)",
     )
     p.add_argument("--max-frames", type=int, default=400, help="frames at most at 60 frames/s (default 400)")
     p.add_argument("--substeps", type=int, default=10, help="VBD steps per frame (default 10)")

@@ -15,6 +15,7 @@ from helpers_scripts import load_script
 
 from torch_diffavatar.assets import load_assets, write_assets
 from torch_diffavatar.assets_newton import read_newton_material
+from torch_diffavatar.errors import InputError
 from torch_diffavatar.pattern import load_template, mesh_pattern
 from torch_diffavatar.sim import newton_units as nu
 from torch_diffavatar.sim.material import ClothMaterial
@@ -47,7 +48,8 @@ def test_exported_newton_material_is_the_conversion(skirt_asset):
     export = read_newton_material(load_assets(out))
     model = ClothModelBuilder(ClothMaterial()).add_garment(garment).finalize(dtype=torch.float64)
     weight, length = nu.edge_geometry(model, uv)
-    expected = nu.material_to_newton(ClothMaterial(bend_stiffness=2.5e-5, friction=0.35), weight, length)
+    ours = ClothMaterial(bend_stiffness=2.5e-5, friction=0.35)
+    expected = nu.material_to_newton(ours, weight, length, keep="stretch")  # the export's membrane
     m = export.material
     assert (m.tri_ke, m.tri_ka, m.density, m.soft_contact_mu, m.particle_radius) == pytest.approx(
         (
@@ -66,10 +68,9 @@ def test_exported_newton_material_is_the_conversion(skirt_asset):
     back = nu.material_from_newton(m, weight, length)
     assert back.bend_stiffness == pytest.approx(2.5e-5, rel=1e-6)
     assert (back.friction, back.thickness, back.areal_density) == pytest.approx((0.35, 0.003, 0.15))
-    assert back.k_uv == pytest.approx(1.0e3) and back.k_uu == pytest.approx(np.sqrt(2.0e4 * 1.5e4))
+    assert back.k_uu == pytest.approx(np.sqrt(2.0e4 * 1.5e4)) and back.poisson == pytest.approx(0.0)
     loss = data["membrane_conversion_loss"]
     assert loss["k_uu_relative_change"] == pytest.approx(np.sqrt(1.5 / 2.0) - 1.0)
-    assert loss["uniaxial_newton_N_per_m"] < 0.3 * loss["uniaxial_v_ours_N_per_m"]  # what isotropy costs
     # the masses: lumped from the rest areas, as ours
     ours_mass = model.rest_data(uv, ClothMaterial()).vert_mass.numpy()
     np.testing.assert_allclose(export.cloth.vert_mass, ours_mass, rtol=1e-6)  # vt: %.9g
@@ -89,15 +90,23 @@ def test_isotropic_material_round_trips_exactly_under_both_conversions():
         nu.membrane_to_newton(1.0, 1.0, 0.1, keep="bulk")
 
 
-def test_stretch_alternative_keeps_our_strip_stiffness(skirt_asset):
-    out = skirt_asset[0]
-    alt = json.loads((out / "material_newton.json").read_text())["membrane_alternative"]
-    loss = alt["membrane_conversion_loss"]
+def test_both_membranes_are_exported_with_what_they_lose(skirt_asset):
+    data = json.loads((skirt_asset[0] / "material_newton.json").read_text())
     axial = np.sqrt(2.0e4 * 1.5e4)
+    assert data["membrane_keep"] == "stretch"
+    loss = data["membrane_conversion_loss"]
     assert loss["uniaxial_newton_N_per_m"] == pytest.approx(axial)  # ν = 0: no coupling, as ours
     assert loss["shear_newton_N_per_m"] == pytest.approx(axial / 2)  # the shear pays
-    export = read_newton_material(load_assets(out), "stretch")
-    assert (export.material.tri_ke, export.material.tri_ka) == pytest.approx((axial / 2, 0.0))
+    assert data["parameters"]["tri_ke"]["value"] == pytest.approx(axial / 2)
+    assert data["parameters"]["tri_ka"]["value"] == pytest.approx(0.0)
+    alt = data["membrane_alternative"]
+    assert alt["keep"] == "shear" and alt["membrane_conversion_loss"]["shear_newton_N_per_m"] == 1.0e3
+    assert alt["membrane_conversion_loss"]["uniaxial_newton_N_per_m"] < 0.3 * 1.5e4  # the stretch pays
+    export = read_newton_material(load_assets(skirt_asset[0]), "shear")
+    assert (export.material.tri_ke, export.material.tri_ka) == pytest.approx((1.0e3, axial - 2.0e3))
+    assert export.membrane_keep == "shear"
+    with pytest.raises(InputError, match="bulk"):
+        read_newton_material(load_assets(skirt_asset[0]), "bulk")
 
 
 def test_check_without_newton_says_how_to_install(skirt_asset, monkeypatch, capsys):
@@ -135,7 +144,7 @@ def test_newton_drapes_the_exported_asset_near_ours(draped_skirt_asset):
     assert torch.isfinite(x).all() and r["held_vertices"] > 0
     assert r["penetration_fraction"] < 0.02  # the body holds it
     assert r["lowest_point_drop_m"] < 0.05  # the pinned waist holds it: nothing slid down
-    assert r["chamfer_to_ours_m"] < 0.04  # near our drape (21 mm here: Newton stretches more)
+    assert r["chamfer_to_ours_m"] < 0.04  # near our drape
     assert r["seam_edge_strain"]["max"] < 0.3  # seams hold (no torn seam edge)
     assert r["edge_strain"]["newton"]["mean_abs"] < 0.05
     json.dumps({k: v for k, v in r.items() if k != "x"}, allow_nan=False)  # strict JSON figures

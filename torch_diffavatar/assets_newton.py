@@ -10,8 +10,9 @@ Layout (SI; indices 0-based into draped.obj's vertices):
 * ``parameters``: ``tri_ke``, ``tri_ka``, ``tri_kd``, ``edge_kd``, ``density``, ``soft_contact_mu``,
   ``particle_radius``, each ``{"value", "unit", "meaning"}`` (Newton's argument names);
 * ``bending``: our ``bend_stiffness`` [N·m], the rule ``edge_ke = k_b · 3|e|/(A1+A2)`` and edge_ke's range;
+* ``membrane_keep``: which membrane conversion ``parameters`` use (`EXPORT_MEMBRANE`, ``"stretch"``);
 * ``membrane_conversion_loss``: what the isotropic membrane changes (`newton_units.membrane_conversion_loss`);
-* ``membrane_alternative``: tri_ke / tri_ka keeping our stretch instead of our shear, and its loss;
+* ``membrane_alternative``: tri_ke / tri_ka of the other conversion (``"shear"``), and its loss;
 * ``edges``: ``indices`` (E, 4) in ``ModelBuilder.add_edges`` order (o0, o1, v0, v1), ``rest_length_m``
   (E,) and ``edge_ke_N`` (E,), per interior edge of draped.obj's seam-merged mesh;
 * ``held_vertices``: (A,) vertices a waist-held garment (skirt, trousers) is pinned by on the body.
@@ -41,6 +42,12 @@ from torch_diffavatar.sim.newton_units import (
 
 NEWTON_SOLVER = "newton.solvers.SolverVBD (Newton 1.8.0, Warp 1.19.0)"
 
+# the membrane conversion of ``parameters`` (`newton_units.membrane_to_newton`); the other one is written as
+# ``membrane_alternative``. Keeping our stretch put Newton's drape of a fitted dress and skirt closer to
+# ours than keeping our shear (Chamfer 12.0 vs 15.2 mm and 16.2 vs 20.4 mm) and settled it 4-5x sooner
+# (docs/BENCHMARKS.md, "Newton cross-check").
+EXPORT_MEMBRANE = "stretch"
+
 # Newton's name -> (NewtonMaterial attribute, unit, meaning)
 NEWTON_PARAMETERS = {
     "tri_ke": ("tri_ke", "N/m", "membrane Lame mu of the stable Neo-Hookean triangle (add_triangles) = k_uv"),
@@ -68,13 +75,14 @@ def newton_material_dict(garment: GarmentMesh, rest_uv: torch.Tensor, material: 
     model = ClothModelBuilder(material).add_garment(garment).finalize(dtype=torch.float64)
     uv = rest_uv.detach().cpu().double()
     weight, length = edge_geometry(model, uv)
-    newton = material_to_newton(material, weight, length)
+    newton = material_to_newton(material, weight, length, keep=EXPORT_MEMBRANE)
     cloth = newton_cloth(model, uv, newton.density)
     return {
         "solver": NEWTON_SOLVER,
         "conversion": "torch_diffavatar.sim.newton_units.material_to_newton (docs/ASSETS.md, "
         "'Material in Newton's units'); exact at small strain for an isotropic material, see "
         "membrane_conversion_loss for what an orthotropic one loses",
+        "membrane_keep": EXPORT_MEMBRANE,
         "parameters": {
             name: {"value": float(getattr(newton, attr)), "unit": unit, "meaning": meaning}
             for name, (attr, unit, meaning) in NEWTON_PARAMETERS.items()
@@ -85,7 +93,7 @@ def newton_material_dict(garment: GarmentMesh, rest_uv: torch.Tensor, material: 
             "areas A1, A2 of its triangles); edge_rest_length = |e|; rest angle 0",
             "edge_ke_N": newton.summary()["edge_ke_N"],
         },
-        "membrane_conversion_loss": membrane_conversion_loss(material),
+        "membrane_conversion_loss": membrane_conversion_loss(material, EXPORT_MEMBRANE),
         "membrane_alternative": _membrane_alternative(material),
         "edges": {
             "order": "(o0, o1, v0, v1) as newton.ModelBuilder.add_edges takes them: edge v0-v1, o0 and o1 "
@@ -99,18 +107,19 @@ def newton_material_dict(garment: GarmentMesh, rest_uv: torch.Tensor, material: 
 
 
 def _membrane_alternative(material: ClothMaterial) -> dict:
-    """The ``keep="stretch"`` membrane (`newton_units.membrane_to_newton`): tri_ke, tri_ka and its loss."""
+    """The membrane conversion other than `EXPORT_MEMBRANE` (`newton_units.membrane_to_newton`): its
+    tri_ke, tri_ka and loss."""
+    keep = next(k for k in MEMBRANE_KEEPS if k != EXPORT_MEMBRANE)
     mu, lam = membrane_to_newton(
-        *(float(getattr(material, k)) for k in ("k_uu", "k_vv", "k_uv", "poisson")), keep="stretch"
+        *(float(getattr(material, k)) for k in ("k_uu", "k_vv", "k_uv", "poisson")), keep=keep
     )
     return {
-        "keep": "stretch",
-        "note": "lambda = poisson sqrt(k_uu k_vv), mu = (sqrt(k_uu k_vv) - lambda) / 2: a strip pulled with "
-        "its width free is as stiff as ours, the shear is sqrt(k_uu k_vv)/k_uv times ours; "
-        "scripts/newton_check.py --membrane stretch",
+        "keep": keep,
+        "note": "shear: mu = k_uv, lambda = max(sqrt(k_uu k_vv) - 2 k_uv, 0); stretch: lambda = poisson "
+        "sqrt(k_uu k_vv), mu = (sqrt(k_uu k_vv) - lambda) / 2; scripts/newton_check.py --membrane " + keep,
         "tri_ke": {"value": mu, "unit": "N/m"},
         "tri_ka": {"value": lam, "unit": "N/m"},
-        "membrane_conversion_loss": membrane_conversion_loss(material, keep="stretch"),
+        "membrane_conversion_loss": membrane_conversion_loss(material, keep=keep),
     }
 
 
@@ -122,17 +131,20 @@ class NewtonExport:
         cloth: the seam-merged mesh, rest shapes, masses and edges (`NewtonCloth`).
         material: Newton's parameters (`NewtonMaterial`, ``edge_ke`` per edge of ``cloth``).
         held_vertices: (A,) int64 draped.obj vertices to pin on the body (maybe empty).
+        membrane_keep: the membrane conversion of ``material`` (``"shear"`` or ``"stretch"``).
     """
 
     cloth: NewtonCloth
     material: NewtonMaterial
     held_vertices: np.ndarray
+    membrane_keep: str
 
 
-def read_newton_material(assets, membrane: str = "shear") -> NewtonExport:
+def read_newton_material(assets, membrane: str | None = None) -> NewtonExport:
     """The `NewtonExport` of an asset folder read by `assets.load_assets`: ``material_newton.json`` with
-    draped.obj's triangles and their rest.obj ``vt`` corners; ``membrane="stretch"`` takes the file's
-    ``membrane_alternative`` tri_ke / tri_ka instead of ``parameters``' (``"shear"``).
+    draped.obj's triangles and their rest.obj ``vt`` corners. ``membrane`` (``"shear"`` / ``"stretch"``,
+    `newton_units.MEMBRANE_KEEPS`): which membrane conversion's tri_ke / tri_ka to take, ``parameters``' or
+    ``membrane_alternative``'s; None: ``parameters``'.
 
     Raises:
         InputError: no ``material_newton.json`` (an asset written before it existed) or edges that do not
@@ -162,13 +174,13 @@ def read_newton_material(assets, membrane: str = "shear") -> NewtonExport:
         p["density"]["value"],
         g.sim_vert_count,
     )
-    if membrane not in MEMBRANE_KEEPS:
-        raise InputError(f"unknown membrane {membrane!r}; use one of {', '.join(MEMBRANE_KEEPS)}")
-    if membrane != "shear":
-        if "membrane_alternative" not in data:
-            raise InputError(f"{path}: no membrane_alternative; write the assets again")
-        p = dict(p, **{k: data["membrane_alternative"][k] for k in ("tri_ke", "tri_ka")})
+    if membrane is not None and membrane != data.get("membrane_keep"):
+        alternative = data.get("membrane_alternative", {})
+        if alternative.get("keep") != membrane:
+            raise InputError(f"{path}: no {membrane!r} membrane; one of {', '.join(MEMBRANE_KEEPS)}")
+        p = dict(p, **{k: alternative[k] for k in ("tri_ke", "tri_ka")})
     material = NewtonMaterial(
         **{attr: float(p[name]["value"]) for name, (attr, _, _) in NEWTON_PARAMETERS.items()}, edge_ke=edge_ke
     )
-    return NewtonExport(cloth, material, np.asarray(data.get("held_vertices", []), dtype=np.int64))
+    held = np.asarray(data.get("held_vertices", []), dtype=np.int64)
+    return NewtonExport(cloth, material, held, membrane or data.get("membrane_keep", "shear"))
