@@ -25,7 +25,10 @@ lives in `sim.newton_units`, pure numpy, re-exported here; the asset export writ
   Newton (`membrane_to_newton`) keeps the shear ``μ = k_uv`` and the geometric mean of the axial
   stiffnesses ``λ + 2μ = √(k_uu k_vv)`` (λ clamped at 0) and drops ν; it inverts `membrane_from_newton`
   exactly (the round trip Newton → ours → Newton is the identity, and ours → Newton → ours is for an
-  isotropic material of ours with ν = (k − 2k_uv)/k). Large strains differ (Neo-Hookean vs StVK): that,
+  isotropic material of ours with ν = (k − 2k_uv)/k). ``keep="stretch"`` keeps our coupling and so our
+  stretch instead (λ = ν√(k_uu k_vv), μ = (√(k_uu k_vv) − λ)/2): what the asset export writes, since
+  Newton's drape of an orthotropic material of ours came out closer that way (docs/ASSETS.md); both agree
+  on the isotropic materials `draw_material` makes. Large strains differ (Neo-Hookean vs StVK): that,
   the solver and the contact model are the "other physics".
 * Bending. Newton's dihedral energy per interior edge is ``½ edge_ke · |ē| (θ − θ̄)²`` (``|ē|`` =
   ``edge_rest_length``, edge_ke in N); ours is ``½ k_b · w (θ − θ̄)²`` with ``w = 3|ē|²/(Ā1 + Ā2)``
