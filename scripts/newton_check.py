@@ -84,18 +84,38 @@ def measure(assets, export, x: torch.Tensor, samples: int = 20000) -> dict:
     }
 
 
-def check_assets(asset_dir, *, membrane: str | None = None, config=None, samples: int = 20000) -> dict:
+SEAMS = ("welded", "springs")
+
+
+def _merged(garment, x_panel: torch.Tensor) -> torch.Tensor:
+    """(Vs, 3): each draped vertex at the mean of its panel vertices' positions ``x_panel`` (V, 3) [m]."""
+    ones = torch.ones(len(x_panel), 1, dtype=x_panel.dtype)
+    count = torch.zeros(garment.sim_vert_count, 1, dtype=x_panel.dtype).index_add_(
+        0, garment.vert_to_sim, ones
+    )
+    total = torch.zeros(garment.sim_vert_count, 3, dtype=x_panel.dtype).index_add_(
+        0, garment.vert_to_sim, x_panel
+    )
+    return total / count
+
+
+def check_assets(
+    asset_dir, *, membrane: str | None = None, seams: str = "welded", config=None, samples: int = 20000
+) -> dict:
     """Drape the asset folder ``asset_dir`` with Newton (module docstring) and measure it.
 
     Args:
         asset_dir: a folder written by `assets.write_assets` (with ``material_newton.json``).
         membrane: ``"shear"`` or ``"stretch"``: the membrane conversion
             (`assets_newton.read_newton_material`); None: the export's (``parameters``).
+        seams: ``"welded"`` (draped.obj's merged mesh, the exported edges) or ``"springs"`` (the unmerged
+            panels sewn by zero-length springs on the stitch pairs, `assets_newton.unmerged_newton_export`).
         config: `sim_newton.NewtonDrapeConfig` (default its own).
         samples: surface samples of our drape for the Chamfer distance.
 
     Returns:
-        JSON-friendly figures; ``"x"``: Newton's (Vs, 3) float64 drape [m] (a tensor, not JSON).
+        JSON-friendly figures; ``"x"``: Newton's (Vs, 3) float64 drape [m] (a tensor, not JSON; with
+        springs each draped vertex at the mean of its panel vertices).
 
     Raises:
         InputError: Newton is not installed, or the folder is not a complete asset.
@@ -103,12 +123,17 @@ def check_assets(asset_dir, *, membrane: str | None = None, config=None, samples
     """
     from torch_diffavatar import sim_newton as sn
     from torch_diffavatar.assets import load_assets
-    from torch_diffavatar.assets_newton import read_newton_material
+    from torch_diffavatar.assets_newton import read_newton_material, unmerged_newton_export
 
     sn.import_newton()  # before any work: the one-line error without it
+    if seams not in SEAMS:
+        raise InputError(f"unknown seams {seams!r}; use one of {', '.join(SEAMS)}")
     assets = load_assets(asset_dir)
-    export = read_newton_material(assets, membrane)
+    merged = read_newton_material(assets, membrane)
+    export = merged if seams == "welded" else unmerged_newton_export(assets, merged)
+    g = assets.garment
     x0 = assets.draped_x.double()
+    x0 = x0 if seams == "welded" else x0[g.vert_to_sim]
     held = torch.from_numpy(export.held_vertices)
     radius = export.material.particle_radius
     targets = sn.waist_anchors(x0, held, assets.body_verts, assets.body_faces, radius) if len(held) else None
@@ -118,19 +143,26 @@ def check_assets(asset_dir, *, membrane: str | None = None, config=None, samples
         attach_vertices=held, attach_targets=targets,
     )  # fmt: skip
     cpu = time.process_time() - cpu0
-    g = assets.garment
+    x, gaps = drape.x, None
+    if seams == "springs":
+        pairs = g.stitch_pairs.reshape(-1, 2)
+        gaps = (x[pairs[:, 0]] - x[pairs[:, 1]]).norm(dim=1)
+        x = _merged(g, x)
     return {
         "assets": str(asset_dir),
         "garment": g.garment_type,
         "draped_vertices": g.sim_vert_count,
+        "particles": int(len(drape.x)),
         "triangles": g.tri_count,
         "bending_edges": export.cloth.edge_count,
         "held_vertices": int(len(held)),
         "membrane": export.membrane_keep,
+        "seams": seams,
         "newton_material": export.material.summary(),
         "settle": dict(drape.diagnostics(), cpu_seconds=round(cpu, 2)),
-        **measure(assets, export, drape.x, samples),
-        "x": drape.x,
+        "seam_gap_m": None if gaps is None else {"mean": float(gaps.mean()), "max": float(gaps.max())},
+        **measure(assets, merged, x, samples),
+        "x": x,
     }
 
 
@@ -142,14 +174,21 @@ def _summary(r: dict) -> str:
         "none" if seam is None else f"mean |.| {100 * seam['mean_abs']:.2f} %, max {100 * seam['max']:.1f} %"
     )
     return (
-        f"{r['garment']} ({r['draped_vertices']} vertices), Newton VBD from our drape, "
+        f"{r['garment']} ({r['draped_vertices']} vertices), Newton VBD from our drape, seams {r['seams']}, "
         f"membrane keeping our {r['membrane']}: "
         f"{state} in {s['frames']} frames, {s['seconds']:.1f} s wall / "
         f"{s['cpu_seconds']:.1f} s CPU; Chamfer to ours {1e3 * r['chamfer_to_ours_m']:.2f} mm, displacement "
         f"mean/max {1e3 * r['displacement_mean_m']:.1f}/{1e3 * r['displacement_max_m']:.1f} mm; "
         f"penetrating {r['penetrating_vertices']} ({100 * r['penetration_fraction']:.2f} %); edge strain "
         f"mean |.| Newton {100 * e['newton']['mean_abs']:.2f} % vs ours {100 * e['ours']['mean_abs']:.2f} % "
-        f"(max {100 * e['newton']['max']:.1f} % vs {100 * e['ours']['max']:.1f} %); seam edges " + seams
+        f"(max {100 * e['newton']['max']:.1f} % vs {100 * e['ours']['max']:.1f} %); seam edges "
+        + seams
+        + (
+            ""
+            if r["seam_gap_m"] is None
+            else f"; seam gap mean/max {1e3 * r['seam_gap_m']['mean']:.2f}/"
+            f"{1e3 * r['seam_gap_m']['max']:.2f} mm"
+        )
     )
 
 
@@ -164,6 +203,15 @@ def main(argv=None) -> int:
         choices=("shear", "stretch"),
         help="Newton's membrane conversion: keep our shear or our stretch (default: the export's, stretch)",
     )
+    p.add_argument(
+        "--seams",
+        choices=SEAMS,
+        default="welded",
+        help="welded: draped.obj's merged mesh (default); springs: the panels sewn by zero-length springs",
+    )
+    p.add_argument(
+        "--seam-ke", type=float, default=1.0e4, help="--seams springs: their stiffness [N/m] (default 1e4)"
+    )
     p.add_argument("--max-frames", type=int, default=400, help="frames at most at 60 frames/s (default 400)")
     p.add_argument("--substeps", type=int, default=10, help="VBD steps per frame (default 10)")
     p.add_argument("--iterations", type=int, default=5, help="VBD iterations per step (default 5)")
@@ -171,9 +219,11 @@ def main(argv=None) -> int:
     p.add_argument("--json", action="store_true", help="print one JSON line")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
-    config = NewtonDrapeConfig(max_frames=args.max_frames, substeps=args.substeps, iterations=args.iterations)
+    config = NewtonDrapeConfig(
+        max_frames=args.max_frames, substeps=args.substeps, iterations=args.iterations, seam_ke=args.seam_ke
+    )
     try:
-        result = check_assets(args.assets, membrane=args.membrane, config=config)
+        result = check_assets(args.assets, membrane=args.membrane, seams=args.seams, config=config)
     except (InputError, SimulationError) as exc:
         print(f"newton_check: {exc}", file=sys.stderr)
         return 2

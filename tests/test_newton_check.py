@@ -134,17 +134,22 @@ def draped_skirt_asset(anny_model, tmp_path_factory):
 @requires_newton
 @pytest.mark.anny
 @pytest.mark.slow
-def test_newton_drapes_the_exported_asset_near_ours(draped_skirt_asset):
+@pytest.mark.parametrize("seams", ["welded", "springs"])
+def test_newton_drapes_the_exported_asset_near_ours(draped_skirt_asset, seams):
     from torch_diffavatar.sim_newton import NewtonDrapeConfig
 
     check = load_script("newton_check")
     config = NewtonDrapeConfig(max_frames=60, min_frames=10)  # brief: a check, not a settle
-    r = check.check_assets(draped_skirt_asset, config=config, samples=5000)
+    r = check.check_assets(draped_skirt_asset, seams=seams, config=config, samples=5000)
     x = r["x"]
-    assert torch.isfinite(x).all() and r["held_vertices"] > 0
+    assert torch.isfinite(x).all() and r["held_vertices"] > 0 and x.shape == (r["draped_vertices"], 3)
     assert r["penetration_fraction"] < 0.02  # the body holds it
     assert r["lowest_point_drop_m"] < 0.05  # the pinned waist holds it: nothing slid down
     assert r["chamfer_to_ours_m"] < 0.04  # near our drape
     assert r["seam_edge_strain"]["max"] < 0.3  # seams hold (no torn seam edge)
     assert r["edge_strain"]["newton"]["mean_abs"] < 0.05
+    if seams == "springs":  # one particle per panel vertex; the stitch springs keep the seams closed
+        assert r["particles"] > r["draped_vertices"] and r["seam_gap_m"]["max"] < 0.005
+    else:
+        assert r["particles"] == r["draped_vertices"] and r["seam_gap_m"] is None
     json.dumps({k: v for k, v in r.items() if k != "x"}, allow_nan=False)  # strict JSON figures

@@ -32,6 +32,7 @@ from torch_diffavatar.sim.newton_units import (
     MEMBRANE_KEEPS,
     NewtonCloth,
     NewtonMaterial,
+    bend_to_newton,
     edge_geometry,
     material_to_newton,
     membrane_conversion_loss,
@@ -132,12 +133,14 @@ class NewtonExport:
         material: Newton's parameters (`NewtonMaterial`, ``edge_ke`` per edge of ``cloth``).
         held_vertices: (A,) int64 draped.obj vertices to pin on the body (maybe empty).
         membrane_keep: the membrane conversion of ``material`` (``"shear"`` or ``"stretch"``).
+        bend_stiffness: our k_b [N·m] (the file's ``bending``), for edges other than the exported ones.
     """
 
     cloth: NewtonCloth
     material: NewtonMaterial
     held_vertices: np.ndarray
     membrane_keep: str
+    bend_stiffness: float
 
 
 def read_newton_material(assets, membrane: str | None = None) -> NewtonExport:
@@ -183,4 +186,25 @@ def read_newton_material(assets, membrane: str | None = None) -> NewtonExport:
         **{attr: float(p[name]["value"]) for name, (attr, _, _) in NEWTON_PARAMETERS.items()}, edge_ke=edge_ke
     )
     held = np.asarray(data.get("held_vertices", []), dtype=np.int64)
-    return NewtonExport(cloth, material, held, membrane or data.get("membrane_keep", "shear"))
+    keep = membrane or data.get("membrane_keep", "shear")
+    return NewtonExport(cloth, material, held, keep, float(data["bending"]["bend_stiffness_N_m"]))
+
+
+def unmerged_newton_export(assets, export: NewtonExport) -> NewtonExport:
+    """``export`` on the asset's UNMERGED panel meshes: one particle per rest.obj vertex, the seams as
+    zero-length springs on seams.json's ``stitch_pairs`` (`NewtonCloth.spring_pairs`), the bending on the
+    panels' interior edges by the file's rule (``edge_ke = k_b 3|e|/(A1+A2)``; no edge across a seam), the
+    held vertices every panel vertex of a held draped vertex. Same material otherwise."""
+    from dataclasses import replace
+
+    from torch_diffavatar.sim.model import ClothModelBuilder
+
+    g, uv = assets.garment, assets.rest_uv.double()
+    model = ClothModelBuilder(ClothMaterial()).add_garment(g, merge_seams=False).finalize(dtype=torch.float64)
+    weight, length = edge_geometry(model, uv)
+    cloth = replace(
+        newton_cloth(model, uv, export.material.density), spring_pairs=g.stitch_pairs.reshape(-1, 2).numpy()
+    )
+    material = replace(export.material, edge_ke=bend_to_newton(export.bend_stiffness, weight, length))
+    held = np.flatnonzero(np.isin(g.vert_to_sim.numpy(), export.held_vertices))
+    return replace(export, cloth=cloth, material=material, held_vertices=held)

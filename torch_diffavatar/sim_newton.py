@@ -72,6 +72,7 @@ from torch_diffavatar.sim.newton_units import (  # noqa: F401  (the conversion, 
     membrane_to_newton,
     newton_cloth,
     newton_cloth_from_arrays,
+    vertex_coloring,
 )
 
 NEWTON_INSTALL = 'pip install -e ".[newton]"'
@@ -155,6 +156,8 @@ class NewtonDrapeConfig:
         contact_ke: body contact stiffness [N/m]; contact_kd: its damping [s].
         contact_gap: contact detection band beyond the particle radius [m] (detection once per frame).
         blow_up_speed: `SimulationError` when a vertex gets faster than this [m/s].
+        seam_ke: stiffness of the zero-length seam springs of an unmerged cloth (`NewtonCloth.spring_pairs`)
+            [N/m].
     """
 
     fps: float = 60.0
@@ -170,6 +173,7 @@ class NewtonDrapeConfig:
     contact_kd: float = 1.0e-2
     contact_gap: float = 0.02
     blow_up_speed: float = 20.0
+    seam_ke: float = 1.0e4
 
 
 @dataclass
@@ -371,11 +375,24 @@ def _build_model(
             mu=material.soft_contact_mu, ke=config.contact_ke, kd=config.contact_kd
         ),
     )
-    builder.color(include_bending=True)
+    _add_springs(builder, cloth, config.seam_ke)
     nmodel = builder.finalize(device="cpu")
     nmodel.soft_contact_ke, nmodel.soft_contact_kd = config.contact_ke, config.contact_kd
     nmodel.soft_contact_mu = material.soft_contact_mu
     return nmodel
+
+
+def _add_springs(builder, cloth: NewtonCloth, ke: float) -> None:
+    """``cloth``'s zero-length springs at stiffness ``ke`` [N/m] (none: nothing), and the VBD colouring:
+    Newton's own without springs, `vertex_coloring` (springs included) with them."""
+    pairs = cloth.spring_pairs
+    if pairs is None or not len(pairs):
+        builder.color(include_bending=True)
+        return
+    for i, j in np.asarray(pairs).tolist():
+        builder.add_spring(i, j, ke, 0.0, control=0.0)
+    builder.spring_rest_length[-len(pairs) :] = [0.0] * len(pairs)  # the builder took the start distances
+    builder.set_coloring(vertex_coloring(builder.particle_count, cloth))
 
 
 def _settle(newton, nmodel, body_verts, body_faces, config: NewtonDrapeConfig) -> NewtonDrapeResult:

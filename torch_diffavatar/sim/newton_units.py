@@ -201,6 +201,8 @@ class NewtonCloth:
             the edge runs v0–v1, o0 and o1 are the opposite corners of its triangles (v0, v1, o0) and
             (v1, v0, o1) (ours `ClothModel.edge_quads` ``(v0, v1, o0, o1)``).
         edge_rest_length: (E,) float64 rest lengths [m] (root mean square of the edge's two panel lengths).
+        spring_pairs: None, or (S, 2) int64 vertex pairs joined by zero-length springs (the seams of an
+            unmerged garment: one particle per panel vertex).
     """
 
     tri_vertices: np.ndarray
@@ -208,6 +210,7 @@ class NewtonCloth:
     vert_mass: np.ndarray
     edge_indices: np.ndarray
     edge_rest_length: np.ndarray
+    spring_pairs: np.ndarray | None = None
 
     @property
     def edge_count(self) -> int:
@@ -249,3 +252,27 @@ def newton_cloth(model, rest_uv: torch.Tensor, density: float) -> NewtonCloth:
         density,
         model.vert_count,
     )
+
+
+def vertex_coloring(vert_count: int, cloth: NewtonCloth) -> list[np.ndarray]:
+    """Greedy colouring of ``cloth``'s vertices (first fit, in index order) so that no triangle edge, bending
+    pair (o0, o1) or spring joins two vertices of one colour: Newton's VBD solves one colour at a time in
+    parallel (its own `ModelBuilder.color` leaves springs out). Returns the (k,) vertex ids of each colour."""
+    t, e = cloth.tri_vertices, cloth.edge_indices
+    links = [t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]], e[:, [0, 1]]]
+    if cloth.spring_pairs is not None:
+        links.append(np.asarray(cloth.spring_pairs).reshape(-1, 2))
+    pairs = np.concatenate(links)
+    neighbours: list[list[int]] = [[] for _ in range(vert_count)]
+    for a, b in pairs.tolist():
+        if a != b:
+            neighbours[a].append(b)
+            neighbours[b].append(a)
+    color = np.full(vert_count, -1, dtype=np.int64)
+    for v in range(vert_count):
+        used = {int(color[n]) for n in neighbours[v]}
+        c = 0
+        while c in used:
+            c += 1
+        color[v] = c
+    return [np.flatnonzero(color == c) for c in range(int(color.max()) + 1)]
