@@ -2,27 +2,35 @@
 """Cross-simulator check: an exported asset folder draped by NVIDIA Newton's VBD cloth, in-process.
 
     PYTHONPATH=. python scripts/newton_check.py ASSET_DIR
-    PYTHONPATH=. python scripts/newton_check.py ASSET_DIR --membrane shear --json --out newton.obj
+    PYTHONPATH=. python scripts/newton_check.py ASSET_DIR --seams springs --membrane shear --json --out X.obj
 
 Needs the ``newton`` extra (``pip install -e ".[newton]"``: Newton 1.8, Warp 1.19); without it, one line
 says so. The Newton model is built from the exported files alone (`load_assets` +
-`assets_newton.read_newton_material`): draped.obj's seam-merged triangles, each with its rest shape from
-rest.obj's ``vt``, the material in Newton's units from ``material_newton.json`` (tri_ke / tri_ka, per-edge
-edge_ke, density, friction, radius; docs/ASSETS.md "Material in Newton's units") and body.obj as a
-static mesh. The waist of a skirt or trousers (``held_vertices``) is pinned on the body surface
+`assets_newton.read_newton_material`): the material in Newton's units from ``material_newton.json``
+(tri_ke / tri_ka, density, friction, radius, bending; docs/ASSETS.md "Material in Newton's units"),
+body.obj as a static mesh, and the garment in one of two ways (``--seams``):
+
+* ``welded`` (default): draped.obj's seam-merged triangles, each with its rest shape from rest.obj's
+  ``vt``, and the exported per-edge ``edge_ke`` (bending across the seams too);
+* ``springs``: rest.obj's unmerged panel meshes (one particle per panel vertex), sewn by zero-length
+  springs (``--seam-ke`` N/m) on seams.json's ``stitch_pairs``, bending on the panels' own interior edges
+  by the exported rule ``edge_ke = k_b 3|e|/(A1+A2)`` (none across a seam)
+  (`assets_newton.unmerged_newton_export`). Newton's own VBD colouring leaves springs out, so the check
+  colours the particles itself (`newton_units.vertex_coloring`).
+
+The waist of a skirt or trousers (``held_vertices``) is pinned on the body surface
 (`sim_newton.waist_anchors`). It then settles with `sim_newton.newton_drape` (the machinery of
 ``make-scan --simulator newton``) from our drape (draped.obj), at rest: how far Newton's physics moves our
 equilibrium. (Not from the panels' 3D placement, rest.obj ``v``: on the merged mesh each seam vertex would
 start at the mean of its panel vertices, the triangles along the seams far from their rest shape, and the
-settle blew up at frame 1 at 10 and 40 substeps on a 3 cm dress; sewing from the placement needs the
-unmerged mesh with seam springs.)
+settle blew up at frame 1 at 10 and 40 substeps on a 3 cm dress.)
 
 Measured with our tools: penetration (cloth vertices behind their closest body triangle,
 `penetration_diagnostics`), the surface Chamfer distance to our drape (`chamfer.surface_chamfer_m`), the
-per-vertex displacement, the edge strain against the pattern for both drapes (`sim_newton.tri_edge_strain`)
-and the strain of the sewn seam edges (seams are welded in the merged mesh, so a seam cannot gap; a
-seam that tears apart in an unmerged simulation shows here as stretched seam edges). Wall and CPU time
-of the settle (Warp's CPU kernels: one core).
+per-vertex displacement, the edge strain against the pattern for both drapes (`sim_newton.tri_edge_strain`),
+the strain of the sewn seam edges and, with springs, the seam gaps (distance between stitched panel
+vertices; the measures on the merged mesh then take each draped vertex at the mean of its panel
+vertices). Wall and CPU time of the settle (Warp's CPU kernels: one core).
 """
 
 from __future__ import annotations
