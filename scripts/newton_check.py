@@ -1,363 +1,249 @@
 #!/usr/bin/env python
-"""Cross-simulator check: our exported assets draped by NVIDIA Newton's XPBD cloth solver.
+"""Cross-simulator check: an exported asset folder draped by NVIDIA Newton's VBD cloth, in-process.
 
-    PYTHONPATH=. python scripts/newton_check.py /tmp/demo_assets            # our Python (torch)
-    PYTHONPATH=. python scripts/newton_check.py ASSETS --frames 120 --json
+    PYTHONPATH=. python scripts/newton_check.py ASSET_DIR
+    PYTHONPATH=. python scripts/newton_check.py ASSET_DIR --seams springs --membrane shear --json --out X.obj
 
-Two halves in one file. **Our side** (run with our interpreter) reads the folder with `load_assets`
-and writes plain arrays (``.npz``) of what another simulator needs from the asset format alone: the
-panel meshes with their 2D rest coordinates (rest.obj ``vt``), the seam vertex pairs (seams.json), the
-material (material.json, SI) and the body (body.obj). It then runs this same file under Newton's
-interpreter (``--newton-python``, default /tmp/newton_venv/bin/python, which has no torch) with
-``--newton-side DIR``, which imports only numpy, warp and newton, builds the cloth and drapes it, and
-writes the final positions back. Our side then measures the result with our own tools: penetration
-(cloth vertices behind the body surface, `sim.forward_drape.penetration_diagnostics`), the surface Chamfer
-distance to our drape (draped.obj) and the seam gaps.
+Needs the ``newton`` extra (``pip install -e ".[newton]"``: Newton 1.8, Warp 1.19); without it, one line
+says so. The Newton model is built from the exported files alone (`load_assets` +
+`assets_newton.read_newton_material`): the material in Newton's units from ``material_newton.json``
+(tri_ke / tri_ka, density, friction, radius, bending; docs/ASSETS.md "Material in Newton's units"),
+body.obj as a static mesh, and the garment in one of two ways (``--seams``):
 
-The Newton model, built from the exported files only:
+* ``welded`` (default): draped.obj's seam-merged triangles, each with its rest shape from rest.obj's
+  ``vt``, and the exported per-edge ``edge_ke`` (bending across the seams too);
+* ``springs``: rest.obj's unmerged panel meshes (one particle per panel vertex), sewn by zero-length
+  springs (``--seam-ke`` N/m) on seams.json's ``stitch_pairs``, bending on the panels' own interior edges
+  by the exported rule ``edge_ke = k_b 3|e|/(A1+A2)`` (none across a seam)
+  (`assets_newton.unmerged_newton_export`). Newton's own VBD colouring leaves springs out, so the check
+  colours the particles itself (`newton_units.vertex_coloring`).
 
-* particles = the rest.obj vertices (one per panel vertex, seams not merged), masses from
-  ``areal_density`` [kg/m²] × the rest triangle areas (Newton computes them from the flat (u, v, 0)
-  rest shape), raised to at least ``--min-mass`` (0.3) of the median particle mass, starting at our
-  drape (draped.obj vertex of each rest vertex), at rest. The floor: at acute panel corners the lumped
-  masses fall to ~3 % of the median (the T-shirt template at 2 cm), and the lightest particle sets the
-  Jacobi XPBD's stability limit ``ke·dt²/m``; the T-shirt blew up at every setting without it, and with
-  it 34 of its 2,818 particles are raised (+0.14 % of the total mass);
-* stretch: Newton's XPBD has no triangle (StVK) constraint, so one distance constraint per panel
-  mesh edge with rest length from the pattern, at ``--spring-ke`` N/m (its Jacobi XPBD diverges for
-  ``ke·dt²/m`` above ~0.4, notes/warp-newton.md, so it cannot reach our k_uu ≈ 2·10⁴ N/m membrane);
-* seams: zero-rest-length distance constraints between the seams.json ``stitch_pairs`` (same ke);
-* bending: Newton's dihedral constraints at ``edge_ke`` = our ``bend_stiffness`` [N·m] × the mean of
-  our per-edge weights ``3|e|²/(A1+A2)`` (Newton has one stiffness per edge, no area weighting);
-* body: body.obj as a static mesh shape, friction ``friction``, contact radius ``thickness`` [m];
-* gravity −9.81 m/s² along +Y's opposite (the asset frame is Y up), 60 frames/s, ``--substeps``.
+The waist of a skirt or trousers (``held_vertices``) is pinned on the body surface
+(`sim_newton.waist_anchors`). It then settles with `sim_newton.newton_drape` (the machinery of
+``make-scan --simulator newton``) from our drape (draped.obj), at rest: how far Newton's physics moves our
+equilibrium. (Not from the panels' 3D placement, rest.obj ``v``: on the merged mesh each seam vertex would
+start at the mean of its panel vertices, the triangles along the seams far from their rest shape, and the
+settle blew up at frame 1 at 10 and 40 substeps on a 3 cm dress.)
 
-If a run blows up (non-finite, a vertex faster than 50 m/s or an edge stretched beyond 100 %) or
-does not come to rest (a vertex faster than 1 m/s at the end), the ``--fallback`` settings
-(substeps:spring_ke) are tried in order and every run is reported.
-
-Prints one JSON line (``--json``) or a short summary: per run the stability (finite, max speed at the
-end [m/s], mean/max edge strain against the pattern), penetration fraction, max seam gap [m], and the
-distance to our drape (surface Chamfer [m], mean/max per-vertex displacement [m]).
+Measured with our tools: penetration (cloth vertices behind their closest body triangle,
+`penetration_diagnostics`), the surface Chamfer distance to our drape (`chamfer.surface_chamfer_m`), the
+per-vertex displacement, the edge strain against the pattern for both drapes (`sim_newton.tri_edge_strain`),
+the strain of the sewn seam edges and, with springs, the seam gaps (distance between stitched panel
+vertices; the measures on the merged mesh then take each draped vertex at the mean of its panel
+vertices). Wall and CPU time of the settle (Warp's CPU kernels: one core).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+import torch
 
-# ----------------------------------------------------------------------------------------------------
-# Newton side: numpy + warp + newton only (runs in /tmp/newton_venv, which has no torch)
-# ----------------------------------------------------------------------------------------------------
-
-
-def _unique_edges(faces: np.ndarray) -> np.ndarray:
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    return np.unique(np.sort(e, axis=1), axis=0)
+from torch_diffavatar.errors import InputError
 
 
-def newton_side(work: Path) -> None:
-    """Drape ``work/scene.npz`` with Newton's XPBD; write ``work/newton_out.npz`` and ``newton.json``."""
-    import warp as wp
+def seam_edge_strain(assets, x: torch.Tensor) -> np.ndarray:
+    """(2 Se,) strain [-] of the sewn boundary edges (seams.json ``stitched_edges``, both sides) at ``x``
+    (Vs, 3) [m] against their rest lengths in their panels."""
+    se = assets.stitched_edges
+    if not len(se):
+        return np.zeros(0)
+    pairs = torch.cat([se[:, :2], se[:, 2:]])  # (2 Se, 2) rest-vertex edges
+    sim = assets.garment.vert_to_sim[pairs]
+    uv = assets.rest_uv.double()
+    length = (x[sim[:, 0]] - x[sim[:, 1]]).norm(dim=1)
+    return (length / (uv[pairs[:, 0]] - uv[pairs[:, 1]]).norm(dim=1) - 1.0).numpy()
 
-    wp.config.log_level = wp.LOG_WARNING  # keep stdout free of Warp's banner
-    import newton
 
-    d = np.load(work / "scene.npz")
-    cfg = json.loads((work / "scene.json").read_text())
-    rest, init, tri = d["rest"], d["init"], d["tri"].astype(np.int32)
-    stitches, body_v, body_f = d["stitches"], d["body_verts"], d["body_faces"].astype(np.int32)
-    mat = cfg["material"]
-    edges = _unique_edges(tri)
-    rest_len = np.linalg.norm(rest[edges[:, 0]] - rest[edges[:, 1]], axis=1)
+def measure(assets, export, x: torch.Tensor, samples: int = 20000) -> dict:
+    """Newton's drape ``x`` (Vs, 3) [m] against ours (draped.obj): penetration, Chamfer, displacement,
+    edge strain (both drapes) and seam-edge strain."""
+    from torch_diffavatar.chamfer import sample_surface, surface_chamfer_m
+    from torch_diffavatar.sim.forward_drape import penetration_diagnostics
+    from torch_diffavatar.sim_newton import strain_summary, tri_edge_strain
 
-    builder = newton.ModelBuilder(up_axis=newton.Axis.Y)  # gravity -9.81 m/s² along -Y
-    builder.add_cloth_mesh(
-        pos=wp.vec3(0.0, 0.0, 0.0),
-        rot=wp.quat_identity(),
-        scale=1.0,
-        vel=wp.vec3(0.0, 0.0, 0.0),
-        vertices=[wp.vec3(*p) for p in rest],  # the flat pattern: rest data of triangles / edges / masses
-        indices=tri.flatten().tolist(),
-        density=mat["areal_density"],
-        edge_ke=cfg["edge_ke"],
-        edge_kd=0.0,
-        particle_radius=mat["thickness"],
+    g, ours = assets.garment, assets.draped_x.double()
+    faces = g.sim_faces
+    pen = penetration_diagnostics(x, assets.body_verts.double(), assets.body_faces)
+    ours_samples = sample_surface(ours, faces, samples, generator=torch.Generator().manual_seed(0))
+    chamfer = surface_chamfer_m(x, faces, ours_samples)
+    disp = (x - ours).norm(dim=1)
+    cloth = export.cloth
+    seam = seam_edge_strain(assets, x)
+    return {
+        "penetrating_vertices": int(pen["penetrating_count"]),
+        "penetration_fraction": pen["penetrating_count"] / g.sim_vert_count,
+        "chamfer_to_ours_m": chamfer["symmetric"],
+        "chamfer_newton_to_ours_m": chamfer["mesh_to_points"],
+        "chamfer_ours_to_newton_m": chamfer["points_to_mesh"],
+        "displacement_mean_m": float(disp.mean()),
+        "displacement_max_m": float(disp.max()),
+        "lowest_point_drop_m": float(ours[:, 1].min() - x[:, 1].min()),
+        "edge_strain": {
+            "newton": strain_summary(tri_edge_strain(x, cloth.tri_vertices, cloth.tri_rest_uv)),
+            "ours": strain_summary(tri_edge_strain(ours, cloth.tri_vertices, cloth.tri_rest_uv)),
+        },
+        "seam_edge_strain": strain_summary(seam) if len(seam) else None,
+    }
+
+
+SEAMS = ("welded", "springs")
+
+
+def _merged(garment, x_panel: torch.Tensor) -> torch.Tensor:
+    """(Vs, 3): each draped vertex at the mean of its panel vertices' positions ``x_panel`` (V, 3) [m]."""
+    ones = torch.ones(len(x_panel), 1, dtype=x_panel.dtype)
+    count = torch.zeros(garment.sim_vert_count, 1, dtype=x_panel.dtype).index_add_(
+        0, garment.vert_to_sim, ones
     )
-    ke = cfg["spring_ke"]
-    for i, j in edges:
-        builder.add_spring(int(i), int(j), ke, 0.0, control=0.0)
-    first_stitch = (
-        builder.spring_count if hasattr(builder, "spring_count") else len(builder.spring_indices) // 2
+    total = torch.zeros(garment.sim_vert_count, 3, dtype=x_panel.dtype).index_add_(
+        0, garment.vert_to_sim, x_panel
     )
-    for i, j in stitches:
-        builder.add_spring(int(i), int(j), ke, 0.0, control=0.0)
-    builder.add_shape_mesh(
-        body=-1,
-        mesh=newton.Mesh(body_v.astype(np.float32), body_f.flatten(), compute_inertia=False),
-        cfg=newton.ModelBuilder.ShapeConfig(mu=mat["friction"], ke=1.0e4, kd=1.0e-2),
-    )
-    model = builder.finalize(device="cpu")
-    model.soft_contact_ke, model.soft_contact_kd, model.soft_contact_mu = 1.0e4, 1.0e-2, mat["friction"]
-    if cfg.get("min_mass", 0.0) > 0.0:
-        # the lightest particles (tiny corner triangles) set XPBD's stability limit ke·dt²/m
-        mass = model.particle_mass.numpy()
-        mass = np.maximum(mass, cfg["min_mass"] * float(np.median(mass[mass > 0])))
-        model.particle_mass.assign(mass)
-        model.particle_inv_mass.assign(1.0 / mass)
-    model.particle_grid = None  # no particle-particle "self-contact" between neighbouring vertices
-    model.particle_max_radius = 0.0
-    # seams are zero-length: the builder took their rest lengths from the (apart) pattern positions
-    spring_rest = model.spring_rest_length.numpy()
-    spring_rest[first_stitch:] = 0.0
-    model.spring_rest_length.assign(spring_rest)
+    return total / count
 
-    solver = newton.solvers.SolverXPBD(model, iterations=1)
-    pipeline = newton.CollisionPipeline(model, soft_contact_gap=0.05)
-    contacts = pipeline.contacts()
-    control = model.control()
-    s0, s1 = model.state(), model.state()
-    s0.particle_q.assign(init.astype(np.float32))
-    s1.particle_q.assign(init.astype(np.float32))
-    substeps, frames = cfg["substeps"], cfg["frames"]
-    dt = 1.0 / 60.0 / substeps
-    speeds = []
-    t0 = time.perf_counter()
-    for _ in range(frames):
-        pipeline.collide(s0, contacts)  # once per frame (5 cm band), as in the anchor configuration
-        for _k in range(substeps):
-            s0.clear_forces()
-            solver.step(s0, s1, control, contacts, dt)
-            s0, s1 = s1, s0
-        qd = s0.particle_qd.numpy()
-        speeds.append(float(np.linalg.norm(qd, axis=1).max()) if np.all(np.isfinite(qd)) else float("inf"))
-    wall = time.perf_counter() - t0
-    q = s0.particle_q.numpy().astype(np.float64)
-    finite = bool(np.all(np.isfinite(q)))
-    strain = np.linalg.norm(q[edges[:, 0]] - q[edges[:, 1]], axis=1) / rest_len - 1.0 if finite else None
-    np.savez(work / "newton_out.npz", q=q)
-    (work / "newton.json").write_text(
-        json.dumps(
-            {
-                "particles": int(model.particle_count),
-                "triangles": int(model.tri_count),
-                "distance_constraints": int(model.spring_count),
-                "bending_edges": int(model.edge_count),
-                "frames": frames,
-                "substeps": substeps,
-                "spring_ke": ke,
-                "edge_ke": cfg["edge_ke"],
-                "wall_s": round(wall, 2),
-                "finite": finite,
-                "max_speed_end": speeds[-1],
-                "max_speed_any": max(speeds),
-                "edge_strain_mean": float(strain.mean()) if finite else None,
-                "edge_strain_max": float(strain.max()) if finite else None,
-            }
+
+def check_assets(
+    asset_dir, *, membrane: str | None = None, seams: str = "welded", config=None, samples: int = 20000
+) -> dict:
+    """Drape the asset folder ``asset_dir`` with Newton (module docstring) and measure it.
+
+    Args:
+        asset_dir: a folder written by `assets.write_assets` (with ``material_newton.json``).
+        membrane: ``"shear"`` or ``"stretch"``: the membrane conversion
+            (`assets_newton.read_newton_material`); None: the export's (``parameters``).
+        seams: ``"welded"`` (draped.obj's merged mesh, the exported edges) or ``"springs"`` (the unmerged
+            panels sewn by zero-length springs on the stitch pairs, `assets_newton.unmerged_newton_export`).
+        config: `sim_newton.NewtonDrapeConfig` (default its own).
+        samples: surface samples of our drape for the Chamfer distance.
+
+    Returns:
+        JSON-friendly figures; ``"x"``: Newton's (Vs, 3) float64 drape [m] (a tensor, not JSON; with
+        springs each draped vertex at the mean of its panel vertices).
+
+    Raises:
+        InputError: Newton is not installed, or the folder is not a complete asset.
+        SimulationError: the settle blew up.
+    """
+    from torch_diffavatar import sim_newton as sn
+    from torch_diffavatar.assets import load_assets
+    from torch_diffavatar.assets_newton import read_newton_material, unmerged_newton_export
+
+    sn.import_newton()  # before any work: the one-line error without it
+    if seams not in SEAMS:
+        raise InputError(f"unknown seams {seams!r}; use one of {', '.join(SEAMS)}")
+    assets = load_assets(asset_dir)
+    merged = read_newton_material(assets, membrane)
+    export = merged if seams == "welded" else unmerged_newton_export(assets, merged)
+    g = assets.garment
+    x0 = assets.draped_x.double()
+    x0 = x0 if seams == "welded" else x0[g.vert_to_sim]
+    held = torch.from_numpy(export.held_vertices)
+    radius = export.material.particle_radius
+    targets = sn.waist_anchors(x0, held, assets.body_verts, assets.body_faces, radius) if len(held) else None
+    cpu0 = time.process_time()
+    drape = sn.newton_drape(
+        export.cloth, None, x0, assets.body_verts, assets.body_faces, export.material, config,
+        attach_vertices=held, attach_targets=targets,
+    )  # fmt: skip
+    cpu = time.process_time() - cpu0
+    x, gaps = drape.x, None
+    if seams == "springs":
+        pairs = g.stitch_pairs.reshape(-1, 2)
+        gaps = (x[pairs[:, 0]] - x[pairs[:, 1]]).norm(dim=1)
+        x = _merged(g, x)
+    return {
+        "assets": str(asset_dir),
+        "garment": g.garment_type,
+        "draped_vertices": g.sim_vert_count,
+        "particles": int(len(drape.x)),
+        "triangles": g.tri_count,
+        "bending_edges": export.cloth.edge_count,
+        "held_vertices": int(len(held)),
+        "membrane": export.membrane_keep,
+        "seams": seams,
+        "newton_material": export.material.summary(),
+        "settle": dict(drape.diagnostics(), cpu_seconds=round(cpu, 2)),
+        "seam_gap_m": None if gaps is None else {"mean": float(gaps.mean()), "max": float(gaps.max())},
+        **measure(assets, merged, x, samples),
+        "x": x,
+    }
+
+
+def _summary(r: dict) -> str:
+    s, e = r["settle"], r["edge_strain"]
+    seam = r["seam_edge_strain"]
+    state = "settled" if s["converged"] else "NOT settled"
+    seams = (
+        "none" if seam is None else f"mean |.| {100 * seam['mean_abs']:.2f} %, max {100 * seam['max']:.1f} %"
+    )
+    return (
+        f"{r['garment']} ({r['draped_vertices']} vertices), Newton VBD from our drape, seams {r['seams']}, "
+        f"membrane keeping our {r['membrane']}: "
+        f"{state} in {s['frames']} frames, {s['seconds']:.1f} s wall / "
+        f"{s['cpu_seconds']:.1f} s CPU; Chamfer to ours {1e3 * r['chamfer_to_ours_m']:.2f} mm, displacement "
+        f"mean/max {1e3 * r['displacement_mean_m']:.1f}/{1e3 * r['displacement_max_m']:.1f} mm; "
+        f"penetrating {r['penetrating_vertices']} ({100 * r['penetration_fraction']:.2f} %); edge strain "
+        f"mean |.| Newton {100 * e['newton']['mean_abs']:.2f} % vs ours {100 * e['ours']['mean_abs']:.2f} % "
+        f"(max {100 * e['newton']['max']:.1f} % vs {100 * e['ours']['max']:.1f} %); seam edges "
+        + seams
+        + (
+            ""
+            if r["seam_gap_m"] is None
+            else f"; seam gap mean/max {1e3 * r['seam_gap_m']['mean']:.2f}/"
+            f"{1e3 * r['seam_gap_m']['max']:.2f} mm"
         )
     )
 
 
-# ----------------------------------------------------------------------------------------------------
-# Our side (torch): export arrays, run Newton, measure
-# ----------------------------------------------------------------------------------------------------
+def main(argv=None) -> int:
+    from torch_diffavatar.errors import SimulationError
+    from torch_diffavatar.sim_newton import NewtonDrapeConfig
 
-
-# [m/s] a run whose fastest vertex is faster than this at the end has not come to rest: the next setting
-# is tried
-SETTLED_SPEED = 1.0
-
-
-def export_scene(
-    assets, work: Path, frames: int, substeps: int, spring_ke: float, min_mass: float = 0.0
-) -> dict:
-    """Write ``scene.npz`` / ``scene.json`` from the loaded asset folder (see the module docstring)."""
-    import torch
-
-    from torch_diffavatar.sim.model import ClothModelBuilder
-
-    g = assets.garment
-    rest = np.concatenate([assets.rest_uv.numpy(), np.zeros((g.vert_count, 1))], axis=1)  # (u, v, 0)
-    init = assets.draped_x[g.vert_to_sim].numpy()
-    model = ClothModelBuilder(assets.material).add_garment(g).finalize(dtype=torch.float64)
-    edge_weight = model.rest_data(assets.rest_uv).edge_weight  # 3|e|²/(A1+A2) per interior edge
-    mat = {k: float(getattr(assets.material, k)) for k in ("areal_density", "friction", "thickness")}
-    mat["bend_stiffness"] = float(assets.material.bend_stiffness)
-    cfg = {
-        "material": mat,
-        "edge_ke": mat["bend_stiffness"] * float(edge_weight.mean()),
-        "spring_ke": spring_ke,
-        "min_mass": min_mass,
-        "substeps": substeps,
-        "frames": frames,
-    }
-    np.savez(
-        work / "scene.npz",
-        rest=rest,
-        init=init,
-        tri=g.tri_vertices.numpy(),
-        stitches=g.stitch_pairs.numpy().reshape(-1, 2),
-        body_verts=assets.body_verts.numpy(),
-        body_faces=assets.body_faces.numpy(),
-    )
-    (work / "scene.json").write_text(json.dumps(cfg))
-    return cfg
-
-
-def measure(assets, q: np.ndarray) -> dict:
-    """Penetration, seam gaps and distance to our drape of Newton's final panel-vertex positions (V, 3)."""
-    import torch
-
-    from torch_diffavatar.chamfer import sample_surface, surface_chamfer_m
-    from torch_diffavatar.sim.forward_drape import penetration_diagnostics
-
-    g = assets.garment
-    qt = torch.from_numpy(np.asarray(q, dtype=np.float64))
-    pairs = g.stitch_pairs.reshape(-1, 2)
-    seam_gap = float((qt[pairs[:, 0]] - qt[pairs[:, 1]]).norm(dim=1).max()) if len(pairs) else 0.0
-    # the seam-merged mesh: each draped vertex at the mean of its panel vertices
-    count = torch.zeros(g.sim_vert_count, dtype=torch.float64).index_add_(
-        0, g.vert_to_sim, torch.ones(len(qt), dtype=torch.float64)
-    )
-    x = (
-        torch.zeros(g.sim_vert_count, 3, dtype=torch.float64).index_add_(0, g.vert_to_sim, qt)
-        / count[:, None]
-    )
-    pen = penetration_diagnostics(x, assets.body_verts, assets.body_faces)
-    ours = assets.draped_x
-    faces = g.sim_faces
-    ours_samples = sample_surface(ours, faces, 20000, generator=torch.Generator().manual_seed(0))
-    ch = surface_chamfer_m(x, faces, ours_samples)
-    disp = (x - ours).norm(dim=1)
-    return x, {
-        "penetrating_vertices": pen["penetrating_count"],
-        "penetration_fraction": pen["penetrating_count"] / g.sim_vert_count,
-        "max_seam_gap_m": seam_gap,
-        "chamfer_to_ours_m": ch["symmetric"],
-        "chamfer_newton_to_ours_m": ch["mesh_to_points"],
-        "chamfer_ours_to_newton_m": ch["points_to_mesh"],
-        "displacement_mean_m": float(disp.mean()),
-        "displacement_max_m": float(disp.max()),
-        "hem_drop_m": float(ours[:, 1].min() - x[:, 1].min()),
-    }
-
-
-def run_newton(args, assets, substeps: int, spring_ke: float) -> dict:
-    with tempfile.TemporaryDirectory() as tmp:
-        work = Path(tmp)
-        export_scene(assets, work, args.frames, substeps, spring_ke, args.min_mass)
-        cmd = [args.newton_python, str(Path(__file__).resolve()), "--newton-side", str(work)]
-        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout)
-        if proc.returncode != 0:
-            err = (proc.stderr.strip().splitlines() or ["failed"])[-1]
-            return {"substeps": substeps, "spring_ke": spring_ke, "error": err}
-        out = json.loads((work / "newton.json").read_text())
-        q = np.load(work / "newton_out.npz")["q"]
-    blew = (
-        not out["finite"]
-        or out["max_speed_any"] > 50.0
-        or out["edge_strain_max"] is None
-        or out["edge_strain_max"] > 1.0
-    )
-    # finite but still jittering at the end (a template dress at 80 substeps ended at 14 m/s)
-    out["status"] = "blew up" if blew else ("unsettled" if out["max_speed_end"] > SETTLED_SPEED else "ok")
-    if not blew:  # a blown-up state has nothing to measure
-        x, figures = measure(assets, q)
-        out.update(figures)
-        if args.out:
-            from torch_diffavatar.mesh_io import write_garment_obj
-
-            Path(args.out).mkdir(parents=True, exist_ok=True)
-            path = Path(args.out) / f"newton_{substeps}sub_ke{spring_ke:g}.obj"
-            write_garment_obj(path, assets.garment, sim_positions=x)
-            out["obj"] = str(path)
-    return out
-
-
-def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("assets", nargs="?", help="asset folder (asset.json, seams.json, OBJs, material.json)")
-    p.add_argument("--newton-side", help=argparse.SUPPRESS)  # internal: run the Newton half on DIR
-    p.add_argument("--newton-python", default="/tmp/newton_venv/bin/python")
-    p.add_argument("--frames", type=int, default=120, help="frames at 60 frames/s (default 120 = 2 s)")
-    p.add_argument("--substeps", type=int, default=40)
+    p.add_argument("assets", help="asset folder (asset.json, seams.json, OBJs, material_newton.json)")
     p.add_argument(
-        "--spring-ke", type=float, default=100.0, help="Newton edge/seam constraint stiffness [N/m]"
+        "--membrane",
+        choices=("shear", "stretch"),
+        help="Newton's membrane conversion: keep our shear or our stretch (default: the export's, stretch)",
     )
     p.add_argument(
-        "--fallback",
-        nargs="*",
-        default=["80:100", "160:100", "160:50"],
-        help="substeps:spring_ke settings tried in order when a run blows up",
+        "--seams",
+        choices=SEAMS,
+        default="welded",
+        help="welded: draped.obj's merged mesh (default); springs: the panels sewn by zero-length springs",
     )
     p.add_argument(
-        "--min-mass",
-        type=float,
-        default=0.3,
-        help="raise every particle's mass to at least this fraction of the median particle mass "
-        "(default 0.3; 0: the lumped masses as exported)",
+        "--seam-ke", type=float, default=1.0e4, help="--seams springs: their stiffness [N/m] (default 1e4)"
     )
-    p.add_argument("--timeout", type=float, default=900.0, help="[s] per Newton run")
-    p.add_argument("--out", help="write Newton's final drape of every run here (OBJ, vt = rest coordinates)")
+    p.add_argument("--max-frames", type=int, default=400, help="frames at most at 60 frames/s (default 400)")
+    p.add_argument("--substeps", type=int, default=10, help="VBD steps per frame (default 10)")
+    p.add_argument("--iterations", type=int, default=5, help="VBD iterations per step (default 5)")
+    p.add_argument("--out", help="write Newton's drape here as OBJ (draped.obj layout, vt = pattern)")
     p.add_argument("--json", action="store_true", help="print one JSON line")
-    args = p.parse_args()
-    if args.newton_side:
-        newton_side(Path(args.newton_side))
-        return 0
-    if not args.assets:
-        p.error("give the asset folder")
-    if not Path(args.newton_python).exists():
-        print(f"newton_check: no Newton interpreter at {args.newton_python} (see notes/warp-newton.md)")
-        return 2
-    import torch
-
-    from torch_diffavatar.assets import load_assets
-
+    args = p.parse_args(argv)
     torch.set_num_threads(1)
-    assets = load_assets(args.assets)
-    result = {
-        "assets": str(args.assets),
-        "garment": assets.garment.garment_type,
-        "rest_vertices": assets.garment.vert_count,
-        "draped_vertices": assets.garment.sim_vert_count,
-        "stitch_pairs": int(assets.garment.stitch_pairs.reshape(-1, 2).shape[0]),
-        "runs": [],
-    }
-    settings = [(args.substeps, args.spring_ke)] + [
-        tuple(float(v) for v in s.split(":")) for s in args.fallback
-    ]
-    for substeps, ke in settings:
-        run = run_newton(args, assets, int(substeps), float(ke))
-        result["runs"].append(run)
-        if run.get("status") == "ok":
-            result["accepted"] = run
-            break
-    if args.json:
-        print(json.dumps(result))
-    else:
-        for run in result["runs"]:
-            if "error" in run:
-                print(f"{run['substeps']} substeps, ke {run['spring_ke']}: error {run['error']}")
-                continue
-            line = f"{run['substeps']} substeps, ke {run['spring_ke']:g} N/m: {run['status']}"
-            if run["status"] != "blew up":  # a blown-up run was not measured
-                line += (
-                    f"; end speed {run['max_speed_end']:.3f} m/s, strain mean/max "
-                    f"{run['edge_strain_mean']:.4f}/"
-                    f"{run['edge_strain_max']:.3f}, penetration {100 * run['penetration_fraction']:.2f} %, "
-                    f"seam gap {1e3 * run['max_seam_gap_m']:.1f} mm, Chamfer to ours "
-                    f"{1e3 * run['chamfer_to_ours_m']:.2f} mm, displacement mean/max "
-                    f"{1e3 * run['displacement_mean_m']:.1f}/{1e3 * run['displacement_max_m']:.1f} mm"
-                )
-            print(line)
-    return 0 if "accepted" in result else 1
+    config = NewtonDrapeConfig(
+        max_frames=args.max_frames, substeps=args.substeps, iterations=args.iterations, seam_ke=args.seam_ke
+    )
+    try:
+        result = check_assets(args.assets, membrane=args.membrane, seams=args.seams, config=config)
+    except (InputError, SimulationError) as exc:
+        print(f"newton_check: {exc}", file=sys.stderr)
+        return 2
+    x = result.pop("x")
+    if args.out:
+        from torch_diffavatar.assets import load_assets
+        from torch_diffavatar.mesh_io import write_garment_obj
+
+        write_garment_obj(Path(args.out), load_assets(args.assets).garment, sim_positions=x)
+        result["obj"] = str(args.out)
+    print(json.dumps(result) if args.json else _summary(result))
+    return 0 if result["settle"]["converged"] else 1
 
 
 if __name__ == "__main__":

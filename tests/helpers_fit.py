@@ -9,6 +9,12 @@ from torch_diffavatar.objective import ScanTarget
 
 DT = torch.float64
 
+# a stand-in body for asset files (a closed tetrahedron, outward normals) [m]
+TETRA_V = torch.tensor(
+    [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64
+)
+TETRA_F = torch.tensor([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+
 
 def skirt_problem():
     """(garment, start state, target): the skirt template at 10 cm spacing, sewn without a body, and the

@@ -7,6 +7,7 @@ import json
 
 import pytest
 import torch
+from helpers_fit import TETRA_F, TETRA_V
 
 from torch_diffavatar.assets import (
     MATERIAL_UNITS,
@@ -18,11 +19,6 @@ from torch_diffavatar.errors import InputError
 from torch_diffavatar.pattern import load_template, mesh_pattern
 from torch_diffavatar.sim.material import ClothMaterial
 from torch_diffavatar.sim.model import ClothModelBuilder
-
-TETRA_V = torch.tensor(
-    [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64
-)
-TETRA_F = torch.tensor([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
 
 
 @pytest.fixture(scope="module")

@@ -30,6 +30,7 @@ LAYERS = {
     "cage": (3, "terms"),  # the pattern's control cage and the loss terms (which use its seam segments)
     "losses": (3, "terms"),
     "assets": (3, "assets"),
+    "assets_newton": (3, "assets"),  # the asset's material in Newton's units (pure numpy)
     "motion": (3, "motion"),
     "fit_config": (3, "fit_config"),  # the fit's settings: the objective reads them
     "capture": (3, "capture"),  # simulated depth captures: meshes in, points out (numpy)

@@ -14,6 +14,7 @@ Files written by `write_assets` (names in `ASSET_FILES`):
 * ``draped.obj``: the sewn garment at equilibrium (``v`` = sim vertices [m], ``vt`` = rest coordinates);
 * ``body.obj`` + ``body.json`` (Anny parameters, phenotypes by name);
 * ``material.json`` (every `ClothMaterial` field with its unit);
+* ``material_newton.json``: the material in NVIDIA Newton's units (`assets_newton`);
 * ``report.json`` (final metrics, see `torch_diffavatar.fit`);
 * ``before_after.png``: front and back views of the first and the last drape on their bodies;
 * ``draped_initial.obj``: the first drape (the template on the initial body), to measure what the fit gained;
@@ -34,6 +35,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torch_diffavatar.assets_newton import newton_material_dict
 from torch_diffavatar.json_io import write_json
 from torch_diffavatar.mesh_io import write_garment_obj, write_obj
 from torch_diffavatar.pattern.garment_mesh import GarmentMesh
@@ -57,6 +59,7 @@ ASSET_FILES = {
     "body_obj": "body.obj",
     "body_json": "body.json",
     "material_json": "material.json",
+    "material_newton_json": "material_newton.json",
     "report_json": "report.json",
     "before_after_png": "before_after.png",
     "draped_initial_obj": "draped_initial.obj",
@@ -314,6 +317,7 @@ def write_assets(
     write_obj(paths["body_obj"], body_verts.detach().cpu().double(), body_faces.cpu())
     write_json(paths["body_json"], body_params)
     write_json(paths["material_json"], material_dict(material))
+    write_json(paths["material_newton_json"], newton_material_dict(garment, uv, material))
     write_json(paths["seams_json"], seams_dict(garment))
     optional = ("report_json", "before_after_png", "draped_initial_obj", "manifest_json")
     written = [k for k in ASSET_FILES if k not in optional]
@@ -354,6 +358,8 @@ FILE_CONTENTS = {
     "body_json": "Anny body parameters (BodyModel.parameters_dict: phenotypes, per-bone axis-angle "
     "[rad], global orientation [rad], translation [m], scale)",
     "material_json": "cloth material, every field with its SI unit",
+    "material_newton_json": "the material in NVIDIA Newton's units (SolverVBD: tri_ke, tri_ka, per-edge "
+    "edge_ke on draped.obj's interior edges, density, friction, radius), converted as docs/ASSETS.md says",
     "report_json": "metrics of the fit",
     "before_after_png": "first and final drape of the fit",
     "draped_initial_obj": "the fit's first drape (template pattern on the initial body), as draped.obj",

@@ -10,7 +10,9 @@ a merged seam vertex has different (u, v) in its two panels, so each triangle's 
 (Newton's ``tri_poses``, ``tri_areas``) are set from its own panel's 2D coordinates, the bending rest
 angles are 0 (a flat pattern), and the particle masses are our lumped ``density × rest area / 3``.
 
-Newton's energies (read in ``newton/_src/solvers/vbd/particle_vbd_kernels.py``) and ours:
+Newton's energies (read in ``newton/_src/solvers/vbd/particle_vbd_kernels.py``) and ours (the conversion
+lives in `sim.newton_units`, pure numpy, re-exported here; the asset export writes it as
+``material_newton.json``, docs/ASSETS.md):
 
 * Membrane. Newton's VBD triangle is the *stable Neo-Hookean* membrane of Smith et al. 2018 (not StVK):
   per rest area ``ψ = μ/2 (I_c − 2) + λ'/2 (J − α)²`` with ``I_c = tr FᵀF``, ``J = |f0 × f1|``,
@@ -23,7 +25,10 @@ Newton's energies (read in ``newton/_src/solvers/vbd/particle_vbd_kernels.py``) 
   Newton (`membrane_to_newton`) keeps the shear ``μ = k_uv`` and the geometric mean of the axial
   stiffnesses ``λ + 2μ = √(k_uu k_vv)`` (λ clamped at 0) and drops ν; it inverts `membrane_from_newton`
   exactly (the round trip Newton → ours → Newton is the identity, and ours → Newton → ours is for an
-  isotropic material of ours with ν = (k − 2k_uv)/k). Large strains differ (Neo-Hookean vs StVK): that,
+  isotropic material of ours with ν = (k − 2k_uv)/k). ``keep="stretch"`` keeps our coupling and so our
+  stretch instead (λ = ν√(k_uu k_vv), μ = (√(k_uu k_vv) − λ)/2): what the asset export writes, since
+  Newton's drape of an orthotropic material of ours came out closer that way (docs/ASSETS.md); both agree
+  on the isotropic materials `draw_material` makes. Large strains differ (Neo-Hookean vs StVK): that,
   the solver and the contact model are the "other physics".
 * Bending. Newton's dihedral energy per interior edge is ``½ edge_ke · |ē| (θ − θ̄)²`` (``|ē|`` =
   ``edge_rest_length``, edge_ke in N); ours is ``½ k_b · w (θ − θ̄)²`` with ``w = 3|ē|²/(Ā1 + Ā2)``
@@ -54,6 +59,21 @@ import torch
 
 from torch_diffavatar.errors import InputError, SimulationError
 from torch_diffavatar.sim.material import ClothMaterial
+from torch_diffavatar.sim.newton_units import (  # noqa: F401  (the conversion, re-exported: pure numpy)
+    NewtonCloth,
+    NewtonMaterial,
+    bend_from_newton,
+    bend_to_newton,
+    edge_geometry,
+    material_from_newton,
+    material_to_newton,
+    membrane_conversion_loss,
+    membrane_from_newton,
+    membrane_to_newton,
+    newton_cloth,
+    newton_cloth_from_arrays,
+    vertex_coloring,
+)
 
 NEWTON_INSTALL = 'pip install -e ".[newton]"'
 # [m/s²] Newton's default gravity along -up (the model is built Y up)
@@ -73,111 +93,6 @@ def import_newton():
             f"install them with {NEWTON_INSTALL}"
         ) from exc
     return wp, newton
-
-
-# ---------------------------------------------------------------------------------------------------
-# parameters: ours <-> Newton's (see the module docstring)
-# ---------------------------------------------------------------------------------------------------
-
-
-def membrane_to_newton(k_uu: float, k_vv: float, k_uv: float) -> tuple[float, float]:
-    """Our membrane stiffnesses [N/m] -> Newton's (tri_ke = μ, tri_ka = λ) [N/m]: μ = k_uv and
-    λ + 2μ = √(k_uu k_vv) (λ >= 0); our Poisson coupling has no counterpart and is dropped."""
-    mu = float(k_uv)
-    lam = max(float(np.sqrt(k_uu * k_vv)) - 2.0 * mu, 0.0)
-    return mu, lam
-
-
-def membrane_from_newton(tri_ke: float, tri_ka: float) -> dict[str, float]:
-    """Newton's (tri_ke = μ, tri_ka = λ) [N/m] -> our ``k_uu, k_vv, k_uv`` [N/m] and ``poisson`` [-] with
-    the same energy to second order in the strain."""
-    axial = float(tri_ka) + 2.0 * float(tri_ke)
-    return {"k_uu": axial, "k_vv": axial, "k_uv": float(tri_ke), "poisson": float(tri_ka) / axial}
-
-
-def bend_to_newton(bend_stiffness: float, edge_weight: np.ndarray, edge_length: np.ndarray) -> np.ndarray:
-    """(E,) Newton edge_ke [N] of our k_b [N·m] on edges with weights ``3|ē|²/(Ā1+Ā2)`` (E,) [-] and
-    rest lengths (E,) [m]."""
-    return float(bend_stiffness) * np.asarray(edge_weight) / np.asarray(edge_length)
-
-
-def bend_from_newton(edge_ke: np.ndarray, edge_weight: np.ndarray, edge_length: np.ndarray) -> float:
-    """Our k_b [N·m] of Newton's (E,) edge_ke [N]: the mean of ``edge_ke |ē| / w`` (exact when uniform)."""
-    return float(np.mean(np.asarray(edge_ke) * np.asarray(edge_length) / np.asarray(edge_weight)))
-
-
-@dataclass(frozen=True)
-class NewtonMaterial:
-    """Newton's raw cloth parameters (VBD).
-
-    Attributes:
-        tri_ke: membrane Lamé μ [N/m]; tri_ka: Lamé λ [N/m]; tri_kd: membrane damping [s].
-        edge_ke: (E,) bending stiffness per interior edge of the model [N]; edge_kd: bending damping [s].
-        density: mass per rest area [kg/m²].
-        soft_contact_mu: cloth-body Coulomb friction [-]; particle_radius: contact thickness [m].
-    """
-
-    tri_ke: float
-    tri_ka: float
-    tri_kd: float
-    edge_ke: np.ndarray
-    edge_kd: float
-    density: float
-    soft_contact_mu: float
-    particle_radius: float
-
-    def summary(self) -> dict:
-        """JSON-friendly raw parameters (edge_ke as its mean, min and max)."""
-        return {
-            "tri_ke_N_per_m": self.tri_ke,
-            "tri_ka_N_per_m": self.tri_ka,
-            "tri_kd_s": self.tri_kd,
-            "edge_ke_N": {
-                "mean": float(np.mean(self.edge_ke)),
-                "min": float(np.min(self.edge_ke)),
-                "max": float(np.max(self.edge_ke)),
-            },
-            "edge_kd_s": self.edge_kd,
-            "density_kg_per_m2": self.density,
-            "soft_contact_mu": self.soft_contact_mu,
-            "particle_radius_m": self.particle_radius,
-        }
-
-
-def material_to_newton(
-    material: ClothMaterial,
-    edge_weight: np.ndarray,
-    edge_length: np.ndarray,
-    *,
-    tri_kd: float = 1.0e-5,
-    edge_kd: float = 0.0,
-) -> NewtonMaterial:
-    """Our `ClothMaterial` (floats) on edges (E,) weights / (E,) rest lengths [m] -> `NewtonMaterial`."""
-    mu, lam = membrane_to_newton(float(material.k_uu), float(material.k_vv), float(material.k_uv))
-    return NewtonMaterial(
-        tri_ke=mu,
-        tri_ka=lam,
-        tri_kd=tri_kd,
-        edge_ke=bend_to_newton(float(material.bend_stiffness), edge_weight, edge_length),
-        edge_kd=edge_kd,
-        density=float(material.areal_density),
-        soft_contact_mu=float(material.friction),
-        particle_radius=float(material.thickness),
-    )
-
-
-def material_from_newton(
-    newton_material: NewtonMaterial, edge_weight: np.ndarray, edge_length: np.ndarray
-) -> ClothMaterial:
-    """`NewtonMaterial` -> our `ClothMaterial` (damping left at ours: Newton's damps differently)."""
-    m = newton_material
-    return ClothMaterial(
-        areal_density=m.density,
-        **membrane_from_newton(m.tri_ke, m.tri_ka),
-        bend_stiffness=bend_from_newton(m.edge_ke, edge_weight, edge_length),
-        friction=m.soft_contact_mu,
-        thickness=m.particle_radius,
-    )
 
 
 # [-] the random true material of a Newton scan, relative to our defaults (`draw_material`). The stretch is
@@ -241,6 +156,8 @@ class NewtonDrapeConfig:
         contact_ke: body contact stiffness [N/m]; contact_kd: its damping [s].
         contact_gap: contact detection band beyond the particle radius [m] (detection once per frame).
         blow_up_speed: `SimulationError` when a vertex gets faster than this [m/s].
+        seam_ke: stiffness of the zero-length seam springs of an unmerged cloth (`NewtonCloth.spring_pairs`)
+            [N/m].
     """
 
     fps: float = 60.0
@@ -256,6 +173,7 @@ class NewtonDrapeConfig:
     contact_kd: float = 1.0e-2
     contact_gap: float = 0.02
     blow_up_speed: float = 20.0
+    seam_ke: float = 1.0e4
 
 
 @dataclass
@@ -288,27 +206,33 @@ class NewtonDrapeResult:
         }
 
 
-def edge_geometry(model, rest_uv: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
-    """(E,) bending weights ``3|ē|²/(Ā1+Ā2)`` [-] and (E,) rest lengths [m] of ``model``'s interior edges
-    (`ClothModel`), from the (V, 2) panel rest coordinates [m] (the length: the root mean square of the
-    edge's lengths in its two panels)."""
-    rest = model.rest_data(rest_uv.to(model.dtype))
-    u = rest_uv.double()[model.edge_panel_vertices.cpu()]  # (E, 4, 2)
-    sq = 0.5 * (((u[:, 1] - u[:, 0]) ** 2).sum(-1) + ((u[:, 3] - u[:, 2]) ** 2).sum(-1))
-    return rest.edge_weight.double().cpu().numpy(), sq.sqrt().numpy()
-
-
 def pattern_edge_strain(x: torch.Tensor, model, rest_uv: torch.Tensor) -> np.ndarray:
     """(3F,) strain ``|e| / |ē| − 1`` [-] of every triangle edge at positions ``x`` (Vs, 3) [m] against
     its rest length in its own panel (``rest_uv`` (V, 2) [m]; ``model``: the `ClothModel`)."""
-    tri, tri_panel = model.tri_vertices.cpu(), model.tri_panel_vertices.cpu()
-    xd, ud = x.double().cpu(), rest_uv.double().cpu()
+    uv = rest_uv.double().cpu()[model.tri_panel_vertices.cpu()]  # (F, 3, 2)
+    return tri_edge_strain(x, model.tri_vertices.cpu(), uv)
+
+
+def tri_edge_strain(x: torch.Tensor, tri_vertices, tri_rest_uv) -> np.ndarray:
+    """(3F,) strain ``|e| / |ē| − 1`` [-] of every edge of the triangles ``tri_vertices`` (F, 3) of ``x``
+    (Vs, 3) [m] against the rest corners ``tri_rest_uv`` (F, 3, 2) [m] (edges 0-1, then 1-2, then 2-0)."""
+    tri, ud = torch.as_tensor(tri_vertices), torch.as_tensor(tri_rest_uv).double()
+    xd = x.double().cpu()
     out = []
     for a, b in ((0, 1), (1, 2), (2, 0)):
         length = (xd[tri[:, a]] - xd[tri[:, b]]).norm(dim=1)
-        rest = (ud[tri_panel[:, a]] - ud[tri_panel[:, b]]).norm(dim=1)
-        out.append(length / rest - 1.0)
+        out.append(length / (ud[:, a] - ud[:, b]).norm(dim=1) - 1.0)
     return torch.cat(out).numpy()
+
+
+def strain_summary(strain: np.ndarray) -> dict:
+    """Mean, mean absolute, 99th percentile and max of (K,) edge strains [-]."""
+    return {
+        "mean": float(strain.mean()),
+        "mean_abs": float(np.abs(strain).mean()),
+        "p99": float(np.percentile(strain, 99)),
+        "max": float(strain.max()),
+    }
 
 
 def lower_onto_body(
@@ -375,7 +299,8 @@ def newton_drape(
     """Settle the garment with Newton's VBD cloth until it rests (see the module docstring).
 
     Args:
-        model: our seam-merged `ClothModel` (topology, edges, panel vertices): ``sew_and_drape(...).model``.
+        model: our seam-merged `ClothModel` (topology, edges, panel vertices): ``sew_and_drape(...).model``;
+            or a `NewtonCloth` (then ``rest_uv`` is unused: an asset's exported arrays).
         rest_uv: (V, 2) panel-vertex rest coordinates [m].
         x: (Vs, 3) start positions [m] (e.g. our drape, at rest).
         body_verts: (Vb, 3) static body [m]; body_faces: (Fb, 3) int64.
@@ -389,36 +314,35 @@ def newton_drape(
     """
     config = NewtonDrapeConfig() if config is None else config
     _, newton = import_newton()
-    if len(material.edge_ke) != model.edge_count:
+    cloth = model if isinstance(model, NewtonCloth) else newton_cloth(model, rest_uv, material.density)
+    if len(material.edge_ke) != cloth.edge_count:
         raise ValueError(
-            f"material.edge_ke has {len(material.edge_ke)} values, the model {model.edge_count} edges"
+            f"material.edge_ke has {len(material.edge_ke)} values, the model {cloth.edge_count} edges"
         )
     attach = (
         None if attach_vertices is None or not len(attach_vertices) else (attach_vertices, attach_targets)
     )
-    nmodel = _build_model(newton, model, rest_uv, x, body_verts, body_faces, material, config, attach)
+    nmodel = _build_model(newton, cloth, x, body_verts, body_faces, material, config, attach)
     return _settle(newton, nmodel, body_verts, body_faces, config)
 
 
 def _build_model(
-    newton, model, rest_uv, x, body_verts, body_faces, material: NewtonMaterial, config, attach=None
+    newton, cloth: NewtonCloth, x, body_verts, body_faces, material: NewtonMaterial, config, attach=None
 ):
-    """Newton's finalized `Model` of the garment (particles at ``x``, rest data from ``rest_uv``) and body;
+    """Newton's finalized `Model` of the garment ``cloth`` (particles at ``x`` (Vs, 3) [m]) and the body;
     ``attach``: None or (vertices (A,), targets (A, 3) [m]): those particles are kinematic at the targets."""
-    tri = model.tri_vertices.cpu().numpy()
-    uv = rest_uv.double().cpu().numpy()[model.tri_panel_vertices.cpu().numpy()]  # (F, 3, 2)
+    tri, uv = cloth.tri_vertices, cloth.tri_rest_uv
     dm = np.stack((uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]), axis=-1)  # (F, 2, 2) columns: rest edges
     area = 0.5 * np.abs(np.linalg.det(dm))
-    mass = model.rest_data(rest_uv.to(model.dtype), ClothMaterial(areal_density=material.density)).vert_mass
-    quads = model.edge_quads.cpu().numpy()
-    _, edge_length = edge_geometry(model, rest_uv)
+    edges = cloth.edge_indices
 
     builder = newton.ModelBuilder(up_axis=newton.Axis.Y)  # gravity -9.81 m/s² along -Y
     xs = x.double().cpu().numpy().copy()
-    mass = mass.double().cpu().numpy()
+    mass = cloth.vert_mass.copy()
     if attach is not None:  # kinematic (mass 0) waist particles, on the body surface
-        xs[attach[0].cpu().numpy()] = np.asarray(attach[1])
-        mass[attach[0].cpu().numpy()] = 0.0
+        held = np.asarray(attach[0].cpu() if isinstance(attach[0], torch.Tensor) else attach[0])
+        xs[held] = np.asarray(attach[1])
+        mass[held] = 0.0
     builder.add_particles(
         pos=[tuple(p) for p in xs],
         vel=[(0.0, 0.0, 0.0)] * len(xs),
@@ -435,12 +359,11 @@ def _build_model(
     # the rest shape is the pattern's, per triangle (the builder took it from the 3D drape)
     builder.tri_poses[:] = np.linalg.inv(dm).tolist()
     builder.tri_areas[:] = area.tolist()
-    # ours (v0, v1, v2, v3): edge v0-v1, v2 opposite in (v0, v1, v2); Newton (o0, o1, e0, e1), (o0, e0, e1)
     builder.add_edges(
-        quads[:, 2], quads[:, 3], quads[:, 0], quads[:, 1],
-        rest=[0.0] * len(quads), edge_ke=material.edge_ke.tolist(), edge_kd=[material.edge_kd] * len(quads),
+        edges[:, 0], edges[:, 1], edges[:, 2], edges[:, 3],
+        rest=[0.0] * len(edges), edge_ke=material.edge_ke.tolist(), edge_kd=[material.edge_kd] * len(edges),
     )  # fmt: skip
-    builder.edge_rest_length[-len(quads) :] = edge_length.tolist()
+    builder.edge_rest_length[-len(edges) :] = cloth.edge_rest_length.tolist()
     builder.add_shape_mesh(
         body=-1,
         mesh=newton.Mesh(
@@ -452,11 +375,24 @@ def _build_model(
             mu=material.soft_contact_mu, ke=config.contact_ke, kd=config.contact_kd
         ),
     )
-    builder.color(include_bending=True)
+    _add_springs(builder, cloth, config.seam_ke)
     nmodel = builder.finalize(device="cpu")
     nmodel.soft_contact_ke, nmodel.soft_contact_kd = config.contact_ke, config.contact_kd
     nmodel.soft_contact_mu = material.soft_contact_mu
     return nmodel
+
+
+def _add_springs(builder, cloth: NewtonCloth, ke: float) -> None:
+    """``cloth``'s zero-length springs at stiffness ``ke`` [N/m] (none: nothing), and the VBD colouring:
+    Newton's own without springs, `vertex_coloring` (springs included) with them."""
+    pairs = cloth.spring_pairs
+    if pairs is None or not len(pairs):
+        builder.color(include_bending=True)
+        return
+    for i, j in np.asarray(pairs).tolist():
+        builder.add_spring(i, j, ke, 0.0, control=0.0)
+    builder.spring_rest_length[-len(pairs) :] = [0.0] * len(pairs)  # the builder took the start distances
+    builder.set_coloring(vertex_coloring(builder.particle_count, cloth))
 
 
 def _settle(newton, nmodel, body_verts, body_faces, config: NewtonDrapeConfig) -> NewtonDrapeResult:

@@ -236,16 +236,6 @@ def _check_settings(spacing: float, bend_stiffness: float, simulator: str, waist
         import_newton()
 
 
-def _strain_summary(strain: np.ndarray) -> dict:
-    """Mean, mean absolute, 99th percentile and max of (K,) edge strains [-]."""
-    return {
-        "mean": float(strain.mean()),
-        "mean_abs": float(np.abs(strain).mean()),
-        "p99": float(np.percentile(strain, 99)),
-        "max": float(strain.max()),
-    }
-
-
 def _material_summary(material) -> dict:
     """``{field: float}`` of a `ClothMaterial`."""
     from torch_diffavatar.assets import material_dict
@@ -302,7 +292,7 @@ def _final_drape(
         "waist_drop_m": waist_drop,
         "waist_pinned_vertices": int(len(held)),
         "drape": drape.diagnostics(),
-        "edge_strain": {"newton": _strain_summary(strain_newton), "ours": _strain_summary(strain_ours)},
+        "edge_strain": {"newton": sn.strain_summary(strain_newton), "ours": sn.strain_summary(strain_ours)},
         "chamfer_to_ours_drape_m": float(chamfer),
     }
     info = {"simulator": "newton", "material": dict(_material_summary(material), unit="SI (ClothMaterial)")}
