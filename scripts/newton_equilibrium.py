@@ -70,13 +70,14 @@ def _row(name, x, x_newton, extra=None) -> dict:
 
 def variants(material: ClothMaterial) -> dict[str, ClothMaterial]:
     m = material
-    soft = {
-        f"membrane x{s}": dict(k_uu=m.k_uu * s, k_vv=m.k_vv * s, k_uv=m.k_uv * s) for s in (0.3, 0.1, 0.03)
-    }
+
+    def soft(s: float, b: float = 1.0) -> dict:
+        return dict(k_uu=m.k_uu * s, k_vv=m.k_vv * s, k_uv=m.k_uv * s, bend_stiffness=m.bend_stiffness * b)
+
     changes = {"the truth's material": {}, "friction 0": dict(friction=0.0)}
-    changes |= (
-        {"k_b x0.01": dict(bend_stiffness=m.bend_stiffness * 0.01)} | soft | {"Poisson 0": dict(poisson=0.0)}
-    )
+    changes |= {"k_b x0.01": dict(bend_stiffness=m.bend_stiffness * 0.01), "Poisson 0": dict(poisson=0.0)}
+    changes |= {f"membrane x{s}": soft(s) for s in (0.3, 0.1, 0.03, 0.01, 0.003)}
+    changes |= {"membrane x0.01, k_b x0.3": soft(0.01, 0.3)}
     return {name: dataclasses.replace(m, **kw) for name, kw in changes.items()}
 
 

@@ -107,6 +107,8 @@ class FitConfig:
             softer than its nominal membrane and the factor runs past the truth.
         stretch_bound: the fitted membrane factor stays within (1/``stretch_bound``, ``stretch_bound``)
             (a smooth bound, `objective.bounded_stretch`) [-]; must be > 1.
+        initial_stretch: the membrane factor at the start [-], strictly inside the bound (the first
+            sewings drape with it too).
         lr_waist_shift: Adam step of the waist's height change [m]: a skirt's or trousers' waist
             attachments are held that much above (below, negative) their placement height
             (`objective.bounded_shift`, ``waist_shift_bound``). A real waistband settles where the body
@@ -198,6 +200,7 @@ class FitConfig:
     initial_bend_stiffness: float = 5.0e-6
     lr_log_stretch: float = 0.0
     stretch_bound: float = 30.0
+    initial_stretch: float = 1.0
     lr_waist_shift: float = 0.0
     waist_shift_bound: float = 0.15
     pattern_delay: int = 0
@@ -252,6 +255,11 @@ class FitConfig:
         self._check_material()
         if not 1 < self.stretch_bound < math.inf:
             raise ValueError(f"FitConfig.stretch_bound must be a finite factor > 1, got {self.stretch_bound}")
+        if not 1 / self.stretch_bound < self.initial_stretch < self.stretch_bound:
+            raise ValueError(
+                f"FitConfig.initial_stretch must be inside (1/stretch_bound, stretch_bound), got "
+                f"{self.initial_stretch}"
+            )
         if not 0 < self.waist_shift_bound < math.inf:
             raise ValueError(
                 f"FitConfig.waist_shift_bound must be a finite length > 0 [m], got {self.waist_shift_bound}"

@@ -194,7 +194,8 @@ class FitParameters(nn.Module):
     ) -> FitParameters:
         """The variables of a fit of ``garment``: its `ControlCage` with ``config``'s tying options (or
         `FreeVertices` when ``config.cage`` is False), ``body``, k_b = ``config.initial_bend_stiffness``, the
-        base membrane (s = 0) bounded by ``config.stretch_bound``, the waist at its placement height."""
+        base membrane times ``config.initial_stretch`` bounded by ``config.stretch_bound``, the waist at its
+        placement height."""
         if config.cage:
             cage = ControlCage(
                 garment,
@@ -205,10 +206,13 @@ class FitParameters(nn.Module):
         else:
             cage = FreeVertices(garment)
         log_kb = math.log(config.initial_bend_stiffness)
+        limit = math.log(config.stretch_bound)  # `bounded_stretch` inverted at the initial factor
+        log_stretch = limit * math.atanh(math.log(config.initial_stretch) / limit)
         return cls(
             cage.to(dtype),
             body,
             log_kb,
+            log_stretch=log_stretch,
             stretch_bound=config.stretch_bound,
             waist_shift_bound=config.waist_shift_bound,
         )
