@@ -81,3 +81,19 @@ def test_the_bound_keeps_the_factor_within_it():
     (grad,) = torch.autograd.grad(factor.sum(), s)
     assert bool((grad > 0).all())
     assert torch.autograd.gradcheck(lambda t: bounded_stretch(t, 30.0), (s.detach()[1:4].requires_grad_(),))
+
+
+def test_a_fit_starts_at_the_initial_stretch():
+    """``initial_stretch`` is the factor of the first drape (`bounded_stretch` inverted), inside the bound."""
+    from torch_diffavatar.fit_config import FitConfig
+    from torch_diffavatar.objective import FitParameters
+    from torch_diffavatar.pattern import load_template, mesh_pattern
+
+    garment = mesh_pattern(load_template("skirt"), spacing=0.1)
+    config = FitConfig(initial_stretch=0.03, stretch_bound=300.0)
+    params = FitParameters.from_config(garment, config, dtype=DT)
+    assert float(params.stretch()) == pytest.approx(0.03, rel=1e-9)
+    assert float(FitParameters.from_config(garment, FitConfig(), dtype=DT).stretch()) == 1.0
+    for bad in (0.001, 300.0, -1.0):
+        with pytest.raises(ValueError, match="initial_stretch"):
+            FitConfig(initial_stretch=bad, stretch_bound=300.0)
