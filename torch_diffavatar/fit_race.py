@@ -60,7 +60,7 @@ def check_old_race(checkpoint: dict, config) -> None:
     if len(sewn) >= 2 and any("race_loss" not in c for c in sewn):
         raise InputError(
             f"{CHECKPOINT} was written during the race of first drapes by an older version, which cannot "
-            "resume it exactly; start the fit again without resuming"
+            "resume it exactly; start the fit again (--force instead of --resume)"
         )
 
 
