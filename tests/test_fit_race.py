@@ -4,6 +4,11 @@ checkpoint an older version wrote during a race is refused."""
 from __future__ import annotations
 
 import math
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -13,6 +18,8 @@ from helpers_fit import fit_config as _config
 from torch_diffavatar.errors import InputError
 from torch_diffavatar.fit import Fitter
 from torch_diffavatar.fit_checkpoint import CHECKPOINT, atomic_save, safe_load
+
+ROOT = Path(__file__).resolve().parents[1]
 
 # two candidates of two race iterations each, then one more: checkpoints after candidate 0's iterations 1
 # and 2 (saves 1, 2), candidate 1's (3, 4), the race's end (5) and the fit's last iteration (6)
@@ -107,3 +114,40 @@ def test_an_older_checkpoint_from_inside_the_race_is_refused(skirt_problem, tmp_
     with pytest.raises(InputError, match="during the race of first drapes by an older version") as info:
         _fitter(skirt_problem, tmp_path).run(resume=True)
     assert "\n" not in str(info.value)
+
+
+KILLER = """
+import os, signal, sys
+from pathlib import Path
+import torch
+from helpers_fit import DT, skirt_problem
+from test_fit_race import _fitter
+
+torch.set_num_threads(1)
+fitter = _fitter(skirt_problem(), Path(sys.argv[1]))
+original, saves = fitter.save_checkpoint, []
+
+
+def save(start):
+    original(start)
+    saves.append(start)
+    if len(saves) == int(sys.argv[2]):
+        os.kill(os.getpid(), signal.SIGKILL)
+
+
+fitter.save_checkpoint = save
+fitter.run()
+"""
+
+
+def test_a_race_killed_for_real_resumes_to_the_uninterrupted_result(skirt_problem, straight, tmp_path):
+    """A process killed by SIGKILL during the second candidate (no ``finally``, no clean-up) resumes too."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), str(ROOT / "tests")]), OMP_NUM_THREADS="1")
+    run = subprocess.run([sys.executable, "-c", KILLER, str(tmp_path), "3"], env=env, capture_output=True)
+    assert run.returncode == -signal.SIGKILL, run.stderr.decode()[-2000:]
+    assert safe_load(tmp_path / CHECKPOINT)["race"]["index"] == 1
+    assert not list(tmp_path.glob("*.tmp*"))
+    result = _fitter(skirt_problem, tmp_path).run(resume=True)
+    _, expected = straight
+    assert torch.equal(result.rest_uv, expected.rest_uv) and torch.equal(result.x, expected.x)
+    assert _timeless(result.history) == _timeless(expected.history)
