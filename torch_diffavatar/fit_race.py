@@ -43,6 +43,7 @@ def race_state(fitter, starts: list[Start], laps: int) -> dict:
         "starts": entries,
         "candidates": candidates,  # with the race loss of each finished candidate
         "best": None,  # {"loss", "state"} of the finished candidate with the lowest race loss
+        "seconds": 0.0,  # the finished candidates' iterations [s], of every run (the report's time)
     }
 
 
@@ -80,6 +81,8 @@ def opening(fitter, total: int, resume: bool) -> ClothState:
         if race is not None and not (isinstance(race, dict) and set(RACE_KEYS) <= set(race)):
             raise InputError(f"{path}: its race of first drapes is incomplete; start the fit again")
         start = fitter.load_state_dict(checkpoint)
+        if race is not None:  # the race's time in the stopped runs, up to their last checkpoint
+            race["seconds_before"] = race.get("seconds", 0.0) + fitter.seconds
         fitter.race = race
         return start
     starts = fitter._first_states()
@@ -122,7 +125,7 @@ def race(fitter, start: ClothState, bar=None) -> ClothState:
         fitter.first_candidates = state["candidates"]  # with every race loss, not the winner's copy
     finally:
         fitter.race = None
-    fitter.seconds = 0.0  # `run` counts the race's time
+    fitter.seconds = state.get("seconds_before", 0.0)  # `run` adds its own time, the race's included
     fitter.save_checkpoint(start)
     return start
 
@@ -152,5 +155,6 @@ def _run_candidate(fitter, state: dict, start: ClothState, bar) -> None:
     _, start = fitter._iterate(ev, start, laps, bar=bar)
     loss = fitter.best["loss"]
     candidate["race_loss"] = loss
+    state["seconds"] = state.get("seconds", 0.0) + fitter.seconds  # its iterations' time, all runs'
     if state["best"] is None or loss < state["best"]["loss"]:
         state["best"] = {"loss": loss, "state": copy.deepcopy(fitter.state_dict(start))}
