@@ -110,11 +110,15 @@ def test_an_older_checkpoint_from_inside_the_race_is_refused(skirt_problem, tmp_
     with pytest.raises(Killed):
         _killed_after(_fitter(skirt_problem, tmp_path), 3).run()
     checkpoint = safe_load(tmp_path / CHECKPOINT)
-    del checkpoint["race"]
+    race = checkpoint.pop("race")
     atomic_save(checkpoint, tmp_path / CHECKPOINT)
     with pytest.raises(InputError, match="during the race of first drapes by an older version") as info:
         _fitter(skirt_problem, tmp_path).run(resume=True)
     assert "\n" not in str(info.value)
+    del race["best"]  # a damaged one is refused too, not half-resumed
+    atomic_save({**checkpoint, "race": race}, tmp_path / CHECKPOINT)
+    with pytest.raises(InputError, match="race of first drapes is incomplete"):
+        _fitter(skirt_problem, tmp_path).run(resume=True)
 
 
 KILLER = """
