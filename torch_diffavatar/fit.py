@@ -5,11 +5,11 @@ phenotypes / translation / pose, log bending stiffness, log membrane stretch sca
 learning rate each) and a
 `FitObjective` (the loss, `torch_diffavatar.objective`). Every iteration drapes the garment, warm-started
 from the previous equilibrium (the very first start state is a full `sew_and_drape` of the placed template,
-or the winner of several, `torch_diffavatar.fit_start`), backpropagates through the drape and steps. The
-terms of the rest pattern alone (seam length, curvature, rest area and shape) are cheap and known in closed
-form, so the cage's step is proximal for them: Adam steps on the rest, and L-BFGS minimises them around its
-result (`rest_prox`, ``FitConfig.rest_prox_iterations``). ``scripts/fit_loop.py`` is the same fit as a plain
-loop, without the guards.
+or the winner of several, `torch_diffavatar.fit_start` and `fit_race`), backpropagates through the drape
+and steps. The terms of the rest pattern alone (seam length, curvature, rest area and shape) are cheap and
+known in closed form, so the cage's step is proximal for them: Adam steps on the rest, and L-BFGS minimises
+them around its result (`rest_prox`, ``FitConfig.rest_prox_iterations``). ``scripts/fit_loop.py`` is the same
+fit as a plain loop, without the guards.
 
 Guards: non-finite gradient entries are zeroed (counted, never reach the parameters); a step that would
 shrink a rest triangle below ``min_rest_area_ratio`` of its template area (inverting it), make a
@@ -45,7 +45,6 @@ from torch_diffavatar.fit_checkpoint import (
     atomic_save,
     load_progress,
     progress_state,
-    safe_load,
     upgraded,
 )
 from torch_diffavatar.fit_config import (
@@ -69,8 +68,9 @@ from torch_diffavatar.fit_logging import (
     progress_bar,
     update_bar,
 )
+from torch_diffavatar.fit_race import bar_span, opening, race
 from torch_diffavatar.fit_report import fit_report, result_warnings, summarize
-from torch_diffavatar.fit_start import Start, first_states, race
+from torch_diffavatar.fit_start import Start, first_states
 from torch_diffavatar.losses import rest_area_ratio
 from torch_diffavatar.objective import FitObjective, FitParameters, FitVariables, ObjectiveOutput, ScanTarget
 from torch_diffavatar.pattern.garment_mesh import GarmentMesh
@@ -351,6 +351,7 @@ class Fitter:
         # accepted whole), no first / best evaluation yet (`fit_checkpoint.PROGRESS`)
         load_progress(self, {})
         self.result_iteration = 0  # the iteration whose evaluation `run` returned (see `keep_best`)
+        self.race: dict | None = None  # the race of first drapes while it runs (`fit_race.race_state`)
 
     # -- one evaluation ------------------------------------------------------------------------------------
 
@@ -475,27 +476,20 @@ class Fitter:
     def run(self, iterations: int | None = None, *, resume: bool = False) -> FitResult:
         """Run the loop up to ``iterations`` completed iterations (default ``config.iterations``).
 
-        With ``resume``, continue from ``out_dir/checkpoint.pt`` when it exists (a fit stopped during
-        ``first_race_iterations`` continues with the candidate it was fitting).
+        With ``resume``, continue from ``out_dir/checkpoint.pt`` when it exists, to the result of an
+        uninterrupted run (one stopped during the race of first drapes too: `fit_race.opening`).
         """
         total = self.config.iterations if iterations is None else iterations
         t0 = time.perf_counter()
-        start, starts, path = None, None, None if self.out_dir is None else self.out_dir / CHECKPOINT
-        if resume and path is not None and path.is_file():
-            start = self.load_state_dict(safe_load(path))
-        else:
-            starts = self._first_states()
-            start = starts[0][1]
-        laps = 0 if starts is None or len(starts) < 2 else min(self.config.first_race_iterations, total)
+        start, raced = opening(self, total, resume), self.race is not None
         writer = open_writer(self.out_dir, self.config) if self.tensorboard else None
-        extra = (len(starts) - 1) * laps if laps else 0
-        bar = progress_bar(total + extra, min(self.iteration, total)) if self.progress else None
+        bar = progress_bar(*bar_span(self, total)) if self.progress else None
         try:
-            if laps:
-                start = race(self, starts, laps, bar)
+            if raced:
+                start = race(self, start, bar)
                 if writer is not None:  # the winner's iterations, which the race did not log
                     log_scalars(writer, self.history)
-            ev = self._first_evaluation(start, writer, raced=laps > 0)
+            ev = self._first_evaluation(start, writer, raced=raced)
             self.seconds += time.perf_counter() - t0
             ev, start = self._iterate(ev, start, total, writer, bar)
         finally:
@@ -594,4 +588,5 @@ class Fitter:
     def save_checkpoint(self, start: ClothState) -> None:
         if self.out_dir is not None:
             self.out_dir.mkdir(parents=True, exist_ok=True)
-            atomic_save(self.state_dict(start), self.out_dir / CHECKPOINT)
+            race = {} if self.race is None else {"race": self.race}  # while it runs (`fit_race`)
+            atomic_save({**self.state_dict(start), **race}, self.out_dir / CHECKPOINT)

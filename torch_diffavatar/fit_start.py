@@ -3,12 +3,12 @@
 Cloth that hangs loose on a body rests in more than one fold state, and which one a sewing reaches depends
 on its path: the template is sewn and draped once per ``FitConfig.first_bend_scales`` (the bending
 stiffness scaled), each settled at the fit's own stiffness (`first_states`); the first drape's loss, or a
-race of ``first_race_iterations`` fit iterations from each (`race`), picks the one the fit continues.
+race of ``first_race_iterations`` fit iterations from each (`fit_race.race`), picks the one the fit
+continues.
 """
 
 from __future__ import annotations
 
-import copy
 import math
 from collections.abc import Callable
 from dataclasses import replace
@@ -132,35 +132,3 @@ def first_drape(
 
     kw = dict(start_state=start_state, sewing_fallback=sewing_fallback)
     return first_states(objective, variables, evaluate, [], **kw)[0][1]
-
-
-def race(fitter, starts: list[Start], iterations: int, bar=None) -> ClothState:
-    """Fit ``iterations`` iterations from each start of ``starts`` (`first_states`), from the same
-    parameters and optimizer, then take on the whole state of the one whose lowest loss is the lowest;
-    returns its drape start. Each start's lowest loss goes to its candidate entry (``race_loss``).
-
-    ``fitter``: the `torch_diffavatar.fit.Fitter` that runs the iterations (its ``state_dict`` /
-    ``load_state_dict`` snapshot and restore everything a candidate changes).
-    """
-    candidates = fitter.first_candidates  # `load_state_dict` replaces the list by a snapshot's copy
-    initial = copy.deepcopy(fitter.state_dict(starts[0][1]))
-    best = None
-    for _, state, candidate in starts:
-        fitter.load_state_dict(copy.deepcopy(initial))
-        ev = fitter._checked_evaluate(state)
-        if ev is None:
-            candidate["race_loss"] = None
-            continue
-        fitter.first = fitter._summary(ev)
-        fitter._note_best(ev, state)
-        ev, start = fitter._iterate(ev, state, iterations, bar=bar)
-        candidate["race_loss"] = fitter.best["loss"]
-        if best is None or fitter.best["loss"] < best[0]:
-            best = (fitter.best["loss"], copy.deepcopy(fitter.state_dict(start)))
-    if best is None:
-        raise SimulationError("the first drape of every candidate failed (blow-up or non-finite values)")
-    start = fitter.load_state_dict(best[1])
-    fitter.first_candidates = candidates  # with every race loss, not the winner's copy
-    fitter.seconds = 0.0  # `run` counts the race's time
-    fitter.save_checkpoint(start)
-    return start

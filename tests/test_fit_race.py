@@ -1,0 +1,158 @@
+"""The race of first drapes, stopped anywhere, resumes to the result of an uninterrupted run, bit for bit; a
+checkpoint an older version wrote during a race is refused."""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from helpers_fit import DT
+from helpers_fit import fit_config as _config
+
+from torch_diffavatar.errors import InputError
+from torch_diffavatar.fit import Fitter
+from torch_diffavatar.fit_checkpoint import CHECKPOINT, atomic_save, safe_load
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# two candidates of two race iterations each, then one more: checkpoints after candidate 0's iterations 1
+# and 2 (saves 1, 2), candidate 1's (3, 4), the race's end (5) and the fit's last iteration (6)
+RACE = dict(
+    iterations=3,
+    first_max_steps=80,
+    max_loss_rise=float("inf"),
+    first_bend_scales=[1, 30],
+    first_race_iterations=2,
+)
+
+
+class Killed(Exception):
+    """Stands for a kill right after a checkpoint was written (any kill before the next one is the same)."""
+
+
+def _fitter(problem, out) -> Fitter:
+    garment, _, target = problem
+    return Fitter(garment, target, _config(**RACE), progress=False, dtype=DT, out_dir=out, tensorboard=False)
+
+
+def _killed_after(fitter: Fitter, saves: int) -> Fitter:
+    """``fitter``, whose run stops (`Killed`) right after its ``saves``-th checkpoint."""
+    original, done = fitter.save_checkpoint, []
+
+    def save(start):
+        original(start)
+        done.append(start)
+        if len(done) == saves:
+            raise Killed
+
+    fitter.save_checkpoint = save
+    return fitter
+
+
+def _timeless(history: list[dict]) -> list[dict]:
+    """``history`` without its clock readings (``drape/forward_seconds`` …)."""
+    return [{k: v for k, v in row.items() if not k.endswith("_seconds")} for row in history]
+
+
+@pytest.fixture(scope="module")
+def straight(skirt_problem, tmp_path_factory):
+    fitter = _fitter(skirt_problem, tmp_path_factory.mktemp("straight"))
+    return fitter, fitter.run()
+
+
+def test_the_race_is_a_race(straight):
+    """Both candidates ran, and the one raced first (the lower first loss) won, so a resume during the
+    second must bring the first's whole state back from the checkpoint."""
+    _, result = straight
+    ones, thirties = result.report["first_drape_candidates"]  # in the sewing's order
+    assert math.isfinite(ones["race_loss"]) and math.isfinite(thirties["race_loss"])
+    assert thirties["loss"] < ones["loss"] and thirties["race_loss"] < ones["race_loss"]
+    assert result.report["iterations"] == 3 and len(result.history) == 3
+
+
+# (saves before each kill, the race's candidate running at the last kill or None after the race)
+KILLS = [((1,), 0), ((2,), 0), ((3,), 1), ((4,), 1), ((5,), None), ((1, 2), 1)]
+
+
+@pytest.mark.parametrize("kills, running", KILLS, ids=lambda k: str(k))
+def test_a_race_stopped_anywhere_resumes_to_the_uninterrupted_result(
+    skirt_problem, straight, tmp_path, kills, running
+):
+    straight_fitter, expected = straight
+    for i, saves in enumerate(kills):
+        with pytest.raises(Killed):
+            _killed_after(_fitter(skirt_problem, tmp_path), saves).run(resume=i > 0)
+    race = safe_load(tmp_path / CHECKPOINT).get("race")
+    assert (None if race is None else race["index"]) == running
+    fitter = _fitter(skirt_problem, tmp_path)
+    result = fitter.run(resume=True)
+    assert torch.equal(result.rest_uv, expected.rest_uv) and torch.equal(result.x, expected.x)
+    for name, value in fitter.params.state_dict().items():
+        assert torch.equal(value, straight_fitter.params.state_dict()[name]), name
+    assert _timeless(result.history) == _timeless(expected.history)
+    report, want = dict(result.report), dict(expected.report)
+    # the clock differs, nothing else; the stopped runs' race time is counted
+    assert report.pop("seconds") >= (0.0 if race is None else race["seconds"]) and want.pop("seconds") > 0
+    assert report == want
+    assert "race" not in safe_load(tmp_path / CHECKPOINT) and fitter.race is None
+
+
+def test_an_older_checkpoint_from_inside_the_race_is_refused(skirt_problem, tmp_path):
+    """Without its race's state a checkpoint written during the race holds one candidate only: resuming it
+    would finish that candidate alone, so it is refused. One written after the race (saves 5, above) has no
+    race state either and resumes as it always did."""
+    with pytest.raises(Killed):
+        _killed_after(_fitter(skirt_problem, tmp_path), 3).run()
+    checkpoint = safe_load(tmp_path / CHECKPOINT)
+    race = checkpoint.pop("race")
+    atomic_save(checkpoint, tmp_path / CHECKPOINT)
+    with pytest.raises(InputError, match="during the race of first drapes by an older version") as info:
+        _fitter(skirt_problem, tmp_path).run(resume=True)
+    assert "\n" not in str(info.value)
+    del race["best"]  # a damaged one is refused too, not half-resumed
+    atomic_save({**checkpoint, "race": race}, tmp_path / CHECKPOINT)
+    with pytest.raises(InputError, match="race of first drapes is incomplete"):
+        _fitter(skirt_problem, tmp_path).run(resume=True)
+
+
+KILLER = """
+import os, signal, sys
+from pathlib import Path
+import torch
+from helpers_fit import DT, skirt_problem
+from test_fit_race import _fitter
+
+torch.set_num_threads(1)
+fitter = _fitter(skirt_problem(), Path(sys.argv[1]))
+original, saves = fitter.save_checkpoint, []
+
+
+def save(start):
+    original(start)
+    saves.append(start)
+    if len(saves) == int(sys.argv[2]):
+        os.kill(os.getpid(), signal.SIGKILL)
+
+
+fitter.save_checkpoint = save
+fitter.run()
+"""
+
+
+def test_a_race_killed_for_real_resumes_to_the_uninterrupted_result(skirt_problem, straight, tmp_path):
+    """A process killed by SIGKILL during the second candidate (no ``finally``, no clean-up) resumes too."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), str(ROOT / "tests")]), OMP_NUM_THREADS="1")
+    run = subprocess.run([sys.executable, "-c", KILLER, str(tmp_path), "3"], env=env, capture_output=True)
+    assert run.returncode == -signal.SIGKILL, run.stderr.decode()[-2000:]
+    assert safe_load(tmp_path / CHECKPOINT)["race"]["index"] == 1
+    assert not list(tmp_path.glob("*.tmp*"))
+    result = _fitter(skirt_problem, tmp_path).run(resume=True)
+    _, expected = straight
+    assert torch.equal(result.rest_uv, expected.rest_uv) and torch.equal(result.x, expected.x)
+    assert _timeless(result.history) == _timeless(expected.history)

@@ -1,0 +1,160 @@
+"""The race of first drapes, resumable at any point: ``first_race_iterations`` fit iterations from each first
+sewing (`fit_start.first_states`), from the same parameters and optimizer, and the fit continues with the
+whole state of the one whose lowest loss is the lowest.
+
+While it runs, the race's own state rides in every checkpoint under ``"race"`` (`race_state`): the state
+every candidate starts from, each candidate's drape start, which candidate runs (the checkpoint's fit state
+is that candidate's), the candidates' entries with the race losses so far, and the best finished
+candidate's whole state. A run stopped anywhere in the race resumes to the result of an uninterrupted run,
+bit for bit (`opening`).
+"""
+
+from __future__ import annotations
+
+import copy
+
+from torch_diffavatar.errors import InputError, SimulationError
+from torch_diffavatar.fit_checkpoint import CHECKPOINT, safe_load
+from torch_diffavatar.fit_start import Start
+from torch_diffavatar.sim.state import ClothState
+
+RACE_KEYS = ("laps", "index", "started", "initial", "starts", "candidates", "best")
+
+
+def race_state(fitter, starts: list[Start], laps: int) -> dict:
+    """The race's state at its beginning: ``laps`` iterations from each of ``starts``, every candidate from
+    ``fitter``'s present state (``initial``). ``starts``' candidate entries are items of
+    ``fitter.first_candidates``; ``"candidate"`` is the position of each."""
+    candidates = fitter.first_candidates
+    initial = copy.deepcopy(fitter.state_dict(starts[0][1]))
+    entries = [
+        {
+            "x": s.x.detach().clone(),
+            "v": s.v.detach().clone(),
+            "candidate": next(i for i, c in enumerate(candidates) if c is candidate),
+        }
+        for _, s, candidate in starts
+    ]
+    return {
+        "laps": laps,
+        "index": 0,  # the candidate that runs (or runs next)
+        "started": False,  # whether the fitter's state is that candidate's (always so in a checkpoint)
+        "initial": initial,
+        "starts": entries,
+        "candidates": candidates,  # with the race loss of each finished candidate
+        "best": None,  # {"loss", "state"} of the finished candidate with the lowest race loss
+        "seconds": 0.0,  # the finished candidates' iterations [s], of every run (the report's time)
+    }
+
+
+def check_old_race(checkpoint: dict, config) -> None:
+    """Refuse a checkpoint that an older version wrote during the race (no ``"race"`` entry, while some
+    sewn candidate has no race loss yet): it holds one candidate's state only, and resuming it would finish
+    that candidate alone.
+
+    Raises:
+        InputError: ``checkpoint`` is such a one.
+    """
+    if "race" in checkpoint or config.first_race_iterations <= 0:
+        return
+    sewn = [c for c in checkpoint.get("first_candidates", []) if "loss" in c]
+    if len(sewn) >= 2 and any("race_loss" not in c for c in sewn):
+        raise InputError(
+            f"{CHECKPOINT} was written during the race of first drapes by an older version, which cannot "
+            "resume it exactly; start the fit again (--force instead of --resume)"
+        )
+
+
+def opening(fitter, total: int, resume: bool) -> ClothState:
+    """Where ``fitter``'s run of ``total`` iterations starts: its checkpoint's state with ``resume`` (and
+    the race's, if it stopped during one), else the first states, raced when there are several and
+    ``first_race_iterations`` is positive. Sets ``fitter.race`` (None without a race); returns the start.
+
+    Raises:
+        InputError: the checkpoint cannot be read, or cannot be resumed exactly (`check_old_race`).
+    """
+    path = None if fitter.out_dir is None else fitter.out_dir / CHECKPOINT
+    if resume and path is not None and path.is_file():
+        checkpoint = safe_load(path)
+        check_old_race(checkpoint, fitter.config)
+        race = checkpoint.get("race")
+        if race is not None and not (isinstance(race, dict) and set(RACE_KEYS) <= set(race)):
+            raise InputError(f"{path}: its race of first drapes is incomplete; start the fit again")
+        start = fitter.load_state_dict(checkpoint)
+        if race is not None:  # the race's time in the stopped runs, up to their last checkpoint
+            race["seconds_before"] = race.get("seconds", 0.0) + fitter.seconds
+        fitter.race = race
+        return start
+    starts = fitter._first_states()
+    laps = min(fitter.config.first_race_iterations, total) if len(starts) > 1 else 0
+    fitter.race = race_state(fitter, starts, laps) if laps > 0 else None
+    return starts[0][1]
+
+
+def bar_span(fitter, total: int) -> tuple[int, int]:
+    """(iterations in all, iterations done) of ``fitter``'s run to ``total``, the race's counted."""
+    race = fitter.race
+    if race is None:
+        return total, min(fitter.iteration, total)
+    laps = race["laps"]
+    done = race["index"] * laps + (min(fitter.iteration, laps) if race["started"] else 0)
+    return total + (len(race["starts"]) - 1) * laps, done
+
+
+def race(fitter, start: ClothState, bar=None) -> ClothState:
+    """Run the race ``fitter.race`` (`race_state`, or a checkpoint's) to its end, then take on the whole
+    state of the candidate whose lowest loss is the lowest; returns its drape start. ``start``: the drape
+    start of the candidate that runs, when the fitter holds its state (a resumed race). Each start's lowest
+    loss goes to its candidate entry (``race_loss``; None when its first drape failed).
+
+    ``fitter``: the `torch_diffavatar.fit.Fitter` that runs the iterations (its ``state_dict`` /
+    ``load_state_dict`` snapshot and restore everything a candidate changes).
+
+    Raises:
+        SimulationError: the first drape of every candidate failed.
+    """
+    state = fitter.race
+    try:
+        while state["index"] < len(state["starts"]):
+            _run_candidate(fitter, state, start, bar)
+            state["index"] += 1
+            state["started"] = False
+        if state["best"] is None:
+            raise SimulationError("the first drape of every candidate failed (blow-up or non-finite values)")
+        start = fitter.load_state_dict(state["best"]["state"])
+        fitter.first_candidates = state["candidates"]  # with every race loss, not the winner's copy
+    finally:
+        fitter.race = None
+    fitter.seconds = state.get("seconds_before", 0.0)  # `run` adds its own time, the race's included
+    fitter.save_checkpoint(start)
+    return start
+
+
+def _run_candidate(fitter, state: dict, start: ClothState, bar) -> None:
+    """Fit the candidate ``state["index"]`` of the race ``state`` to ``state["laps"]`` iterations: from
+    ``initial`` and its own drape start, or on from ``start`` when the fitter already holds its state; then
+    record its race loss and, when the lowest so far, its whole state."""
+    entry, laps = state["starts"][state["index"]], state["laps"]
+    candidate = state["candidates"][entry["candidate"]]
+    if state["started"]:
+        ev = None
+        if fitter.iteration < laps:
+            ev = fitter._checked_evaluate(start)
+            if ev is None:  # cannot happen for a deterministic drape: it was accepted before
+                raise SimulationError("the resumed candidate's drape failed (blow-up or non-finite values)")
+    else:
+        fitter.load_state_dict(copy.deepcopy(state["initial"]))
+        start = ClothState(entry["x"].to(fitter.dtype), entry["v"].to(fitter.dtype))
+        ev = fitter._checked_evaluate(start)
+        if ev is None:
+            candidate["race_loss"] = None
+            return
+        state["started"] = True
+        fitter.first = fitter._summary(ev)
+        fitter._note_best(ev, start)
+    _, start = fitter._iterate(ev, start, laps, bar=bar)
+    loss = fitter.best["loss"]
+    candidate["race_loss"] = loss
+    state["seconds"] = state.get("seconds", 0.0) + fitter.seconds  # its iterations' time, all runs'
+    if state["best"] is None or loss < state["best"]["loss"]:
+        state["best"] = {"loss": loss, "state": copy.deepcopy(fitter.state_dict(start))}
