@@ -362,7 +362,10 @@ def _newton_lines(runs: list) -> list[str]:
 
 
 def _table2_lines(runs: list) -> list[str]:
-    """Table 2 (ablations), truth first like Table 1, with the generator of the scans."""
+    """Table 2 (ablations), truth first like Table 1, with the generator of the scans; none without
+    ablations."""
+    if not any(run["ablations"] for run in runs):
+        return []
     lines = [
         "",
         "## Table 2: ablations",

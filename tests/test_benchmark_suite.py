@@ -115,7 +115,7 @@ def test_generators_side_by_side(suite):
         "1.20 / 0.15",
         "20.00",
     ]
-    assert suite._newton_lines([ours]) == []
+    assert suite._newton_lines([ours]) == [] and suite._table2_lines([ours, newton]) == []
 
 
 def _args(**changes) -> argparse.Namespace:
@@ -143,8 +143,8 @@ def test_results_file_keeps_its_discussion(suite, tmp_path):
     assert "settled again by NVIDIA Newton's VBD cloth" in text  # who draped the truth
     assert "at commit abc1234" in text and "`x --simulator newton`" in text  # where each table comes from
     assert "results/newton_skirt_drapes.png" in text and "results/skirt_drapes.png" in text
-    assert text.index("## Table 1") < text.index("### Newton's truths") < text.index("## Table 2")
-    assert text.index("## Table 2") < text.index(suite.DISCUSSION_MARKER)
+    assert text.index("## Table 1") < text.index("### Newton's truths") < text.index(suite.DISCUSSION_MARKER)
+    assert "## Table 2" not in text  # no ablations
 
 
 def test_runs_of_a_suite_json_are_read_back(suite, tmp_path):
