@@ -232,16 +232,9 @@ def _run_garment(garment: str, simulator: str, args, anny, work: Path, pictures:
     scan_dir, row, ablation_rows = work / "scan", {"garment": garment}, []
     try:
         t0 = time.perf_counter()
+        same = {k: getattr(args, k) for k in ("seed", "hem_up", "hem_widen", "garment_points", "body_points")}
         scan = make_draped_scan(
-            garment,
-            anny_model=anny,
-            seed=args.seed,
-            hem_up=args.hem_up,
-            hem_widen=args.hem_widen,
-            spacing=args.scan_spacing,
-            garment_points=args.garment_points,
-            body_points=args.body_points,
-            simulator=simulator,
+            garment, anny_model=anny, spacing=args.scan_spacing, simulator=simulator, **same
         )
         write_scan(scan, scan_dir)
         row["scan_seconds"] = time.perf_counter() - t0
