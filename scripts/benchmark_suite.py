@@ -11,7 +11,15 @@ curvature term, and without the cage's seam ties with and without the seam-lengt
 hand-written part of RESULTS.md after the line `DISCUSSION_MARKER` is kept across reruns.
 Everything is seeded: a rerun with the same arguments reproduces the numbers.
 
+``--simulator ours newton`` runs the whole suite once per generator of the scans' truth (our simulator;
+NVIDIA Newton's VBD cloth with a random material, `make-scan --simulator newton`), on the same bodies and
+true patterns, and RESULTS.md pairs each garment's rows. Each run goes into ``OUT/suite.json`` with its
+command, start and commit; ``--reuse OLD/suite.json`` puts an earlier run's generators in RESULTS.md
+beside this run's (``--simulator`` with no value: only rewrite RESULTS.md).
+
     PYTHONPATH=. python scripts/benchmark_suite.py --out /tmp/suite
+    PYTHONPATH=. python scripts/benchmark_suite.py --out /tmp/suite_newton --simulator newton \
+        --garments dress tshirt --ablation-garments --reuse /tmp/suite/suite.json
 """
 
 from __future__ import annotations
@@ -32,6 +40,7 @@ DRAPED_BY = {
     "newton": "our simulator, then settled again by NVIDIA Newton's VBD cloth with a random material "
     "(`make-scan --simulator newton`: stretch 2-10x softer, bending 0.3-3x)",
 }
+PICTURES = "results"  # the pictures' folder, beside RESULTS.md
 DISCUSSION_MARKER = "<!-- discussion: hand-written, kept by benchmark_suite.py -->"
 ABLATIONS = {
     "w/o cage": {"cage": False},
@@ -44,6 +53,11 @@ ABLATIONS = {
     "w/o seam ties (seam length 1e10)": {"tie_seams": False, "weights": {"seam_length": 1.0e10}},
     "w/o seam ties, w/o seam length": {"tie_seams": False, "weights": {"seam_length": 0.0}},
 }
+
+
+SIMULATORS = ("ours", "newton")
+# the scans' settings of a run, kept in suite.json with it
+SCAN_SETTINGS = ("seed", "hem_up", "hem_widen", "scan_spacing", "garment_points", "body_points")
 
 
 def _fit_and_eval(scan_dir: Path, out: Path, config, anny) -> dict:
@@ -116,7 +130,7 @@ def _change_mm(initial, final) -> str:
     return f"{_mm(initial)} → {_mm(final)} ({change})"
 
 
-def main() -> int:
+def _parse_args() -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", default="/tmp/benchmark_suite", help="work folder (scans, fits)")
     p.add_argument("--garments", nargs="+", default=["dress", "longsleeve", "polo", "tshirt"])
@@ -129,84 +143,165 @@ def main() -> int:
     p.add_argument("--body-points", type=int, default=30000, help="skin samples of each scan")
     p.add_argument(
         "--simulator",
-        choices=("ours", "newton"),
-        default="ours",
-        help="who drapes the scans' truth: our simulator (default) or NVIDIA Newton's VBD cloth with a "
-        "random material (`make-scan --simulator newton`; needs the newton extra)",
+        nargs="*",
+        choices=SIMULATORS,
+        default=["ours"],
+        help="who drapes the scans' truth, one run each, in this order: our simulator (default) and/or "
+        "NVIDIA Newton's VBD cloth with a random material (`make-scan --simulator newton`; needs the "
+        "newton extra); none: only rewrite RESULTS.md from --reuse. Table 1 pairs each garment's rows",
+    )
+    p.add_argument(
+        "--reuse",
+        nargs="*",
+        default=[],
+        help="suite.json files of earlier runs: their generators' runs go into RESULTS.md as they were "
+        "(command, start, commit and all), unless --simulator runs that generator again",
     )
     p.add_argument("--results", default="docs/RESULTS.md")
-    args = p.parse_args()
-    torch.set_num_threads(1)
+    return p.parse_args()
 
+
+def main() -> int:
+    args = _parse_args()
+    torch.set_num_threads(1)
     from torch_diffavatar.body.anny_model import load_anny
+
+    anny = load_anny(dtype=torch.float32) if args.simulator else None
+    work = Path(args.out)
+    pictures = Path(args.results).parent / PICTURES
+    pictures.mkdir(parents=True, exist_ok=True)
+    runs = {r["simulator"]: r for path in args.reuse for r in load_runs(Path(path))}
+    for simulator in args.simulator:
+        runs[simulator] = _run_generator(simulator, args, anny, work / simulator, pictures)
+        runs = {s: runs[s] for s in sorted(runs, key=SIMULATORS.index)}  # ours first
+        # written after every generator: a later failure keeps the earlier runs
+        (work / "suite.json").write_text(json.dumps({"runs": list(runs.values())}, default=str, indent=1))
+    _write_results(Path(args.results), list(runs.values()), args)
+    return 0
+
+
+def load_runs(path: Path) -> list[dict]:
+    """The runs of a ``suite.json`` (one per generator); a file from before the generators (rows and
+    ablations at the top) is one run of our simulator, without command or commit."""
+    data = json.loads(path.read_text())
+    if "runs" in data:
+        return data["runs"]
+    return [{"simulator": "ours", "rows": data["rows"], "ablations": data.get("ablations", [])}]
+
+
+def _commit() -> str:
+    """The checkout's short commit, '+' when it has uncommitted changes ('unknown' outside git)."""
+    import subprocess
+
+    here = Path(__file__).resolve().parent
+    try:
+        head = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=here, capture_output=True, text=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain"], cwd=here, capture_output=True, text=True)
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return head + ("+" if dirty.stdout.strip() else "")
+
+
+def _run_generator(simulator: str, args, anny, work: Path, pictures: Path) -> dict:
+    """One generator's run: every garment's scan, fit, evaluation and pictures (and the ablations)."""
+    run = {
+        "simulator": simulator,
+        "command": "PYTHONPATH=. python scripts/benchmark_suite.py " + " ".join(sys.argv[1:]),
+        "started": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "commit": _commit(),
+        "settings": {k: getattr(args, k) for k in SCAN_SETTINGS},
+        "rows": [],
+        "ablations": [],
+    }
+    for garment in args.garments:
+        row, ablation_rows = _run_garment(garment, simulator, args, anny, work / garment, pictures)
+        run["rows"].append(row)
+        run["ablations"] += ablation_rows
+        print(json.dumps(row, default=str), flush=True)
+    return run
+
+
+def _run_garment(garment: str, simulator: str, args, anny, work: Path, pictures: Path):
+    """(row, ablation rows) of one garment; a garment that fails is a row with its ``error``."""
     from torch_diffavatar.evaluation import save_drape_comparison
     from torch_diffavatar.fit import config_from_dict, load_config
     from torch_diffavatar.synthetic_scans import make_draped_scan, write_scan
 
-    anny = load_anny(dtype=torch.float32)
-    work = Path(args.out)
-    pictures = Path(args.results).parent / "results"
-    pictures.mkdir(parents=True, exist_ok=True)
-    started = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
-    rows, ablation_rows = [], []
-    for garment in args.garments:
-        scan_dir = work / garment / "scan"
-        row = {"garment": garment}
-        try:
-            t0 = time.perf_counter()
-            scan = make_draped_scan(
-                garment,
-                anny_model=anny,
-                seed=args.seed,
-                hem_up=args.hem_up,
-                hem_widen=args.hem_widen,
-                spacing=args.scan_spacing,
-                garment_points=args.garment_points,
-                body_points=args.body_points,
-                simulator=args.simulator,
-            )
-            write_scan(scan, scan_dir)
-            row["scan_seconds"] = time.perf_counter() - t0
-            config = load_config(garment=garment)
-            fit = _fit_and_eval(scan_dir, work / garment / "fit", config, anny)
-            row.update(initial=_initial(garment, scan_dir, fit), final=fit["eval"], seconds=fit["seconds"])
-            row["iterations"] = fit["report"]["iterations"]
-            save_drape_comparison(work / garment / "fit", scan_dir, pictures / f"{garment}_drapes.png")
-            _overlay(garment, work / garment / "fit", scan_dir, pictures / f"{garment}_patterns.png")
-            if garment in args.ablation_garments:
-                ablation_rows.append({"garment": garment, "name": "full", "eval": fit["eval"]})
-                for name, change in ABLATIONS.items():
-                    cfg = config_from_dict(change, base=config)
-                    ab = _fit_and_eval(scan_dir, work / garment / re.sub(r"\W+", "_", name), cfg, anny)
-                    ablation_rows.append({"garment": garment, "name": name, "eval": ab["eval"]})
-        except Exception as exc:  # a garment that fails is a result too: record it and go on
-            row["error"] = f"{type(exc).__name__}: {exc}"
-            traceback.print_exc()
-        rows.append(row)
-        print(json.dumps(row, default=str), flush=True)
-    (work / "suite.json").write_text(
-        json.dumps({"rows": rows, "ablations": ablation_rows}, default=str, indent=1)
-    )
-    _write_results(Path(args.results), rows, ablation_rows, args, started)
-    return 0
+    scan_dir, row, ablation_rows = work / "scan", {"garment": garment}, []
+    try:
+        t0 = time.perf_counter()
+        same = {k: getattr(args, k) for k in ("seed", "hem_up", "hem_widen", "garment_points", "body_points")}
+        scan = make_draped_scan(
+            garment, anny_model=anny, spacing=args.scan_spacing, simulator=simulator, **same
+        )
+        write_scan(scan, scan_dir)
+        row["scan_seconds"] = time.perf_counter() - t0
+        if "newton" in scan.info:
+            row["newton"] = _newton_summary(scan.info)
+        config = load_config(garment=garment)
+        fit = _fit_and_eval(scan_dir, work / "fit", config, anny)
+        row.update(initial=_initial(garment, scan_dir, fit), final=fit["eval"], seconds=fit["seconds"])
+        row["iterations"] = fit["report"]["iterations"]
+        prefix = picture_prefix(simulator)
+        save_drape_comparison(work / "fit", scan_dir, pictures / f"{prefix}{garment}_drapes.png")
+        _overlay(garment, work / "fit", scan_dir, pictures / f"{prefix}{garment}_patterns.png")
+        if garment in args.ablation_garments:
+            ablation_rows.append({"garment": garment, "name": "full", "eval": fit["eval"]})
+            for name, change in ABLATIONS.items():
+                cfg = config_from_dict(change, base=config)
+                ab = _fit_and_eval(scan_dir, work / re.sub(r"\W+", "_", name), cfg, anny)
+                ablation_rows.append({"garment": garment, "name": name, "eval": ab["eval"]})
+    except Exception as exc:  # a garment that fails is a result too: record it and go on
+        row["error"] = f"{type(exc).__name__}: {exc}"
+        traceback.print_exc()
+    return row, ablation_rows
 
 
-def _table1_lines(rows: list) -> list[str]:
-    """Table 1, truth first: pattern outline and measurement errors [cm], Chamfer to the true drape, then
-    to the scan beside its floor [mm], then material, body, mesh and time."""
+def _newton_summary(info: dict) -> dict:
+    """What a Newton scan's ``truth.json`` says of its truth: the drawn material and how it settled."""
+    newton = info["newton"]
+    return {
+        "stretch_factor": newton["draws"]["stretch_factor"],
+        "bend_factor": newton["draws"]["bend_factor"],
+        "friction": info["material"]["friction"],
+        "waist_drop_m": newton["waist_drop_m"],
+        "drape": newton["drape"],
+        "edge_strain_mean_abs": {k: v["mean_abs"] for k, v in newton["edge_strain"].items()},
+        "chamfer_to_ours_drape_m": newton["chamfer_to_ours_drape_m"],
+    }
+
+
+def picture_prefix(simulator: str) -> str:
+    """File-name prefix of a generator's pictures in ``docs/results/`` (ours: none, as before)."""
+    return "" if simulator == "ours" else f"{simulator}_"
+
+
+def _paired(runs: list) -> list[tuple[str, dict]]:
+    """(generator, row) of every run's rows, paired by garment: each garment's rows together, in the
+    order the garments first appear, the generators in the runs' order."""
+    order = list(dict.fromkeys(r["garment"] for run in runs for r in run["rows"]))
+    return [(run["simulator"], r) for g in order for run in runs for r in run["rows"] if r["garment"] == g]
+
+
+def _table1_lines(runs: list) -> list[str]:
+    """Table 1, truth first, one row per garment and generator: pattern outline and measurement errors
+    [cm], Chamfer to the true drape, then to the scan beside its floor [mm], then material, body, mesh and
+    time."""
     lines = [
-        "## Table 1: initial (template) vs ours",
+        "## Table 1: initial (template) vs ours, on each generator's scans",
         "",
-        "| garment | outline mean, initial → ours [cm] | outline max, initial → ours [cm] | largest "
-        "measurement error, initial → ours [cm] | Chamfer to true drape, initial → ours [mm] | Chamfer to "
-        "scan, initial → ours [mm] | the true drape's Chamfer to scan [mm] | bending stiffness ratio, "
-        "initial → ours | body height error [cm] | draped quality min | inverted rest triangles | fit "
-        "time [s] |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| garment | scans by | outline mean, initial → ours [cm] | outline max, initial → ours [cm] | "
+        "largest measurement error, initial → ours [cm] | Chamfer to true drape, initial → ours [mm] | "
+        "Chamfer to scan, initial → ours [mm] | the true drape's Chamfer to scan [mm] | bending stiffness "
+        "ratio, initial → ours | body height error [cm] | draped quality min | inverted rest triangles | "
+        "fit time [s] |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for r in rows:
+    for simulator, r in _paired(runs):
         if "error" in r:
-            lines.append(f"| {r['garment']} | failed: {r['error'][:160]} | | | | | | | | | | |")
+            lines.append(f"| {r['garment']} | {simulator} | failed: {r['error'][:160]} | | | | | | | | | | |")
             continue
         i, f = r["initial"], r["final"]
         measured = (
@@ -214,7 +309,7 @@ def _table1_lines(rows: list) -> list[str]:
             f"{_given_cm(f.get('garment_measurement_max_error_cm'))}"
         )
         lines.append(
-            f"| {r['garment']} | "
+            f"| {r['garment']} | {simulator} | "
             f"{_cm(i['pattern_outline_error_m'])} → {_cm(f['pattern_outline_error_m'])} | "
             f"{_cm(i['pattern_outline_hausdorff_m'])} → {_cm(f['pattern_outline_hausdorff_m'])} | "
             f"{measured} | "
@@ -228,48 +323,116 @@ def _table1_lines(rows: list) -> list[str]:
     return lines
 
 
-def _table2_lines(ablations: list) -> list[str]:
-    """Table 2 (ablations), truth first like Table 1."""
+def _newton_lines(runs: list) -> list[str]:
+    """The Newton scans' truths: the drawn material against ours and how Newton's settle ended."""
+    rows = [r for run in runs if run["simulator"] == "newton" for r in run["rows"] if "newton" in r]
+    if not rows:
+        return []
     lines = [
         "",
-        "## Table 2: ablations",
+        "### Newton's truths: material drawn, settle",
         "",
-        "| garment | variant | outline mean [cm] | outline max [cm] | largest measurement error [cm] | "
-        "Chamfer to true drape [mm] | Chamfer to scan [mm] | rest quality min | inverted rest triangles | "
-        "seam length mismatch max [mm] |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "Stretch and bending factors against the scan's nominal material (ours, k_b 2e-5 N·m); frames of "
+        "1/60 s until the mean vertex speed stays under 5 mm/s and the largest under 5 cm/s (`sim_newton`, "
+        "at most 400); the mean |edge strain| against the pattern; the Chamfer distance of Newton's drape to "
+        "ours of the same pattern, body and start (`truth.json`, `newton`).",
+        "",
+        "| garment | stretch × | bending × | friction | frames (at rest?) | speed at the end, mean / max "
+        "[m/s] | mean edge strain, Newton / ours [%] | Newton's drape to ours [mm] | scan time [s] |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
-    for a in ablations:
-        e = a["eval"]
-        rest_min = e.get("rest_quality", {}).get("min", float("nan"))
+    for r in rows:
+        n, d = r["newton"], r["newton"]["drape"]
+        strain = n["edge_strain_mean_abs"]
         lines.append(
-            f"| {a['garment']} | {a['name']} | "
-            f"{_cm(e['pattern_outline_error_m'])} | {_cm(e['pattern_outline_hausdorff_m'])} | "
-            f"{_given_cm(e.get('garment_measurement_max_error_cm'))} | "
-            f"{_mm(e['chamfer_truth_drape_m'])} | {_mm(e['chamfer_scan_m'])} | "
-            f"{rest_min:.2f} | "
-            f"{e.get('inverted_rest_triangles')} | {_mm(e['seam_length_mismatch']['max_m'])} |"
+            f"| {r['garment']} | {n['stretch_factor']:.2f} | {n['bend_factor']:.2f} | {n['friction']:.2f} | "
+            f"{d['frames']} ({'yes' if d['converged'] else 'no'}) | "
+            f"{d['mean_speed_m_per_s']:.3f} / {d['max_speed_m_per_s']:.3f} | "
+            f"{100 * strain['newton']:.2f} / {100 * strain['ours']:.2f} | "
+            f"{_mm(n['chamfer_to_ours_drape_m'])} | {r['scan_seconds']:.0f} |"
         )
     return lines
 
 
-def _write_results(path: Path, rows: list, ablations: list, args, started: str) -> None:
-    cmd = "PYTHONPATH=. python scripts/benchmark_suite.py " + " ".join(sys.argv[1:])
+def _table2_lines(runs: list) -> list[str]:
+    """Table 2 (ablations), truth first like Table 1, with the generator of the scans; none without
+    ablations."""
+    if not any(run["ablations"] for run in runs):
+        return []
+    lines = [
+        "",
+        "## Table 2: ablations",
+        "",
+        "| garment | scans by | variant | outline mean [cm] | outline max [cm] | largest measurement error "
+        "[cm] | Chamfer to true drape [mm] | Chamfer to scan [mm] | rest quality min | inverted rest "
+        "triangles | seam length mismatch max [mm] |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for run in runs:
+        for a in run["ablations"]:
+            e = a["eval"]
+            rest_min = e.get("rest_quality", {}).get("min", float("nan"))
+            lines.append(
+                f"| {a['garment']} | {run['simulator']} | {a['name']} | "
+                f"{_cm(e['pattern_outline_error_m'])} | {_cm(e['pattern_outline_hausdorff_m'])} | "
+                f"{_given_cm(e.get('garment_measurement_max_error_cm'))} | "
+                f"{_mm(e['chamfer_truth_drape_m'])} | {_mm(e['chamfer_scan_m'])} | "
+                f"{rest_min:.2f} | "
+                f"{e.get('inverted_rest_triangles')} | {_mm(e['seam_length_mismatch']['max_m'])} |"
+            )
+    return lines
+
+
+def _run_lines(runs: list, args) -> list[str]:
+    """One paragraph per run: its command, start and commit, and how its scans were made."""
+    lines = []
+    for run in runs:
+        s = run.get("settings") or {k: getattr(args, k) for k in SCAN_SETTINGS}
+        bending = "2e-5 N·m (4× the fit's start)"
+        if run["simulator"] == "newton":
+            bending = "2e-5 N·m × a random factor (the table under Table 1)"
+        lines += [
+            f"**Scans by {run['simulator']}**: `{run.get('command', '—')}`, "
+            f"started {run.get('started', '—')} at commit {run.get('commit', '—')}. "
+            "The garment's template with its hem raised "
+            f"{s['hem_up'] * 100:.0f} cm and widened {s['hem_widen'] * 100:.0f} %, bending stiffness "
+            f"{bending}, draped by {DRAPED_BY[run['simulator']]} at {s['scan_spacing'] * 100:.0f} cm on a "
+            f"random Anny body (seed {s['seed']}, phenotypes uniform in [0.35, 0.65]), sampled as "
+            f"{s['garment_points'] // 1000}k cloth + {s['body_points'] // 1000}k skin points, 3 mm noise, "
+            "10 % of the points cut away in holes plus a hole under each arm (`diffavatar make-scan`).",
+            "",
+        ]
+    return lines
+
+
+def _picture_lines(runs: list) -> list[str]:
+    lines = ["", "## Pictures", ""]
+    for simulator, r in _paired(runs):
+        if "error" not in r:
+            g, prefix = r["garment"], picture_prefix(simulator)
+            lines += [
+                f"**{g}, scans by {simulator}**: the fit's first drape, its result and the true drape "
+                f"(front, back) — ![{g}]({PICTURES}/{prefix}{g}_drapes.png); patterns (grey "
+                f"template, green truth, red result) — ![{g} patterns]({PICTURES}/{prefix}{g}_patterns.png)",
+                "",
+            ]
+    return lines
+
+
+def _write_results(path: Path, runs: list, args) -> None:
+    """RESULTS.md: the runs (each generator's, ours first), Table 1, Newton's truths, Table 2, pictures,
+    then the hand-written part after `DISCUSSION_MARKER` as it was."""
     lines = [
         "# Results: synthetic scans with ground truth",
         "",
-        f"Command: `{cmd}` — started {started}, on the 2-core development machine (one thread).",
+        "On the 2-core development machine (one thread). Each run makes a scan per garment, fits it "
+        "from the plain template with `configs/<garment>.yaml`, and measures the fit with "
+        "`diffavatar eval`. The same seed gives the same body and true pattern to every generator: "
+        "only who drapes the truth differs.",
         "",
-        f"Each scan: the garment's template with its hem raised {args.hem_up * 100:.0f} cm and widened "
-        f"{args.hem_widen * 100:.0f} %, bending stiffness 2e-5 N·m (4× the fit's start), draped by "
-        f"{DRAPED_BY[args.simulator]} at {args.scan_spacing * 100:.0f} cm on a random Anny body "
-        f"(seed {args.seed}, phenotypes "
-        f"uniform in [0.35, 0.65]), sampled as {args.garment_points // 1000}k cloth + "
-        f"{args.body_points // 1000}k skin points, 3 mm noise, 10 % of the points "
-        "cut away in holes plus a hole under each arm (`diffavatar make-scan`). The fit starts from the "
-        "plain "
-        "template with `configs/<garment>.yaml`; `diffavatar eval` measures it.",
-        "",
+    ]
+    lines += _run_lines(runs, args)
+    lines += [
         "The truth comes first: the pattern is the product. Pattern outline errors in cm after a rigid "
         "alignment of each panel (`metrics.outline_distance`: the worst panel's mean distance, and its "
         "largest distance); the largest garment measurement error in cm (`pattern.measurements`: opening "
@@ -279,18 +442,7 @@ def _write_results(path: Path, rows: list, ablations: list, args, started: str) 
         "the scan's noise and holes put under any fit's.",
         "",
     ]
-    lines += _table1_lines(rows) + _table2_lines(ablations)
-    lines += ["", "## Pictures", ""]
-    for r in rows:
-        if "error" not in r:
-            g = r["garment"]
-            lines += [
-                f"**{g}**: the fit's first drape, its result and the true drape (front, back) — "
-                f"![{g}](results/{g}_drapes.png); "
-                "patterns "
-                f"(grey template, green truth, red result) — ![{g} patterns](results/{g}_patterns.png)",
-                "",
-            ]
+    lines += _table1_lines(runs) + _newton_lines(runs) + _table2_lines(runs) + _picture_lines(runs)
     kept = ""
     if path.is_file() and DISCUSSION_MARKER in path.read_text():
         kept = path.read_text().split(DISCUSSION_MARKER, 1)[1]
