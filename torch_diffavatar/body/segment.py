@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from torch_diffavatar.body.colour import colour_labels
 from torch_diffavatar.body.parts import PART_NAMES
 from torch_diffavatar.errors import InputError
 
@@ -84,6 +85,20 @@ GARMENT_SUPPORT: dict[str, tuple[str, ...]] = {
 # this way too, but their fits ended farther from the scans (docs/BENCHMARKS.md, "Unlabelled trousers
 # and skirts").
 WAIST_SUPPORT: dict[str, tuple[str, ...]] = {"pants": ("torso",)}
+# Where each garment type's colour is learned (`colour.colour_labels`' seeds): the points standing off
+# the body over these parts, which no other garment of an outfit covers (a top's torso above the waist,
+# not its hem over the trousers; trousers' and skirts' thighs, not a waistband under a top). The torso
+# counts above the body's waist only, when `segment_garment` is given it (``support_top``).
+GARMENT_CORE: dict[str, tuple[str, ...]] = {
+    "dress": ("torso",),
+    "shirt": ("torso",),
+    "tshirt": ("torso",),
+    "polo": ("torso",),
+    "skirt": ("thigh.L", "thigh.R"),
+    "pants": ("thigh.L", "thigh.R"),
+    "jumpsuit": ("torso",),
+    "jumpsuit_sleeveless": ("torso",),
+}
 GARMENT_ALIASES = {"t-shirt": "tshirt", "tee": "tshirt", "trousers": "pants", "shirt-long": "shirt"}
 GARMENT_TYPES = tuple(GARMENT_REGIONS)
 _SLEEVED = ("shirt", "tshirt", "polo", "jumpsuit")
@@ -186,6 +201,7 @@ def segment_garment(
     neighbors: int = 16,
     grow_sigmas: float = 0.67,
     support_top: float | None = None,
+    use_colour: bool = True,
 ) -> Segmentation:
     """Label the scan points of one garment using a fitted body.
 
@@ -202,7 +218,11 @@ def segment_garment(
             points whose smoothed offset exceeds this many of its noise standard deviations (0: off).
         support_top: height [m] (world Y) of the body's waist, for trousers: their labels also grow
             over the torso (`WAIST_SUPPORT`) on points below it. `fit_setup.prepare` and
-            ``diffavatar segment`` pass `BodyModel.waist_height`; None: only `GARMENT_SUPPORT`.
+            ``diffavatar segment`` pass `BodyModel.waist_height`; None: only `GARMENT_SUPPORT`. Also
+            where the torso's colour seeds end (`GARMENT_CORE`).
+        use_colour: with ``colors``, label by geometry and colour (`colour.colour_labels`: colour models
+            learned from the garment's core and the rest, a graph cut), or, when those colours do not
+            tell the garment apart, by geometry and a two-Gaussian colour evidence; False: geometry only.
 
     Returns:
         a `Segmentation`.
@@ -220,7 +240,15 @@ def segment_garment(
     nbr = nbr.reshape(len(points), -1)
     offset_s = _smooth(offset, nbr)
     evidence = (offset_s - offset_threshold) / offset_scale
-    labels, colour_s = _evidence_labels(evidence, region, nbr, colors)
+    colour = None
+    if colors is not None and use_colour:
+        seeds = (evidence > 1.0) & _core_points(kind, vertex_parts[near], points, support_top)
+        colour = colour_labels(np.asarray(colors), evidence, region, seeds, nbr)
+    if colour is not None:
+        labels = colour.labels
+        colour_s = _smooth(np.clip(colour.log_ratio, -6.0, 6.0), nbr[:, : max(k // 2, 1)])
+    else:  # geometry, and the two-Gaussian colour evidence when the colours differ at all
+        labels, colour_s = _evidence_labels(evidence, region, nbr, colors if use_colour else None)
     if labels.any() and grow_sigmas > 0:
         open_points = _support_points(kind, vertex_parts[near], points, support_top)
         open_points &= offset_s > _growth_threshold(offset, offset_s, labels, k, grow_sigmas)
@@ -231,7 +259,10 @@ def segment_garment(
         # Skin seen through no opening is cloth lying close to the body (a fitted bodice within the
         # offset threshold): the patches of "skin" enclosed by the garment join it.
         covered = _covered_body(points, labels, body_vertices, body_faces, vertex_parts)
-        labels = labels | (region & covered[near])
+        enclosed = region & covered[near]
+        if colour is not None:  # not where the colour is another's (a patch of trousers, of skin)
+            enclosed &= colour_s >= 0
+        labels = labels | enclosed
     loops = _boundary_loops(points, labels, near, body_vertices, body_faces, vertex_parts, kind)
     return Segmentation(labels=labels, garment_indices=np.flatnonzero(labels), loops=loops, offsets=offset_s)
 
@@ -259,6 +290,17 @@ def _evidence_labels(
     for _ in range(2):  # neighbour majority vote
         labels = region & (_smooth(labels.astype(np.float64), nbr) > 0.5)
     return labels, colour_s
+
+
+def _core_points(
+    kind: str, near_parts: np.ndarray, points: np.ndarray, support_top: float | None
+) -> np.ndarray:
+    """(N,) bool: the scan points (N, 3) [m] over garment type ``kind``'s `GARMENT_CORE` parts
+    (``near_parts`` (N,): each point's nearest body vertex's part), the torso only above ``support_top``."""
+    core = np.isin(near_parts, [PART_NAMES.index(p) for p in GARMENT_CORE[kind]])
+    if support_top is not None:
+        core &= (near_parts != PART_NAMES.index("torso")) | (points[:, 1] > support_top)
+    return core
 
 
 def _support_points(

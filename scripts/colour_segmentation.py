@@ -1,0 +1,167 @@
+"""Garment segmentation with and without colour on capture-simulated scans (issue #29 item 3).
+
+Each case is a folder with ``scan.ply`` (a `make-scan --capture` scan: colours and a ``label`` per point)
+and ``body/`` (its `diffavatar fit-body` output, made here when missing). The scan goes through the
+intake as `diffavatar segment` does, then `segment_garment` labels it three ways: geometry alone
+(``use_colour=False``), as before this change (the two-Gaussian colour evidence: the new colour models
+switched off), and with the colour models and graph cut (the default). Printed per way: precision and
+recall of the garment's points (label 1) and the mean distance [cm] from the predicted garment boundary
+to the true one and back (boundary points: a garment point with a non-garment person point among its 8
+nearest neighbours); for scenes with a second garment (label 2), the same for the boundary between the
+two garments only.
+
+``--make SCENE TEMPLATE SEED FOLDER`` first writes a scene: ``outfit`` (the draped top over trousers:
+the body's hips, legs and torso below the waist pushed out by 1.2 cm, dark blue, label 2), ``same-skin``
+(the garment the colour of the skin), ``same-garments`` (the outfit with trousers the top's colour).
+The capture: a ring of 4 cameras, a random yaw from the seed, centimetres, Y down.
+
+    PYTHONPATH=. python scripts/colour_segmentation.py --make outfit tshirt 46 /tmp/cs/outfit_s46
+    PYTHONPATH=. python scripts/colour_segmentation.py /tmp/cs/outfit_s46:tshirt /tmp/cs/tshirt_s41:tshirt
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import subprocess
+import sys
+from pathlib import Path
+from unittest import mock
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+TROUSERS_COLOR = (38, 44, 70)
+TROUSERS_OFFSET_M = 0.012
+
+
+def make_scene(scene: str, template: str, seed: int, folder: Path) -> None:
+    """Write ``folder/scan.ply`` and ``folder/truth`` of the ``scene`` (see the module docstring)."""
+    from torch_diffavatar.body.anny_model import load_anny
+    from torch_diffavatar.capture import CaptureSettings, SceneMesh, capture_scene
+    from torch_diffavatar.captured_scans import CAPTURE_SEED_OFFSET, GARMENT_COLOR, SKIN_COLOR
+    from torch_diffavatar.synthetic_scans import make_draped_scan, write_scan
+
+    anny = load_anny(dtype=torch.float32)
+    scan = make_draped_scan(template, anny_model=anny, seed=seed)
+    garment_color = SKIN_COLOR if scene == "same-skin" else GARMENT_COLOR
+    meshes = [
+        SceneMesh(scan.body_vertices, scan.body_faces, 0, SKIN_COLOR),
+        SceneMesh(scan.cloth_x, scan.garment.sim_faces.numpy(), 1, garment_color),
+    ]
+    if scene in ("outfit", "same-garments"):
+        color = garment_color if scene == "same-garments" else TROUSERS_COLOR
+        meshes.append(SceneMesh(*_trousers(scan, anny), 2, color))
+    yaw = float(np.random.default_rng([seed, 2001]).uniform(0.0, 360.0))
+    settings = CaptureSettings(yaw_deg=yaw, units="cm", up="-y")
+    captured = capture_scene(meshes, settings, np.random.default_rng([seed, CAPTURE_SEED_OFFSET]))
+    write_scan(scan, folder, capture=captured)
+
+
+def _trousers(scan, anny) -> tuple[np.ndarray, np.ndarray]:
+    """A trousers layer: the true body's faces over the hips, legs (not the feet) and torso below the
+    waist, pushed out along the vertex normals by `TROUSERS_OFFSET_M`."""
+    from torch_diffavatar.body.geometry import vertex_normals
+    from torch_diffavatar.body.model import BodyModel
+    from torch_diffavatar.body.parts import PART_NAMES, vertex_parts
+
+    body = BodyModel(anny_model=anny)
+    body.load_parameters_dict(scan.body_params)
+    with torch.no_grad():
+        waist = body.waist_height(body().joints[0])
+    verts = scan.body_vertices
+    parts = vertex_parts(anny).numpy()
+    legs = [PART_NAMES.index(p) for p in ("hips", "thigh.L", "thigh.R", "shin.L", "shin.R")]
+    inside = np.isin(parts, legs) | ((parts == PART_NAMES.index("torso")) & (verts[:, 1] < waist))
+    faces = scan.body_faces[inside[scan.body_faces].all(1)]
+    normals = vertex_normals(torch.as_tensor(verts), torch.as_tensor(scan.body_faces)).numpy()
+    return verts + TROUSERS_OFFSET_M * normals, faces
+
+
+def _body(folder: Path, anny):
+    """The fitted body's vertices (Vb, 3) and waist height [m], from ``folder/body`` (fitted when missing)."""
+    from torch_diffavatar.body.model import BodyModel
+
+    out = folder / "body"
+    if not (out / "body.json").is_file():
+        cli = [sys.executable, "-m", "torch_diffavatar.cli", "fit-body", str(folder / "scan.ply")]
+        subprocess.run([*cli, "--out", str(out)], check=True, stdout=subprocess.DEVNULL)
+    body = BodyModel(anny_model=anny)
+    body.load_parameters_dict(json.loads((out / "body.json").read_text()))
+    with torch.no_grad():
+        result = body()
+    return result.vertices[0].double().numpy(), body.waist_height(result.joints[0])
+
+
+def boundary_distance(points: np.ndarray, truth: np.ndarray, pred: np.ndarray) -> tuple[float, float]:
+    """Mean distance [m] from the predicted boundary points to the true ones, and back (see the module
+    docstring); ``truth``, ``pred``: (N,) bool garment labels of the (N, 3) points."""
+    _, nbr = cKDTree(points).query(points, k=9)
+
+    def boundary(lab: np.ndarray) -> np.ndarray:
+        return points[lab & (~lab[nbr[:, 1:]]).any(1)]
+
+    b_true, b_pred = boundary(truth), boundary(pred)
+    if len(b_true) == 0 or len(b_pred) == 0:
+        return float("nan"), float("nan")
+    return float(cKDTree(b_true).query(b_pred)[0].mean()), float(cKDTree(b_pred).query(b_true)[0].mean())
+
+
+def evaluate(folder: Path, garment: str, anny) -> dict:
+    """The three ways' figures on one case (see the module docstring)."""
+    from torch_diffavatar.body import segment
+    from torch_diffavatar.body.parts import vertex_parts
+    from torch_diffavatar.scan_intake import intake_scan
+
+    scan, _ = intake_scan(folder / "scan.ply")
+    verts, waist = _body(folder, anny)
+    faces = anny.faces.cpu().numpy()
+    parts = vertex_parts(anny).cpu().numpy()
+    truth = scan.labels == 1
+    out = {}
+    for way in ("geometry", "before", "colour"):
+        before = mock.patch.object(segment, "colour_labels", lambda *a, **k: None)
+        with before if way == "before" else contextlib.nullcontext():
+            seg = segment.segment_garment(
+                scan.points, garment, verts, faces, parts, colors=scan.colors, support_top=waist,
+                use_colour=way != "geometry",
+            )  # fmt: skip
+        pred = seg.labels
+        tp = float((pred & truth).sum())
+        row = {"precision": tp / max(pred.sum(), 1), "recall": tp / max(truth.sum(), 1)}
+        row["boundary_cm"] = [100 * d for d in boundary_distance(scan.points, truth, pred)]
+        two = (scan.labels == 1) | (scan.labels == 2)
+        if (scan.labels == 2).any():
+            dist = boundary_distance(scan.points[two], truth[two], pred[two])
+            row["between_garments_cm"] = [100 * d for d in dist]
+        out[way] = row
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("cases", nargs="*", help="FOLDER:GARMENT")
+    parser.add_argument("--make", nargs=4, metavar=("SCENE", "TEMPLATE", "SEED", "FOLDER"))
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    if args.make:
+        scene, template, seed, folder = args.make
+        make_scene(scene, template, int(seed), Path(folder))
+    from torch_diffavatar.body.anny_model import load_anny
+
+    anny = load_anny(dtype=torch.float32)
+    for case in args.cases:
+        folder, _, garment = case.rpartition(":")
+        result = evaluate(Path(folder), garment, anny)
+        for way, row in result.items():
+            figures = " ".join(
+                f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v[0]:.2f}/{v[1]:.2f}"
+                for k, v in row.items()
+            )
+            print(f"{folder} {garment} {way}: {figures}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
