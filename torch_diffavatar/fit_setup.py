@@ -219,7 +219,7 @@ def initial_body(body, scan, mesh, body_params: dict | None = None) -> float | N
 
 
 def garment_mask(
-    scan, seg_type: str, body, body_out, faces: np.ndarray, parts: np.ndarray, *, use_colour: bool = True
+    scan, seg_type: str, body, body_out, faces: np.ndarray, parts: np.ndarray, use_colour: bool = True
 ):
     """(mask (N,) bool of the scan's garment points, whether the scan's labels gave it): the labels
     (`GARMENT_LABEL`) of a labelled scan, else `body.segment.segment_garment` of the garment type
@@ -312,9 +312,7 @@ def prepare(
     faces = body.faces.cpu().numpy()
     parts = vertex_parts(anny_model).cpu().numpy()
     seg_type = garment_type or SEGMENT_TYPES.get(config.template) or infer_garment_type(pattern)
-    mask, labelled = garment_mask(
-        scan, seg_type, body, body_out, faces, parts, use_colour=config.segment_colour
-    )
+    mask, labelled = garment_mask(scan, seg_type, body, body_out, faces, parts, config.segment_colour)
     if mask.sum() < 50:
         raise InputError(f"{scan_path}: only {int(mask.sum())} garment points; cannot fit a garment")
     loops = scan_boundaries(scan.points, mask, body_verts.numpy(), faces, parts, seg_type)

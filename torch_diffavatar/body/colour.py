@@ -10,10 +10,12 @@ where the body fit is off (forearms and hands). Colour can, when the colours dif
 2. a Gaussian mixture (`GaussianMixture`, a few full-covariance components fitted by EM) models the
    garment's colours from confident *seed* points (standing off the body over the garment's core, e.g.
    a top's torso above the waist), another models everything else's colours (skin, other garments)
-   from the points the geometry puts outside the garment;
-3. when the two models do not tell their own training points apart (`ColourModel.separability`, a
-   balanced accuracy below ``min_separability``: a garment the colour of the skin, or of the other
-   garment) the colour is not used and the segmentation stays geometric;
+   from the points outside the garment's region and those lying on the body (tight trousers under a
+   top lie there too, and only weaken the evidence);
+3. when the two models do not tell the seeds from the points outside the garment's region
+   (`ColourModel.separability`, a balanced accuracy below ``min_separability``: a garment the colour
+   of the skin, or of another garment seen beyond its region) the colour is not used and the
+   segmentation stays as it was without these models;
 4. else each point's unary evidence is the geometric evidence plus the colours' log-likelihood ratio,
    and the labels are the minimum cut (`graph_cut`, Boykov & Jolly 2001, "Interactive graph cuts";
    the colour models re-learned from its labels once, as in GrabCut, Rother et al. 2004) of that
@@ -130,15 +132,25 @@ class ColourModel:
     separability: float
 
     @classmethod
-    def fit(cls, lab: np.ndarray, garment: np.ndarray, other: np.ndarray, components: int = 3) -> ColourModel:
-        """From the (N, 3) Lab colours and the (N,) bool masks of the garment's and the others' points."""
+    def fit(
+        cls,
+        lab: np.ndarray,
+        garment: np.ndarray,
+        other: np.ndarray,
+        components: int = 3,
+        *,
+        not_garment: np.ndarray | None = None,
+    ) -> ColourModel:
+        """From the (N, 3) Lab colours and the (N,) bool masks of the garment's and the others' points;
+        the separability is measured on the garment's points against ``not_garment`` (N,) bool (default
+        ``other``): points sure not to be the garment, when ``other`` may hold some of it."""
         model = cls(
             GaussianMixture.fit(lab[garment], components, seed=1),
             GaussianMixture.fit(lab[other], components, seed=2),
             0.0,
         )
         g_ok = (model.log_ratio(lab[garment]) > 0).mean()
-        o_ok = (model.log_ratio(lab[other]) < 0).mean()
+        o_ok = (model.log_ratio(lab[other if not_garment is None else not_garment]) < 0).mean()
         model.separability = float(0.5 * (g_ok + o_ok))
         return model
 
@@ -217,7 +229,8 @@ class ColourLabels:
     Attributes:
         labels: (N,) bool garment labels.
         log_ratio: (N,) the colours' log-likelihood ratio (garment vs other) under the last model.
-        separability: the last `ColourModel.separability`.
+        separability: the first colour model's `ColourModel.separability` (seeds against the points
+            outside the garment's region).
     """
 
     labels: np.ndarray
@@ -255,21 +268,24 @@ def colour_labels(
     """
     lab = rgb_to_lab(colors)
     geometric = np.clip(evidence, -3.0, 3.0)
-    other = ~region | (geometric < -1.0)
-    other &= ~seeds
-    if seeds.sum() < min_seeds or other.sum() < min_seeds:
+    # Not the garment for sure: outside its region. Likely not: lying on the body (a tight garment of
+    # another kind, e.g. trousers under a top, lies there too: it only weakens the colour's evidence).
+    outside = ~region & ~seeds
+    other = outside | ((geometric < -1.0) & ~seeds)
+    if seeds.sum() < min_seeds or outside.sum() < min_seeds:
         return None
     edge_i, edge_j = knn_edges(nbr, neighbors)
     contrast = ((lab[edge_i] - lab[edge_j]) ** 2).sum(1)
     weight = smoothness * np.exp(-contrast / (2.0 * max(float(contrast.mean()), 1e-6)))
-    garment = seeds
-    for _ in range(rounds):
-        model = ColourModel.fit(lab, garment, other)
-        if model.separability < min_separability:
-            return None
+    model = ColourModel.fit(lab, seeds, other, not_garment=outside)
+    if model.separability < min_separability:  # the garment's colours are also found off it
+        return None
+    separability = model.separability
+    for round_ in range(rounds):
         log_ratio = model.log_ratio(lab)
         labels = graph_cut(geometric + np.clip(log_ratio, -6.0, 6.0), region, edge_i, edge_j, weight)
         if labels.sum() < min_seeds or (~labels).sum() < min_seeds:
             return None
-        garment, other = labels, ~labels
-    return ColourLabels(labels=labels, log_ratio=log_ratio, separability=model.separability)
+        if round_ + 1 < rounds:  # learned again from this cut
+            model = ColourModel.fit(lab, labels, ~labels)
+    return ColourLabels(labels=labels, log_ratio=log_ratio, separability=separability)

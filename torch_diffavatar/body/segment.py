@@ -2,19 +2,21 @@
 
 Per scan point we use (1) the body part of its nearest body vertex (parts from skinning weights), which
 limits where a garment of the requested type may be; (2) its signed distance to the body surface (exact
-closest point, positive outside), averaged over its scan neighbours (cloth lies outside the skin);
-(3) its colour, when present, through a two-class colour model re-estimated from the current labels.
-The result is smoothed by a neighbour majority vote. Where the garment hangs from the body (a bodice on
-the shoulders, a waistband on the hips and the torso below the waist: `GARMENT_SUPPORT`, `WAIST_SUPPORT`)
-the cloth lies within the offset threshold, often within a millimetre of a fitted body that swelled into
-it: there the labels grow over the scan's k-NN graph into the connected points whose offset is still
-positive (beyond ``grow_sigmas`` noise standard deviations, and 0.5 mm), which the skin beside them
-(neck, arms) is not. Last, "skin" that no opening shows (patches enclosed by the garment on the body)
-joins the garment. Measured without colour on simulated scans (`synthetic_scans.make_draped_scan`, 3 cm
-drape spacing; 2.5 cm for the T-shirt), recall without → with the growth, precision ≥ 0.99 both: dress
-seeds 0–4 0.91–0.94 → 0.97–0.99, T-shirt seeds 0–1 0.81 / 0.88 → 0.95 / 0.96, skirt 0.90 → 0.93,
-trousers 0.95 → 0.95; trousers with the torso below the waist (2 cm scans, docs/BENCHMARKS.md
-"Unlabelled trousers and skirts"): 0.77–1.00 → 0.94–1.00.
+closest point, positive outside), averaged over its scan neighbours (cloth lies outside the skin); (3) its
+colour, when present: colour models of the garment and of the rest learned from confident points, combined
+with the offset and smoothed by a graph cut over the scan's neighbour graph (`body.colour`); where the
+colours do not tell the garment apart, a two-class colour model re-estimated from the current labels,
+smoothed by a neighbour majority vote. Where the garment hangs from the body (a bodice on the shoulders, a
+waistband on the hips and the torso below the waist: `GARMENT_SUPPORT`, `WAIST_SUPPORT`) the cloth lies
+within the offset threshold, often within a millimetre of a fitted body that swelled into it: there the
+labels grow over the scan's k-NN graph into the connected points whose offset is still positive (beyond
+``grow_sigmas`` noise standard deviations, and 0.5 mm), which the skin beside them (neck, arms) is not.
+Last, "skin" that no opening shows (patches enclosed by the garment on the body) joins the garment. Measured
+without colour on simulated scans (`synthetic_scans.make_draped_scan`, 3 cm drape spacing; 2.5 cm for the
+T-shirt), recall without → with the growth, precision ≥ 0.99 both: dress seeds 0–4 0.91–0.94 → 0.97–0.99,
+T-shirt seeds 0–1 0.81 / 0.88 → 0.95 / 0.96, skirt 0.90 → 0.93, trousers 0.95 → 0.95; trousers with the
+torso below the waist (2 cm scans, docs/BENCHMARKS.md "Unlabelled trousers and skirts"): 0.77–1.00 →
+0.94–1.00.
 
 Boundaries (hem, cuffs, neck, waist) are found on the body, not in the noisy scan: every body vertex takes
 the label of its nearest scan point (so holes in the scan inherit their rim's label), the covered faces'
