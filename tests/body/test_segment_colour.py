@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers_body import sampled_default_body
 
 from torch_diffavatar.body.colour import GaussianMixture, graph_cut, knn_edges, rgb_to_lab
 
@@ -58,21 +59,8 @@ def outfit(anny_model):
     shirt 2 cm off the torso above the waist and over the upper arms, the trousers 1.5 cm off the hips,
     legs and torso below the waist; the rest is skin, and the hands stand 1 cm off the body (a body fit
     off there: geometry alone takes them for sleeve cloth). Returns the scan and the body."""
-    import torch
-    import trimesh
-
-    from torch_diffavatar.body.model import BodyModel
-    from torch_diffavatar.body.parts import PART_NAMES, vertex_parts
-
-    body = BodyModel(anny_model=anny_model)
-    with torch.no_grad():
-        out = body()
-    verts, faces = out.vertices[0].double().numpy(), body.faces.numpy()
-    waist = body.waist_height(out.joints[0])
-    mesh = trimesh.Trimesh(verts, faces, process=False)
-    points, face = trimesh.sample.sample_surface_even(mesh, 20000, seed=0)
-    parts = vertex_parts(anny_model).numpy()
-    name = np.array(PART_NAMES)[parts[faces[face, 0]]]
+    sampled = sampled_default_body(anny_model)
+    points, name, waist = sampled.points, sampled.name, sampled.waist
     torso = name == "torso"
     shirt = (torso & (points[:, 1] >= waist)) | np.isin(name, ["upperarm.L", "upperarm.R"])
     legs = np.isin(name, ["hips", "thigh.L", "thigh.R", "shin.L", "shin.R"])
@@ -80,11 +68,11 @@ def outfit(anny_model):
     hands = np.isin(name, ["hand.L", "hand.R", "forearm.L", "forearm.R"])
     offset = np.where(shirt, 0.02, np.where(trousers, 0.015, np.where(hands, 0.01, 0.0)))
     rng = np.random.default_rng(1)
-    points = points + (offset + rng.normal(0.0, 0.002, len(points)))[:, None] * mesh.face_normals[face]
+    points = points + (offset + rng.normal(0.0, 0.002, len(points)))[:, None] * sampled.normals
     colors = np.where(shirt[:, None], SHIRT, np.where(trousers[:, None], TROUSERS, SKIN))
     colors = np.clip(colors + rng.normal(0.0, 4.0, colors.shape), 0, 255).astype(np.uint8)
-    return dict(points=points, colors=colors, shirt=shirt, trousers=trousers, hands=hands, verts=verts,
-                faces=faces, parts=parts, waist=waist)  # fmt: skip
+    return dict(points=points, colors=colors, shirt=shirt, trousers=trousers, hands=hands,
+                verts=sampled.verts, faces=sampled.faces, parts=sampled.parts, waist=waist)  # fmt: skip
 
 
 def _segment(scan, garment, **kw):
