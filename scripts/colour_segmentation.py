@@ -17,12 +17,14 @@ The capture: a ring of 4 cameras, a random yaw from the seed, centimetres, Y dow
 
     PYTHONPATH=. python scripts/colour_segmentation.py --make outfit tshirt 46 /tmp/cs/outfit_s46
     PYTHONPATH=. python scripts/colour_segmentation.py /tmp/cs/outfit_s46:tshirt /tmp/cs/outfit_s46:pants:2
+    PYTHONPATH=. python scripts/colour_segmentation.py --smoothness 4 --rounds 1 /tmp/cs/outfit_s46:pants:2
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import json
 import subprocess
 import sys
@@ -148,8 +150,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("cases", nargs="*", help="FOLDER:GARMENT, or FOLDER:GARMENT:LABEL (default 1)")
     parser.add_argument("--make", nargs=4, metavar=("SCENE", "TEMPLATE", "SEED", "FOLDER"))
+    parser.add_argument("--smoothness", type=float, default=None, help="`colour_labels`' (default its own)")
+    parser.add_argument("--rounds", type=int, default=None, help="`colour_labels`' (default its own)")
     args = parser.parse_args()
     torch.set_num_threads(1)
+    from torch_diffavatar.body import colour, segment
+
+    options = {k: v for k, v in (("smoothness", args.smoothness), ("rounds", args.rounds)) if v is not None}
+    segment.colour_labels = functools.partial(colour.colour_labels, **options)
     if args.make:
         scene, template, seed, folder = args.make
         make_scene(scene, template, int(seed), Path(folder))
