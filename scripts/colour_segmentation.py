@@ -42,24 +42,25 @@ TROUSERS_OFFSET_M = 0.012
 def make_scene(scene: str, template: str, seed: int, folder: Path) -> None:
     """Write ``folder/scan.ply`` and ``folder/truth`` of the ``scene`` (see the module docstring)."""
     from torch_diffavatar.body.anny_model import load_anny
-    from torch_diffavatar.capture import CaptureSettings, SceneMesh, capture_scene
-    from torch_diffavatar.captured_scans import CAPTURE_SEED_OFFSET, GARMENT_COLOR, SKIN_COLOR
+    from torch_diffavatar.capture import CaptureSettings, SceneMesh
+    from torch_diffavatar.captured_scans import GARMENT_COLOR, SKIN_COLOR, capture_draped_scan
+    from torch_diffavatar.commands.make_scan import YAW_SEED_OFFSET
     from torch_diffavatar.synthetic_scans import make_draped_scan, write_scan
 
     anny = load_anny(dtype=torch.float32)
     scan = make_draped_scan(template, anny_model=anny, seed=seed)
     garment_color = SKIN_COLOR if scene == "same-skin" else GARMENT_COLOR
-    meshes = [
-        SceneMesh(scan.body_vertices, scan.body_faces, 0, SKIN_COLOR),
-        SceneMesh(scan.cloth_x, scan.garment.sim_faces.numpy(), 1, garment_color),
-    ]
+    extra = ()
     if scene in ("outfit", "same-garments"):
         color = garment_color if scene == "same-garments" else TROUSERS_COLOR
-        meshes.append(SceneMesh(*_trousers(scan, anny), 2, color))
-    yaw = float(np.random.default_rng([seed, 2001]).uniform(0.0, 360.0))
+        extra = (SceneMesh(*_trousers(scan, anny), 2, color),)
+    # as `make-scan --capture ring --yaw random --scan-units cm --scan-up -y` draws them
+    yaw = float(np.random.default_rng([seed, YAW_SEED_OFFSET]).uniform(0.0, 360.0))
     settings = CaptureSettings(yaw_deg=yaw, units="cm", up="-y")
-    captured = capture_scene(meshes, settings, np.random.default_rng([seed, CAPTURE_SEED_OFFSET]))
-    write_scan(scan, folder, capture=captured)
+    turned, captured = capture_draped_scan(
+        scan, settings, seed, garment_color=garment_color, extra_meshes=extra
+    )
+    write_scan(turned, folder, capture=captured)
 
 
 def _trousers(scan, anny) -> tuple[np.ndarray, np.ndarray]:
