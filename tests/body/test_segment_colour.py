@@ -80,7 +80,7 @@ def _segment(scan, garment, **kw):
 
     return segment_garment(
         scan["points"], garment, scan["verts"], scan["faces"], scan["parts"], support_top=scan["waist"], **kw
-    ).labels
+    )
 
 
 def _precision_recall(pred, truth):
@@ -91,15 +91,17 @@ def _precision_recall(pred, truth):
 def test_colour_separates_a_shirt_from_trousers_and_hands_geometry_cannot(outfit):
     """Geometry alone takes the trousers and the forearms for T-shirt (both stand off the body within its
     region); the colour models learned from the shirt's torso and the rest tell them apart."""
-    geometry = _segment(outfit, "tshirt", colors=outfit["colors"], use_colour=False)
-    colour = _segment(outfit, "tshirt", colors=outfit["colors"])
+    geometry = _segment(outfit, "tshirt", colors=outfit["colors"], use_colour=False).labels
+    seg = _segment(outfit, "tshirt", colors=outfit["colors"])
+    colour = seg.labels
+    assert seg.colour_separability > 0.9
     precision, recall = _precision_recall(colour, outfit["shirt"])
     assert precision >= 0.95 and recall >= 0.95
     assert _precision_recall(geometry, outfit["shirt"])[0] < 0.8
     assert colour[outfit["hands"]].mean() < 0.02 < 0.5 < geometry[outfit["hands"]].mean()
     # the trousers, from their thighs, the same way
     precision, recall = _precision_recall(
-        _segment(outfit, "pants", colors=outfit["colors"]), outfit["trousers"]
+        _segment(outfit, "pants", colors=outfit["colors"]).labels, outfit["trousers"]
     )
     assert precision >= 0.95 and recall >= 0.95
 
@@ -111,9 +113,10 @@ def test_a_garment_the_colour_of_the_skin_or_the_trousers_is_segmented_as_withou
     colors = outfit["colors"].copy()
     source = outfit["trousers"] if same_as == "trousers" else ~(outfit["shirt"] | outfit["trousers"])
     colors[outfit["shirt"]] = colors[source][: outfit["shirt"].sum()]
-    with_colour = _segment(outfit, "tshirt", colors=colors)
-    without = _segment(outfit, "tshirt")
+    seg = _segment(outfit, "tshirt", colors=colors)
+    with_colour, without = seg.labels, _segment(outfit, "tshirt").labels
     if same_as == "skin":
+        assert seg.colour_separability is None  # the colour models stood aside
         np.testing.assert_array_equal(with_colour, without)
     else:  # the trousers still differ from the skin: never worse than geometry
         truth = outfit["shirt"]

@@ -141,12 +141,15 @@ class Segmentation:
         garment_indices: (G,) int64 indices of the garment points in the scan.
         loops: the garment's open boundaries (indices into the garment points).
         offsets: (N,) smoothed signed offset of each scan point from the body [m].
+        colour_separability: how well the colour models told the garment apart (`colour.ColourLabels`)
+            when they labelled it; None when they did not (no colours, or colours that do not separate).
     """
 
     labels: np.ndarray
     garment_indices: np.ndarray
     loops: list[ScanOpening]
     offsets: np.ndarray
+    colour_separability: float | None = None
 
 
 def _surface_offsets(
@@ -242,15 +245,10 @@ def segment_garment(
     nbr = nbr.reshape(len(points), -1)
     offset_s = _smooth(offset, nbr)
     evidence = (offset_s - offset_threshold) / offset_scale
-    colour = None
-    if colors is not None and use_colour:
-        seeds = (evidence > 1.0) & _core_points(kind, vertex_parts[near], points, support_top)
-        colour = colour_labels(np.asarray(colors), evidence, region, seeds, nbr)
-    if colour is not None:
-        labels = colour.labels
-        colour_s = _smooth(np.clip(colour.log_ratio, -6.0, 6.0), nbr[:, : max(k // 2, 1)])
-    else:  # geometry, and the two-Gaussian colour evidence when the colours differ at all
-        labels, colour_s = _evidence_labels(evidence, region, nbr, colors if use_colour else None)
+    seeds = (evidence > 1.0) & _core_points(kind, vertex_parts[near], points, support_top)
+    labels, colour_s, separability = _first_labels(
+        evidence, region, seeds, nbr, colors if use_colour else None
+    )
     if labels.any() and grow_sigmas > 0:
         open_points = _support_points(kind, vertex_parts[near], points, support_top)
         open_points &= offset_s > _growth_threshold(offset, offset_s, labels, k, grow_sigmas)
@@ -262,11 +260,37 @@ def segment_garment(
         # offset threshold): the patches of "skin" enclosed by the garment join it.
         covered = _covered_body(points, labels, body_vertices, body_faces, vertex_parts)
         enclosed = region & covered[near]
-        if colour is not None:  # not where the colour is another's (a patch of trousers, of skin)
+        if separability is not None:  # not where the colour is another's (a patch of trousers, of skin)
             enclosed &= colour_s >= 0
         labels = labels | enclosed
     loops = _boundary_loops(points, labels, near, body_vertices, body_faces, vertex_parts, kind)
-    return Segmentation(labels=labels, garment_indices=np.flatnonzero(labels), loops=loops, offsets=offset_s)
+    return Segmentation(
+        labels=labels,
+        garment_indices=np.flatnonzero(labels),
+        loops=loops,
+        offsets=offset_s,
+        colour_separability=separability,
+    )
+
+
+def _first_labels(
+    evidence: np.ndarray, region: np.ndarray, seeds: np.ndarray, nbr: np.ndarray, colors: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray | None, float | None]:
+    """First garment labels (N,) bool: by the offset ``evidence`` (N,) and the ``colors`` (N, 3) through
+    `colour.colour_labels` (colour models from the ``seeds`` (N,) bool, a graph cut over the neighbours
+    ``nbr`` (N, k)), else, when those colours do not tell the garment apart, `_evidence_labels`.
+
+    Returns:
+        the labels, the (N,) smoothed colour evidence (None without any), and the colour models'
+        separability (None when they did not label).
+    """
+    if colors is not None:
+        colour = colour_labels(np.asarray(colors), evidence, region, seeds, nbr)
+        if colour is not None:
+            colour_s = _smooth(np.clip(colour.log_ratio, -6.0, 6.0), nbr[:, : max(nbr.shape[1] // 2, 1)])
+            return colour.labels, colour_s, colour.separability
+    # geometry, and the two-Gaussian colour evidence when the colours differ at all
+    return (*_evidence_labels(evidence, region, nbr, colors), None)
 
 
 def _evidence_labels(

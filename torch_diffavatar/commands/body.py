@@ -204,6 +204,11 @@ def segment_command(args) -> dict:
         support_top=waist,
         use_colour=not args.no_colour,
     )
+    if scan.colors is not None and not args.no_colour:
+        said = (
+            "used" if seg.colour_separability is not None else "not used (it does not tell the garment apart)"
+        )
+        print(f"diffavatar segment: colour {said}", file=sys.stderr)
     if len(seg.garment_indices) == 0:
         raise ScanError(
             f"{args.scan}: no {kind} points found on this body (a bare body, or another garment?): check "
