@@ -42,9 +42,17 @@ def turned_body_params(params: dict, yaw_deg: float) -> dict:
 
 
 def capture_draped_scan(
-    scan: DrapedScan, settings: CaptureSettings, seed: int
+    scan: DrapedScan,
+    settings: CaptureSettings,
+    seed: int,
+    *,
+    garment_color: tuple[int, int, int] = GARMENT_COLOR,
+    extra_meshes: tuple[SceneMesh, ...] = (),
 ) -> tuple[DrapedScan, CapturedScan]:
     """Capture the noise-free drape and body of ``scan`` with ``settings``, all draws from ``seed``.
+
+    ``garment_color``: the garment's RGB; ``extra_meshes``: more of the scene in the body's frame (a second
+    garment, e.g. `scripts/colour_segmentation.py`'s trousers), captured with it and turned alike.
 
     Returns:
         (``scan`` with the captured points and labels and its truth in the intake's frame (see the
@@ -52,7 +60,8 @@ def capture_draped_scan(
     """
     meshes = [
         SceneMesh(scan.body_vertices, scan.body_faces, 0, SKIN_COLOR),
-        SceneMesh(scan.cloth_x, scan.garment.sim_faces.numpy(), 1, GARMENT_COLOR),
+        SceneMesh(scan.cloth_x, scan.garment.sim_faces.numpy(), 1, garment_color),
+        *extra_meshes,
     ]
     captured = capture_scene(meshes, settings, np.random.default_rng([seed, CAPTURE_SEED_OFFSET]))
     rot = yaw_rotation(settings.yaw_deg)

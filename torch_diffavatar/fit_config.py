@@ -185,6 +185,8 @@ class FitConfig:
             (`ControlCage` ``tie_close``) [m]; 0 leaves them free.
         image_every: iterations between TensorBoard pictures (0: only first and last).
         seed: seed of the scan subsampling.
+        segment_colour: an unlabelled scan with colours is segmented by geometry and colour
+            (`body.segment.segment_garment` ``use_colour``); False: by geometry alone.
     """
 
     template: str = "dress"
@@ -233,6 +235,7 @@ class FitConfig:
     tie_close: float = 0.01
     image_every: int = 5
     seed: int = 0
+    segment_colour: bool = True
 
     def __post_init__(self):
         from torch_diffavatar.sim.adjoint import ADJOINTS

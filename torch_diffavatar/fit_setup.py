@@ -218,11 +218,13 @@ def initial_body(body, scan, mesh, body_params: dict | None = None) -> float | N
     return None
 
 
-def garment_mask(scan, seg_type: str, body, body_out, faces: np.ndarray, parts: np.ndarray):
+def garment_mask(
+    scan, seg_type: str, body, body_out, faces: np.ndarray, parts: np.ndarray, use_colour: bool = True
+):
     """(mask (N,) bool of the scan's garment points, whether the scan's labels gave it): the labels
     (`GARMENT_LABEL`) of a labelled scan, else `body.segment.segment_garment` of the garment type
     ``seg_type`` on the body (``body_out``: its `BodyOutput`; ``faces``, ``parts``: its triangles and
-    vertex parts)."""
+    vertex parts; ``use_colour``: `segment_garment`'s)."""
     if scan.labels is not None:
         return scan.labels == GARMENT_LABEL, True
     from torch_diffavatar.body.segment import segment_garment
@@ -230,7 +232,14 @@ def garment_mask(scan, seg_type: str, body, body_out, faces: np.ndarray, parts: 
     waist = body.waist_height(body_out.joints[0])
     body_verts = body_out.vertices[0].double().numpy()
     seg = segment_garment(
-        scan.points, seg_type, body_verts, faces, parts, colors=scan.colors, support_top=waist
+        scan.points,
+        seg_type,
+        body_verts,
+        faces,
+        parts,
+        colors=scan.colors,
+        support_top=waist,
+        use_colour=use_colour,
     )
     return seg.labels, False
 
@@ -303,7 +312,7 @@ def prepare(
     faces = body.faces.cpu().numpy()
     parts = vertex_parts(anny_model).cpu().numpy()
     seg_type = garment_type or SEGMENT_TYPES.get(config.template) or infer_garment_type(pattern)
-    mask, labelled = garment_mask(scan, seg_type, body, body_out, faces, parts)
+    mask, labelled = garment_mask(scan, seg_type, body, body_out, faces, parts, config.segment_colour)
     if mask.sum() < 50:
         raise InputError(f"{scan_path}: only {int(mask.sum())} garment points; cannot fit a garment")
     loops = scan_boundaries(scan.points, mask, body_verts.numpy(), faces, parts, seg_type)

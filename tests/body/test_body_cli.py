@@ -105,6 +105,10 @@ def test_segment_cli_with_a_body_dir(capsys, tmp_path, dressed_scan, anny_model)
     code, out, err = _run(capsys, argv + ["--out", str(out_ply), "--json"])
     assert code == 0 and "no waist height" in err
     assert json.loads(out)["garment_points"] == summary["garment_points"]
+    # geometry alone (the scan has colours): still the T-shirt
+    code, out, _ = _run(capsys, argv + ["--out", str(out_ply), "--json", "--no-colour"])
+    assert code == 0
+    assert abs(json.loads(out)["garment_points"] - int(scan.labels.sum())) < 0.1 * scan.labels.sum()
 
 
 @pytest.mark.parametrize(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from helpers_body import sampled_default_body
 from scipy.spatial import cKDTree
 
 from torch_diffavatar.body.segment import _grow_on_support
@@ -39,28 +40,16 @@ def test_trousers_waistband_on_the_torso_is_garment_below_the_waist_only(anny_mo
     offset threshold), loose on the legs: with the body's waist height (`support_top`) the labels grow
     from the legs over the hips and up the torso to the waistband, not onto the bare torso above it;
     without it they stop where Anny's hips part ends."""
-    import torch
-    import trimesh
-
-    from torch_diffavatar.body.model import BodyModel
-    from torch_diffavatar.body.parts import PART_NAMES, vertex_parts
     from torch_diffavatar.body.segment import segment_garment
 
-    body = BodyModel(anny_model=anny_model)
-    with torch.no_grad():
-        out = body()
-    verts, faces = out.vertices[0].double().numpy(), body.faces.numpy()
-    waist = body.waist_height(out.joints[0])
-    mesh = trimesh.Trimesh(verts, faces, process=False)
-    points, face = trimesh.sample.sample_surface_even(mesh, 20000, seed=0)
-    parts = vertex_parts(anny_model).numpy()
-    part = parts[faces[face, 0]]
-    name = np.array(PART_NAMES)[part]
+    sampled = sampled_default_body(anny_model)
+    points, name, waist = sampled.points, sampled.name, sampled.waist
+    verts, faces, parts = sampled.verts, sampled.faces, sampled.parts
     legs = np.isin(name, ["thigh.L", "thigh.R", "shin.L", "shin.R"])
     band = (name == "torso") & (points[:, 1] < waist - 0.03)  # the waistband and what lies under it
     tight = (name == "hips") | band
     offset = np.where(legs, 0.02, np.where(tight, 0.003, 0.0))
-    points = points + offset[:, None] * mesh.face_normals[face]
+    points = points + offset[:, None] * sampled.normals
     bare_torso = (name == "torso") & (points[:, 1] > waist)
     without = segment_garment(points, "pants", verts, faces, parts).labels
     with_waist = segment_garment(points, "pants", verts, faces, parts, support_top=waist).labels

@@ -2,19 +2,21 @@
 
 Per scan point we use (1) the body part of its nearest body vertex (parts from skinning weights), which
 limits where a garment of the requested type may be; (2) its signed distance to the body surface (exact
-closest point, positive outside), averaged over its scan neighbours (cloth lies outside the skin);
-(3) its colour, when present, through a two-class colour model re-estimated from the current labels.
-The result is smoothed by a neighbour majority vote. Where the garment hangs from the body (a bodice on
-the shoulders, a waistband on the hips and the torso below the waist: `GARMENT_SUPPORT`, `WAIST_SUPPORT`)
-the cloth lies within the offset threshold, often within a millimetre of a fitted body that swelled into
-it: there the labels grow over the scan's k-NN graph into the connected points whose offset is still
-positive (beyond ``grow_sigmas`` noise standard deviations, and 0.5 mm), which the skin beside them
-(neck, arms) is not. Last, "skin" that no opening shows (patches enclosed by the garment on the body)
-joins the garment. Measured without colour on simulated scans (`synthetic_scans.make_draped_scan`, 3 cm
-drape spacing; 2.5 cm for the T-shirt), recall without → with the growth, precision ≥ 0.99 both: dress
-seeds 0–4 0.91–0.94 → 0.97–0.99, T-shirt seeds 0–1 0.81 / 0.88 → 0.95 / 0.96, skirt 0.90 → 0.93,
-trousers 0.95 → 0.95; trousers with the torso below the waist (2 cm scans, docs/BENCHMARKS.md
-"Unlabelled trousers and skirts"): 0.77–1.00 → 0.94–1.00.
+closest point, positive outside), averaged over its scan neighbours (cloth lies outside the skin); (3) its
+colour, when present: colour models of the garment and of the rest learned from confident points, combined
+with the offset and smoothed by a graph cut over the scan's neighbour graph (`body.colour`); where the
+colours do not tell the garment apart, a two-class colour model re-estimated from the current labels,
+smoothed by a neighbour majority vote. Where the garment hangs from the body (a bodice on the shoulders, a
+waistband on the hips and the torso below the waist: `GARMENT_SUPPORT`, `WAIST_SUPPORT`) the cloth lies
+within the offset threshold, often within a millimetre of a fitted body that swelled into it: there the
+labels grow over the scan's k-NN graph into the connected points whose offset is still positive (beyond
+``grow_sigmas`` noise standard deviations, and 0.5 mm), which the skin beside them (neck, arms) is not.
+Last, "skin" that no opening shows (patches enclosed by the garment on the body) joins the garment. Measured
+without colour on simulated scans (`synthetic_scans.make_draped_scan`, 3 cm drape spacing; 2.5 cm for the
+T-shirt), recall without → with the growth, precision ≥ 0.99 both: dress seeds 0–4 0.91–0.94 → 0.97–0.99,
+T-shirt seeds 0–1 0.81 / 0.88 → 0.95 / 0.96, skirt 0.90 → 0.93, trousers 0.95 → 0.95; trousers with the
+torso below the waist (2 cm scans, docs/BENCHMARKS.md "Unlabelled trousers and skirts"): 0.77–1.00 →
+0.94–1.00.
 
 Boundaries (hem, cuffs, neck, waist) are found on the body, not in the noisy scan: every body vertex takes
 the label of its nearest scan point (so holes in the scan inherit their rim's label), the covered faces'
@@ -31,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from torch_diffavatar.body.colour import colour_labels
 from torch_diffavatar.body.parts import PART_NAMES
 from torch_diffavatar.errors import InputError
 
@@ -84,6 +87,20 @@ GARMENT_SUPPORT: dict[str, tuple[str, ...]] = {
 # this way too, but their fits ended farther from the scans (docs/BENCHMARKS.md, "Unlabelled trousers
 # and skirts").
 WAIST_SUPPORT: dict[str, tuple[str, ...]] = {"pants": ("torso",)}
+# Where each garment type's colour is learned (`colour.colour_labels`' seeds): the points standing off
+# the body over these parts, which no other garment of an outfit covers (a top's torso above the waist,
+# not its hem over the trousers; trousers' and skirts' thighs, not a waistband under a top). The torso
+# counts above the body's waist only, when `segment_garment` is given it (``support_top``).
+GARMENT_CORE: dict[str, tuple[str, ...]] = {
+    "dress": ("torso",),
+    "shirt": ("torso",),
+    "tshirt": ("torso",),
+    "polo": ("torso",),
+    "skirt": ("thigh.L", "thigh.R"),
+    "pants": ("thigh.L", "thigh.R"),
+    "jumpsuit": ("torso",),
+    "jumpsuit_sleeveless": ("torso",),
+}
 GARMENT_ALIASES = {"t-shirt": "tshirt", "tee": "tshirt", "trousers": "pants", "shirt-long": "shirt"}
 GARMENT_TYPES = tuple(GARMENT_REGIONS)
 _SLEEVED = ("shirt", "tshirt", "polo", "jumpsuit")
@@ -124,12 +141,15 @@ class Segmentation:
         garment_indices: (G,) int64 indices of the garment points in the scan.
         loops: the garment's open boundaries (indices into the garment points).
         offsets: (N,) smoothed signed offset of each scan point from the body [m].
+        colour_separability: how well the colour models told the garment apart (`colour.ColourLabels`)
+            when they labelled it; None when they did not (no colours, or colours that do not separate).
     """
 
     labels: np.ndarray
     garment_indices: np.ndarray
     loops: list[ScanOpening]
     offsets: np.ndarray
+    colour_separability: float | None = None
 
 
 def _surface_offsets(
@@ -186,6 +206,7 @@ def segment_garment(
     neighbors: int = 16,
     grow_sigmas: float = 0.67,
     support_top: float | None = None,
+    use_colour: bool = True,
 ) -> Segmentation:
     """Label the scan points of one garment using a fitted body.
 
@@ -202,7 +223,11 @@ def segment_garment(
             points whose smoothed offset exceeds this many of its noise standard deviations (0: off).
         support_top: height [m] (world Y) of the body's waist, for trousers: their labels also grow
             over the torso (`WAIST_SUPPORT`) on points below it. `fit_setup.prepare` and
-            ``diffavatar segment`` pass `BodyModel.waist_height`; None: only `GARMENT_SUPPORT`.
+            ``diffavatar segment`` pass `BodyModel.waist_height`; None: only `GARMENT_SUPPORT`. Also
+            where the torso's colour seeds end (`GARMENT_CORE`).
+        use_colour: with ``colors``, label by geometry and colour (`colour.colour_labels`: colour models
+            learned from the garment's core and the rest, a graph cut), or, when those colours do not
+            tell the garment apart, by geometry and a two-Gaussian colour evidence; False: geometry only.
 
     Returns:
         a `Segmentation`.
@@ -220,7 +245,10 @@ def segment_garment(
     nbr = nbr.reshape(len(points), -1)
     offset_s = _smooth(offset, nbr)
     evidence = (offset_s - offset_threshold) / offset_scale
-    labels, colour_s = _evidence_labels(evidence, region, nbr, colors)
+    seeds = (evidence > 1.0) & _core_points(kind, vertex_parts[near], points, support_top)
+    labels, colour_s, separability = _first_labels(
+        evidence, region, seeds, nbr, colors if use_colour else None
+    )
     if labels.any() and grow_sigmas > 0:
         open_points = _support_points(kind, vertex_parts[near], points, support_top)
         open_points &= offset_s > _growth_threshold(offset, offset_s, labels, k, grow_sigmas)
@@ -231,9 +259,38 @@ def segment_garment(
         # Skin seen through no opening is cloth lying close to the body (a fitted bodice within the
         # offset threshold): the patches of "skin" enclosed by the garment join it.
         covered = _covered_body(points, labels, body_vertices, body_faces, vertex_parts)
-        labels = labels | (region & covered[near])
+        enclosed = region & covered[near]
+        if separability is not None:  # not where the colour is another's (a patch of trousers, of skin)
+            enclosed &= colour_s >= 0
+        labels = labels | enclosed
     loops = _boundary_loops(points, labels, near, body_vertices, body_faces, vertex_parts, kind)
-    return Segmentation(labels=labels, garment_indices=np.flatnonzero(labels), loops=loops, offsets=offset_s)
+    return Segmentation(
+        labels=labels,
+        garment_indices=np.flatnonzero(labels),
+        loops=loops,
+        offsets=offset_s,
+        colour_separability=separability,
+    )
+
+
+def _first_labels(
+    evidence: np.ndarray, region: np.ndarray, seeds: np.ndarray, nbr: np.ndarray, colors: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray | None, float | None]:
+    """First garment labels (N,) bool: by the offset ``evidence`` (N,) and the ``colors`` (N, 3) through
+    `colour.colour_labels` (colour models from the ``seeds`` (N,) bool, a graph cut over the neighbours
+    ``nbr`` (N, k)), else, when those colours do not tell the garment apart, `_evidence_labels`.
+
+    Returns:
+        the labels, the (N,) smoothed colour evidence (None without any), and the colour models'
+        separability (None when they did not label).
+    """
+    if colors is not None:
+        colour = colour_labels(np.asarray(colors), evidence, region, seeds, nbr)
+        if colour is not None:
+            colour_s = _smooth(np.clip(colour.log_ratio, -6.0, 6.0), nbr[:, : max(nbr.shape[1] // 2, 1)])
+            return colour.labels, colour_s, colour.separability
+    # geometry, and the two-Gaussian colour evidence when the colours differ at all
+    return (*_evidence_labels(evidence, region, nbr, colors), None)
 
 
 def _evidence_labels(
@@ -259,6 +316,17 @@ def _evidence_labels(
     for _ in range(2):  # neighbour majority vote
         labels = region & (_smooth(labels.astype(np.float64), nbr) > 0.5)
     return labels, colour_s
+
+
+def _core_points(
+    kind: str, near_parts: np.ndarray, points: np.ndarray, support_top: float | None
+) -> np.ndarray:
+    """(N,) bool: the scan points (N, 3) [m] over garment type ``kind``'s `GARMENT_CORE` parts
+    (``near_parts`` (N,): each point's nearest body vertex's part), the torso only above ``support_top``."""
+    core = np.isin(near_parts, [PART_NAMES.index(p) for p in GARMENT_CORE[kind]])
+    if support_top is not None:
+        core &= (near_parts != PART_NAMES.index("torso")) | (points[:, 1] > support_top)
+    return core
 
 
 def _support_points(

@@ -31,6 +31,9 @@ def register(subparsers) -> None:
     seg.add_argument("--garment", required=True, help="dress, shirt, tshirt, polo, skirt or pants")
     seg.add_argument("--body", help="directory written by fit-body (default: fit the body now)")
     seg.add_argument("--out", required=True, help="output PLY of the garment points")
+    seg.add_argument(
+        "--no-colour", action="store_true", help="label by geometry alone, not by the scan's colours too"
+    )
     seg.add_argument("--json", action="store_true", help="print the summary as one JSON line")
     seg.set_defaults(func=_stdout_to_stderr(segment_command))
 
@@ -191,7 +194,21 @@ def segment_command(args) -> dict:
             body_verts = out.vertices[0].numpy()
     faces = anny_model.faces.cpu().numpy()
     parts = vertex_parts(anny_model).cpu().numpy()
-    seg = segment_garment(scan.points, kind, body_verts, faces, parts, colors=scan.colors, support_top=waist)
+    seg = segment_garment(
+        scan.points,
+        kind,
+        body_verts,
+        faces,
+        parts,
+        colors=scan.colors,
+        support_top=waist,
+        use_colour=not args.no_colour,
+    )
+    if scan.colors is not None and not args.no_colour:
+        said = (
+            "used" if seg.colour_separability is not None else "not used (it does not tell the garment apart)"
+        )
+        print(f"diffavatar segment: colour {said}", file=sys.stderr)
     if len(seg.garment_indices) == 0:
         raise ScanError(
             f"{args.scan}: no {kind} points found on this body (a bare body, or another garment?): check "

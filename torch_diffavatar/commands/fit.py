@@ -65,6 +65,11 @@ def register(subparsers) -> None:
         default=None,
         help="mesh spacing [m] (overrides the config's, and its arms_low_spacing for arms held low)",
     )
+    p.add_argument(
+        "--no-colour",
+        action="store_true",
+        help="segment an unlabelled scan by geometry alone, not by its colours too",
+    )
     p.add_argument("--resume", action="store_true", help="continue from --out's checkpoint")
     p.add_argument("--force", action="store_true", help="replace another fit in --out (its files only)")
     add_frame_args(p)
@@ -92,6 +97,8 @@ def fit_command(args) -> dict:
         pattern = resolve_pattern(args.garment)
         garment_type = garment_type or infer_garment_type(pattern)
         template, overrides = TYPE_CONFIGS[garment_type], {"template": str(Path(args.garment).resolve())}
+    if args.no_colour:
+        overrides["segment_colour"] = False
     config = load_config(
         args.config, garment=template, iterations=args.iters, spacing=args.spacing, **overrides
     )
