@@ -2,7 +2,8 @@
 """The whole fit as a plain ``torch.optim`` loop, as a pipeline would write it around `FitObjective`.
 
 The set-up of ``diffavatar fit`` (`fit_setup.prepare`: scan, body, openings, placed template), then
-`FitParameters` + `FitObjective`, the first drape, and Adam with warm starts. `Fitter`'s guards are left out
+`FitParameters` + `FitObjective`, the first drape, and Adam with warm starts (the pattern held for the
+config's ``pattern_delay`` iterations, as `Fitter` holds it). `Fitter`'s guards are left out
 (step halving, proximal rest step, first-drape race, keeping the best iteration): with a config where they
 do not act, this reaches the result of ``diffavatar fit`` (tests/test_objective.py).
 
@@ -43,8 +44,11 @@ def fit_loop(
     params = FitParameters.from_config(garment, config, body, dtype)
     material = ClothMaterial(bend_stiffness=config.initial_bend_stiffness)
     objective = FitObjective.from_parameters(params, garment, target, config, material=material)
-    optimizer = torch.optim.Adam(param_groups(params, config))  # a learning rate per kind of variable
-    schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda it: lr_factor(it, config))  # cosine
+    groups = param_groups(params, config)
+    optimizer = torch.optim.Adam(groups)  # a learning rate per kind of variable
+    # cosine; the pattern's (the cage's) 0 for the first ``config.pattern_delay`` iterations
+    factors = [lambda it, name=g["name"]: lr_factor(it, config, name) for g in groups]
+    schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, factors)
     with torch.no_grad():  # the template sewn onto the body (or start_state) and settled
         start = first_drape(objective, params(), sewing_fallback=sewing_fallback, start_state=start_state)
     out = objective(params(), start)
