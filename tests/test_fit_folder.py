@@ -69,6 +69,30 @@ def test_resume_refuses_another_scan_or_other_settings(tmp_path, monkeypatch):
     assert len(calls) == 1
 
 
+def test_resume_reads_a_set_up_made_before_newer_config_fields(tmp_path, monkeypatch):
+    """A set-up saved before a config field existed resumes when the field is at its default (the old fit
+    ran as the default does), and is refused when it is not."""
+    from torch_diffavatar.fit_checkpoint import atomic_save
+    from torch_diffavatar.fit_scan import fit_fingerprint
+
+    monkeypatch.setattr(fit_setup, "prepare", lambda *a, **k: {"made": 1})
+    scan = tmp_path / "scan.ply"
+    scan.write_text("ply one")
+    out = tmp_path / "fit"
+    out.mkdir()
+    config = load_config(garment="dress")  # the dress keeps the waist fixed and the membrane at 1
+    old = fit_fingerprint(scan, config, units="m", up="y")
+    for name in ("lr_waist_shift", "waist_shift_bound", "pattern_delay", "initial_stretch"):
+        del old["config"][name]
+    atomic_save({"made": 0, "fingerprint": old}, out / "setup.pt")
+    assert load_setup(scan, config, out, resume=True, anny_model=None, units="m", up="y")["made"] == 0
+    with pytest.raises(InputError, match=r"other settings \(pattern_delay\)"):
+        load_setup(
+            scan, load_config(garment="dress", pattern_delay=3), out, resume=True, anny_model=None,
+            units="m", up="y",
+        )  # fmt: skip
+
+
 def test_a_failed_first_sewing_says_which_stage_to_doubt():
     from torch_diffavatar.fit_scan import first_sewing_advice
     from torch_diffavatar.pattern import load_template, mesh_pattern

@@ -57,6 +57,16 @@ def _changed_keys(a: dict, b: dict) -> list[str]:
     return sorted(k for k in {**a, **b} if a.get(k) != b.get(k))
 
 
+def _with_new_defaults(settings: dict) -> dict:
+    """A saved fingerprint's config with the `FitConfig` fields it predates at their defaults: a fit made
+    before a field existed ran as its default does (the waist's height fixed, the membrane at 1, ...)."""
+    from torch_diffavatar.fit_config import FitConfig, config_to_dict
+
+    defaults = config_to_dict(FitConfig())
+    defaults.pop("iterations")
+    return {**defaults, **settings}
+
+
 def _check_fingerprint(setup: dict, expected: dict, setup_path: Path) -> None:
     """InputError when the resumed set-up was made from another scan, garment or settings."""
     found = setup.get("fingerprint")
@@ -66,6 +76,7 @@ def _check_fingerprint(setup: dict, expected: dict, setup_path: Path) -> None:
             file=sys.stderr,
         )
         return
+    found = {**found, "config": _with_new_defaults(found["config"])}
     if found == expected:
         return
     if found["scan_sha256"] != expected["scan_sha256"]:
