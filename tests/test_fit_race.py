@@ -103,6 +103,38 @@ def test_a_race_stopped_anywhere_resumes_to_the_uninterrupted_result(
     assert "race" not in safe_load(tmp_path / CHECKPOINT) and fitter.race is None
 
 
+MEMBRANES = dict(RACE, first_bend_scales=[1], first_stretch_scales=[1, 0.2], lr_log_stretch=0.05)
+
+
+def test_a_race_of_membranes_gives_each_candidate_its_own_and_resumes_exactly(skirt_problem, tmp_path):
+    """``first_stretch_scales``: the second sewing is made with a 5× softer membrane, its race fits from
+    that membrane, the winner's membrane goes on; stopped inside that
+    candidate, the run resumes to the uninterrupted result."""
+    garment, _, target = skirt_problem
+
+    def fitter(out):
+        config = _config(**MEMBRANES)
+        return Fitter(garment, target, config, progress=False, dtype=DT, out_dir=out, tensorboard=False)
+
+    straight_fitter = fitter(tmp_path / "a")
+    expected = straight_fitter.run()
+    plain, soft = expected.report["first_drape_candidates"]
+    assert "stretch_scale" not in plain and soft["stretch_scale"] == 0.2
+    assert math.isfinite(plain["race_loss"]) and math.isfinite(soft["race_loss"])
+    with pytest.raises(Killed):
+        _killed_after(fitter(tmp_path / "b"), 3).run()
+    race = safe_load(tmp_path / "b" / CHECKPOINT)["race"]
+    assert race["index"] == 1 and race["started"]
+    assert float(safe_load(tmp_path / "b" / CHECKPOINT)["params"]["log_stretch"]) < -1.0  # ~log 0.2
+    resumed_fitter = fitter(tmp_path / "b")
+    result = resumed_fitter.run(resume=True)
+    assert torch.equal(result.x, expected.x) and torch.equal(result.rest_uv, expected.rest_uv)
+    for name, value in resumed_fitter.params.state_dict().items():
+        assert torch.equal(value, straight_fitter.params.state_dict()[name]), name
+    with pytest.raises(ValueError, match="need a race"):
+        _config(**dict(MEMBRANES, first_race_iterations=0))
+
+
 def test_an_older_checkpoint_from_inside_the_race_is_refused(skirt_problem, tmp_path):
     """Without its race's state a checkpoint written during the race holds one candidate only: resuming it
     would finish that candidate alone, so it is refused. One written after the race (saves 5, above) has no

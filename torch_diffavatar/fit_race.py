@@ -88,7 +88,25 @@ def opening(fitter, total: int, resume: bool) -> ClothState:
     starts = fitter._first_states()
     laps = min(fitter.config.first_race_iterations, total) if len(starts) > 1 else 0
     fitter.race = race_state(fitter, starts, laps) if laps > 0 else None
+    if fitter.race is None:  # one start: the fit goes on at its membrane
+        candidate_membrane(fitter, starts[0][2])
     return starts[0][1]
+
+
+def candidate_membrane(fitter, candidate: dict) -> None:
+    """Give ``fitter``'s parameters the membrane of a first sewing made with a scaled one (its entry's
+    ``stretch_scale``, `fit_start.first_states`): the present factor times that scale."""
+    import torch
+
+    from torch_diffavatar.objective import unbounded_stretch
+
+    scale = candidate.get("stretch_scale", 1.0)
+    if scale == 1.0:
+        return
+    params = fitter.params
+    factor = float(params.stretch().detach()) * scale
+    with torch.no_grad():
+        params.log_stretch.fill_(unbounded_stretch(factor, params.stretch_bound))
 
 
 def bar_span(fitter, total: int) -> tuple[int, int]:
@@ -144,6 +162,7 @@ def _run_candidate(fitter, state: dict, start: ClothState, bar) -> None:
                 raise SimulationError("the resumed candidate's drape failed (blow-up or non-finite values)")
     else:
         fitter.load_state_dict(copy.deepcopy(state["initial"]))
+        candidate_membrane(fitter, candidate)
         start = ClothState(entry["x"].to(fitter.dtype), entry["v"].to(fitter.dtype))
         ev = fitter._checked_evaluate(start)
         if ev is None:

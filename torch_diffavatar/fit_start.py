@@ -61,8 +61,10 @@ def first_states(
 ) -> list[Start]:
     """The first warm starts, each settled with the fit's own substeps and stiffness (`settled`), as
     (loss, state, its entry of ``candidates``), lowest loss first: ``start_state`` alone, or the template
-    sewn and draped once per ``first_bend_scales`` (the bending stiffness scaled by it). With one start the
-    loss is NaN (not evaluated). Each sewing's scale and loss (or error) are appended to ``candidates``.
+    sewn and draped once per ``first_bend_scales`` (the bending stiffness scaled by it) and
+    ``first_stretch_scales`` (the membrane scaled by it: the entry's ``stretch_scale``, which the race gives
+    that candidate's fit, `fit_race.candidate_membrane`). With one start the loss is NaN (not evaluated).
+    Each sewing's scales and loss (or error) are appended to ``candidates``.
 
     Args:
         objective: the fit's objective (garment, config, material, body faces, the fixed body).
@@ -85,11 +87,13 @@ def first_states(
     if start_state is not None:
         start = ClothState(start_state.x.to(dtype), start_state.v.to(dtype))
         return [(math.nan, settled(objective, start, rest_uv, body_verts, material), {})]
-    scales = objective.config.first_bend_scales
+    config = objective.config
+    pairs = [(b, m) for m in config.first_stretch_scales for b in config.first_bend_scales]
     states = []
-    for scale in scales:
-        candidate = {"bend_scale": scale}
+    for scale, membrane in pairs:
+        candidate = {"bend_scale": scale} | ({"stretch_scale": membrane} if membrane != 1.0 else {})
         candidates.append(candidate)
+        mat = objective.material_at(float(bend_stiffness), (stretch or 1.0) * membrane)
         try:
             res = sew_and_drape(
                 objective.garment,
@@ -97,20 +101,20 @@ def first_states(
                 body_verts=body_verts,
                 body_faces=None if body_verts is None else objective.body_faces,
                 fallback=sewing_fallback,
-                material=replace(material, bend_stiffness=float(bend_stiffness) * scale),
+                material=replace(mat, bend_stiffness=float(bend_stiffness) * scale),
                 config=first_drape_config(objective.config),
                 dtype=dtype,
             )
             if "fallback_after" in res.diagnostics:
                 candidate["sewn_in_a_pose"] = True
-            state = settled(objective, res.state, rest_uv, body_verts, material)
-            if len(scales) == 1:  # nothing to choose; the fit evaluates it anyway
+            state = settled(objective, res.state, rest_uv, body_verts, mat)
+            if len(pairs) == 1:  # nothing to choose; the fit evaluates it anyway
                 return [(math.nan, state, candidate)]
             loss = float(evaluate(state).loss)
             # report.json is strict JSON: a non-finite loss is recorded as an error, not as NaN
             candidate.update({"loss": loss} if math.isfinite(loss) else {"error": f"loss {loss}"})
         except SimulationError as exc:
-            if len(scales) == 1:
+            if len(pairs) == 1:
                 raise
             candidate["error"] = str(exc)
             continue

@@ -114,6 +114,12 @@ def bounded_stretch(log_stretch: torch.Tensor, bound: float) -> torch.Tensor:
     return torch.exp(limit * torch.tanh(log_stretch / limit))
 
 
+def unbounded_stretch(factor: float, bound: float) -> float:
+    """The log stretch scale s whose `bounded_stretch` (s, ``bound``) is ``factor`` [-] (inside the bound)."""
+    limit = math.log(bound)
+    return limit * math.atanh(math.log(factor) / limit)
+
+
 def bounded_shift(shift: torch.Tensor, bound: float) -> torch.Tensor:
     """The waist height change ``bound``·tanh(t/``bound``) [m] of the unbounded variable t [m]: t near 0,
     never beyond ±``bound``, with a gradient that fades smoothly (as `bounded_stretch`)."""
@@ -206,8 +212,7 @@ class FitParameters(nn.Module):
         else:
             cage = FreeVertices(garment)
         log_kb = math.log(config.initial_bend_stiffness)
-        limit = math.log(config.stretch_bound)  # `bounded_stretch` inverted at the initial factor
-        log_stretch = limit * math.atanh(math.log(config.initial_stretch) / limit)
+        log_stretch = unbounded_stretch(config.initial_stretch, config.stretch_bound)
         return cls(
             cage.to(dtype),
             body,
