@@ -107,9 +107,8 @@ MEMBRANES = dict(RACE, first_bend_scales=[1], first_stretch_scales=[1, 0.2], lr_
 
 
 def test_a_race_of_membranes_gives_each_candidate_its_own_and_resumes_exactly(skirt_problem, tmp_path):
-    """``first_stretch_scales``: the second sewing is made with a 5× softer membrane, its race fits from
-    that membrane, the winner's membrane goes on; stopped inside that
-    candidate, the run resumes to the uninterrupted result."""
+    """``first_stretch_scales``: the second sewing is made with a 5× softer membrane and its race fits from
+    that membrane; stopped inside that candidate, the run resumes to the uninterrupted result."""
     garment, _, target = skirt_problem
 
     def fitter(out):
