@@ -129,11 +129,16 @@ def param_groups(params: FitParameters, config: FitConfig) -> list[dict]:
     return groups
 
 
+def pattern_held(iteration: int, config: FitConfig) -> bool:
+    """Whether iteration ``iteration`` (0-based) is one of the first ``config.pattern_delay``, in which the
+    pattern stays as it is while the physical variables move."""
+    return iteration < config.pattern_delay
+
+
 def lr_factor(iteration: int, config: FitConfig, group: str = "") -> float:
     """Learning-rate factor of iteration ``iteration`` (0-based): a cosine from 1 to ``config.lr_final``
-    over ``config.iterations``; 0 for the ``"cage"`` group during the first ``config.pattern_delay``
-    iterations (the physical variables move first)."""
-    if group == "cage" and iteration < config.pattern_delay:
+    over ``config.iterations``; 0 for the ``"cage"`` group while `pattern_held`."""
+    if group == "cage" and pattern_held(iteration, config):
         return 0.0
     total = max(config.iterations - 1, 1)
     t = min(iteration / total, 1.0)
@@ -399,7 +404,7 @@ class Fitter:
         """The cage's Adam group when the proximal rest step is on and the handles have a gradient, the rest
         terms' gradient taken out of it (the proximal step handles them); else None."""
         group = next((g for g in self.optimizer.param_groups if g["name"] == "cage"), None)
-        off = self.config.rest_prox_iterations == 0 or self.iteration < self.config.pattern_delay
+        off = self.config.rest_prox_iterations == 0 or pattern_held(self.iteration, self.config)
         if off or group is None or group["params"][0].grad is None:
             return None
         with torch.enable_grad():

@@ -13,9 +13,12 @@ from __future__ import annotations
 
 import copy
 
+import torch
+
 from torch_diffavatar.errors import InputError, SimulationError
 from torch_diffavatar.fit_checkpoint import CHECKPOINT, safe_load
 from torch_diffavatar.fit_start import Start
+from torch_diffavatar.objective import unbounded_stretch
 from torch_diffavatar.sim.state import ClothState
 
 RACE_KEYS = ("laps", "index", "started", "initial", "starts", "candidates", "best")
@@ -96,10 +99,6 @@ def opening(fitter, total: int, resume: bool) -> ClothState:
 def candidate_membrane(fitter, candidate: dict) -> None:
     """Give ``fitter``'s parameters the membrane of a first sewing made with a scaled one (its entry's
     ``stretch_scale``, `fit_start.first_states`): the present factor times that scale."""
-    import torch
-
-    from torch_diffavatar.objective import unbounded_stretch
-
     scale = candidate.get("stretch_scale", 1.0)
     if scale == 1.0:
         return
