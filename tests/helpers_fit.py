@@ -32,6 +32,28 @@ def skirt_problem():
     return garment, base.state, target
 
 
+def sewn_skirt():
+    """(pattern, garment, `sew_and_drape` result): the skirt template at 10 cm spacing sewn without a body
+    where the fit places it (the start of the membrane and waist tests, whose truths drape the same pattern
+    with other physics)."""
+    from torch_diffavatar.pattern import load_template, mesh_pattern
+    from torch_diffavatar.sim.forward_drape import DrapeConfig, sew_and_drape
+
+    pattern = load_template("skirt")
+    garment = mesh_pattern(pattern, spacing=0.1)
+    cfg = DrapeConfig(max_steps=80, sew_max_steps=120, sew_ramp_steps=60)
+    return pattern, garment, sew_and_drape(garment, config=cfg, dtype=DT)
+
+
+def truth_drape_config(**fit_kw):
+    """The drape config of a fit with ``fit_kw`` (`fit_config`), run long enough to settle a truth."""
+    from dataclasses import replace
+
+    from torch_diffavatar.fit_config import drape_config
+
+    return replace(drape_config(fit_config(**fit_kw)), max_steps=400, min_steps=100)
+
+
 def fit_config(**kw) -> FitConfig:
     """A short skirt fit (3 iterations, no images); ``kw`` overrides fields."""
     base = dict(template="skirt", iterations=3, lr_cage=0.01, lr_log_bend_stiffness=0.05, image_every=0)

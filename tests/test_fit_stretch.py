@@ -4,16 +4,13 @@ pattern frozen (docs/BENCHMARKS.md, "Membrane stretch", for the pattern left fre
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import pytest
 import torch
-from helpers_fit import DT
+from helpers_fit import DT, sewn_skirt, truth_drape_config
 from helpers_fit import fit_config as _config
 
 from torch_diffavatar.assets import fitted_pattern
 from torch_diffavatar.fit import Fitter
-from torch_diffavatar.fit_config import drape_config
 from torch_diffavatar.metrics import pattern_outline_errors
 from torch_diffavatar.objective import ScanTarget, bounded_stretch, stretch_material
 from torch_diffavatar.sim.material import ClothMaterial
@@ -37,16 +34,11 @@ def soft_skirt():
     """(pattern, garment, start state, target): the 10 cm skirt sewn at the base material, and its true
     pattern draped at a membrane `SOFTER` times the base's, with the fit's own drape discretisation (the
     XPBD substeps set the effective stiffness too)."""
-    from torch_diffavatar.pattern import load_template, mesh_pattern
-    from torch_diffavatar.sim.forward_drape import DrapeConfig, drape_to_equilibrium, sew_and_drape
+    from torch_diffavatar.sim.forward_drape import drape_to_equilibrium
 
-    pattern = load_template("skirt")
-    garment = mesh_pattern(pattern, spacing=0.1)
-    base = sew_and_drape(
-        garment, config=DrapeConfig(max_steps=80, sew_max_steps=120, sew_ramp_steps=60), dtype=DT
-    )
+    pattern, garment, base = sewn_skirt()
     soft = stretch_material(ClothMaterial(), ClothMaterial().bend_stiffness, SOFTER)
-    config = replace(drape_config(_config(**FIT)), max_steps=400, min_steps=100)
+    config = truth_drape_config(**FIT)
     truth = drape_to_equilibrium(
         base.model, garment.vert_uv.to(DT), material=soft, state=base.state, config=config
     )

@@ -4,16 +4,14 @@ the pattern (issue #30: on Newton's scans the fit lengthened the panels instead)
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import pytest
 import torch
-from helpers_fit import DT
+from helpers_fit import DT, sewn_skirt, truth_drape_config
 from helpers_fit import fit_config as _config
 
 from torch_diffavatar.assets import fitted_pattern
 from torch_diffavatar.fit import Fitter
-from torch_diffavatar.fit_config import FitConfig, drape_config
+from torch_diffavatar.fit_config import FitConfig
 from torch_diffavatar.metrics import pattern_outline_errors
 from torch_diffavatar.objective import ScanTarget, bounded_shift
 
@@ -25,15 +23,10 @@ FIT = dict(adjoint="equilibrium", drape_steps=60, drape_substeps=40, lr_log_bend
 def low_skirt():
     """(pattern, garment, start state, target): the 10 cm skirt sewn where the fit places it, and the same
     pattern draped with its waist attachments `DROP` lower (points, hem and waist openings)."""
-    from torch_diffavatar.pattern import load_template, mesh_pattern
-    from torch_diffavatar.sim.forward_drape import DrapeConfig, drape_to_equilibrium, sew_and_drape
+    from torch_diffavatar.sim.forward_drape import drape_to_equilibrium
 
-    pattern = load_template("skirt")
-    garment = mesh_pattern(pattern, spacing=0.1)
-    base = sew_and_drape(
-        garment, config=DrapeConfig(max_steps=80, sew_max_steps=120, sew_ramp_steps=60), dtype=DT
-    )
-    config = replace(drape_config(_config(**FIT)), max_steps=400, min_steps=100)
+    pattern, garment, base = sewn_skirt()
+    config = truth_drape_config(**FIT)
     truth = drape_to_equilibrium(
         base.model,
         garment.vert_uv.to(DT),
