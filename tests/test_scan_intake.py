@@ -203,6 +203,18 @@ def test_facing_from_hips_and_feet(yaw):
     assert len(both) == 2 and min(abs((b - yaw + 180.0) % 360.0 - 180.0) for b in both) < 10.0
 
 
+def test_feet_are_seen_only_on_a_scan_that_has_them():
+    """`shows_feet` decides whether the body fit also starts from the head (`BodyFitConfig.head_start`):
+    the stand-in shows its feet, turned or not; cut 30 cm above its soles it does not."""
+    from torch_diffavatar.body.facing import shows_feet
+
+    points, _ = _standing(np.random.default_rng(9), floor=0, noise=0)
+    for yaw in (0.0, 120.0):
+        turned = points @ yaw_rotation(yaw).T
+        assert shows_feet(turned)
+        assert not shows_feet(turned[turned[:, 1] > 0.3])
+
+
 def test_a_huge_scan_is_thinned_before_the_clean_up(tmp_path):
     points, _ = _standing(np.random.default_rng(6), floor=0, noise=0)
     path = tmp_path / "scan.ply"

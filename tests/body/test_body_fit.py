@@ -139,11 +139,12 @@ def test_body_under_a_simulated_dress_without_feet(draped, anny_model):
     -0.2 cm, vertex error 0.5 cm)."""
     scan, full, _ = draped
     assert full.start == "soles"  # the complete scan keeps the start sized by its height
+    assert "pose_head" not in full.losses  # it shows its feet: the head start does not run (issue #32)
     keep = scan.points[:, 1] >= scan.points[:, 1].min() + 0.3
     result = fit_body(scan.points[keep], anny_model=anny_model)
     with torch.no_grad():
         verts = result.body().vertices[0].double().numpy()
-    assert result.start == "head", result.losses
+    assert result.start == "head" and "pose_soles" in result.losses, result.losses
     assert abs(result.height_m - scan.height) <= 0.02
     assert np.linalg.norm(verts - scan.body_vertices, axis=1).mean() <= 0.015
 

@@ -31,6 +31,24 @@ def _slab(points: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return points[(points[:, 1] >= lo) & (points[:, 1] < hi)][:, [0, 2]]
 
 
+def feet_forward(points: np.ndarray) -> np.ndarray | None:
+    """(2,) horizontal (x, z) shift [m] from the shins slab's mean to the feet slab's (towards the toes),
+    or None when the scan shows no feet (a shift under `MIN_FEET_SHIFT`: a scan cut above them, or a long
+    dress's hem; or too few points in a slab). ``points``: (N, 3) [m], Y up, the floor removed."""
+    y0 = np.quantile(points[:, 1], 0.001)
+    feet = _slab(points, y0, y0 + 0.06)
+    shins = _slab(points, y0 + 0.15, y0 + 0.35)
+    if len(feet) < MIN_SLAB_POINTS or len(shins) < MIN_SLAB_POINTS:
+        return None
+    forward = feet.mean(0) - shins.mean(0)
+    return forward if np.linalg.norm(forward) >= MIN_FEET_SHIFT else None
+
+
+def shows_feet(points: np.ndarray) -> bool:
+    """Whether the scan ``points`` (N, 3) [m] (Y up, the floor removed) show the feet (`feet_forward`)."""
+    return feet_forward(points) is not None
+
+
 def facing_yaws(points: np.ndarray) -> list[float]:
     """The person's facing direction as yaws [deg] about +Y (0: facing +Z, 90: facing +X).
 
@@ -44,13 +62,7 @@ def facing_yaws(points: np.ndarray) -> list[float]:
     """
     y0, y1 = np.quantile(points[:, 1], [0.001, 0.999])
     height = y1 - y0
-    feet = _slab(points, y0, y0 + 0.06)
-    shins = _slab(points, y0 + 0.15, y0 + 0.35)
-    forward = None
-    if len(feet) >= MIN_SLAB_POINTS and len(shins) >= MIN_SLAB_POINTS:
-        forward = feet.mean(0) - shins.mean(0)  # (x, z) towards the toes
-        if np.linalg.norm(forward) < MIN_FEET_SHIFT:
-            forward = None  # no feet: a scan cut above them, or a long dress's hem
+    forward = feet_forward(points)
     normal = None
     hips = _slab(points, y0 + 0.40 * height, y0 + 0.55 * height)
     if len(hips) >= MIN_SLAB_POINTS:
