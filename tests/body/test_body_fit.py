@@ -179,3 +179,34 @@ def test_objective_takes_a_scan_in_the_other_precision(anny_model):
     matches = objective.match(verts, out.faces)
     assert bool(matches.scan_found.all())
     assert torch.isfinite(objective.data_terms(verts, matches)).all()
+
+
+def test_coarse_stages_that_run(anny_model, monkeypatch):
+    """Only the coarse stages whose result is used run (issue #32): the yaw trials only when there are
+    several yaws to choose from (the starts begin afresh from the yaw, so a lone trial was thrown away),
+    and the head start only on a scan that does not show its feet."""
+    from helpers_body import sampled_default_body
+
+    import torch_diffavatar.body.fit as body_fit
+
+    points = sampled_default_body(anny_model, count=3000).points  # the default body, feet included
+    calls, run_stage = [], body_fit._run_stage
+
+    def counted(objective, groups, iters):
+        calls.append(iters)
+        return run_stage(objective, groups, iters)
+
+    monkeypatch.setattr(body_fit, "_run_stage", counted)
+    cfg = dict(yaw_iters=3, placement_iters=2, pose_iters=1, final_rounds=0)
+    cut = points[points[:, 1] > points[:, 1].min() + 0.3]
+    expected = {  # iterations of each stage that ran: yaw trials (3), placement (2), pose (1) per start
+        "one yaw, feet": (points, (0.0,), [2, 1]),
+        "two yaws, feet": (points, (0.0, 180.0), [3, 3, 2, 1]),
+        "one yaw, no feet": (cut, (0.0,), [2, 1, 2, 1]),
+    }
+    for name, (scan, yaws, stages) in expected.items():
+        calls.clear()
+        config = body_fit.BodyFitConfig(yaw_candidates=yaws, **cfg)
+        result = body_fit.fit_body(scan, anny_model=anny_model, config=config)
+        assert calls == stages, name
+        assert result.yaw_deg == 0.0, name

@@ -69,7 +69,8 @@ class BodyFitConfig:
             at 3.3 cm Chamfer from the 0° start, issue #29). Within the tolerance the world convention
             stands (the estimate is ~2° on +Z scans, and the placement stage corrects that itself).
         upright_coarse: keep the pelvis upright (yaw only) in the coarse stages.
-        yaw_iters, placement_iters, pose_iters: Adam steps of the coarse stages.
+        yaw_iters, placement_iters, pose_iters: Adam steps of the coarse stages (``yaw_iters``: of each
+            yaw's trial, which runs only when there are several yaws to choose from).
         final_rounds, final_iters: the final stage: ``final_rounds`` rounds of exact point-to-surface
             matches, each followed by up to ``final_iters`` L-BFGS iterations with them held fixed.
         lr_rotation [rad], lr_translation [m], lr_pose [rad]: Adam step sizes of the coarse stages.
@@ -444,6 +445,23 @@ def _initial_guess(body: BodyModel, scan: torch.Tensor, yaw_deg: float, start: s
     body.translation.copy_(shift[None])
 
 
+def _best_yaw(objective: _Objective, scan: torch.Tensor, placement: list[dict], yaws: list[float]) -> float:
+    """The yaw [deg] of ``yaws`` whose brief placement stage (Adam on the ``placement`` groups) on the
+    ``scan`` (N, 3) [m] ends at the lowest loss; 0 when there is none.
+
+    A single yaw needs no trial: each start of the coarse stages begins afresh from the yaw
+    (`_initial_guess`), so that trial's only result was the yaw itself (issue #32).
+    """
+    if len(yaws) == 1:
+        return yaws[0]
+    best = (math.inf, 0.0)
+    for yaw in yaws:
+        _initial_guess(objective.body, scan, yaw)
+        loss = _run_stage(objective, placement, objective.cfg.yaw_iters)
+        best = min(best, (loss, yaw))
+    return best[1]
+
+
 def fit_body(
     scan_points: torch.Tensor | np.ndarray,
     body: BodyModel | None = None,
@@ -486,19 +504,14 @@ def fit_body(
         {"params": [body.global_orient], "lr": cfg.lr_rotation},
         {"params": [body.translation], "lr": cfg.lr_translation},
     ]
-    # Placement: try each yaw briefly, keep the best, then refine it.
-    best = (math.inf, 0.0)
-    for yaw in _yaw_starts(scan, cfg):
-        _initial_guess(body, scan, yaw)
-        loss = _run_stage(objective, placement, cfg.yaw_iters)
-        best = min(best, (loss, yaw))
+    yaw = _best_yaw(objective, scan, placement, _yaw_starts(scan, cfg))
     pose = [{"params": [body.pose], "lr": cfg.lr_pose}]
     # a scan that shows the feet stands on its lowest point: the head start is for scans cut above them
     # (it lost on 14 of 15 complete scans, docs/BENCHMARKS.md), and doubles the coarse stages' time
     starts = ("soles", "head") if cfg.head_start and not shows_feet(scan.numpy()) else ("soles",)
     placed = []
     for start in starts:
-        _initial_guess(body, scan, best[1], start)
+        _initial_guess(body, scan, yaw, start)
         stage = {"placement": _run_stage(objective, placement, cfg.placement_iters)}
         stage["pose"] = _run_stage(objective, placement + pose, cfg.pose_iters)
         placed.append((stage, start, {k: v.detach().clone() for k, v in body.state_dict().items()}))
@@ -520,7 +533,7 @@ def fit_body(
         chamfer_m=float(0.5 * (d_sb + d_bs)),
         height_m=height,
         seconds=time.perf_counter() - t0,
-        yaw_deg=best[1],
+        yaw_deg=yaw,
         start=start,
         losses=losses,
     )
