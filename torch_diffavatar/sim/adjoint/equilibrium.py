@@ -303,9 +303,8 @@ def equilibrium_backward(
     if info.factor is not None:  # the next drape's warm start predicts its equilibrium with it
         detached = tuple(v.detach() for v in material_values)
         body = None if body_verts is None else body_verts.detach()
-        # x.detach(): the forward's output carries the graph, which holds the previous linearization
         linearization = Linearization(
-            x.detach(), contacts, rest_uv.detach(), body, attach_height.detach(), setup.material_names, detached,
+            x, contacts, rest_uv.detach(), body, attach_height.detach(), setup.material_names, detached,
             info.factor,
         )  # fmt: skip
         setup.record(linearization=linearization)
