@@ -175,21 +175,22 @@ double true_residual_csr(const int64_t* cr, const int64_t* cl, const T* val, con
   return bb > 0 ? std::sqrt(rr / bb) : std::sqrt(rr);
 }
 
+// Numeric factorisation of P H Pᵀ = L Lᵀ (up-looking, as CSparse's cs_chol, in blocks): block column j
+// of L holds rows li[cp[j]..cp[j+1]) (the diagonal first, then increasing) with values lx. Returns the flag
+// (0 ok, 3 not positive definite) and the smallest pivot.
 template <typename T>
-void factor_solve(const at::Tensor& crow, const at::Tensor& col, const T* val, const T* b, const int64_t* pm,
-                  const int64_t* parent, const int64_t* cp, T* xo, double* info) {
+std::pair<int, double> factor_numeric(const at::Tensor& crow, const at::Tensor& col, const T* val,
+                                      const int64_t* pm, const int64_t* parent, const int64_t* cp,
+                                      int64_t* li, Blk* lx) {
   auto [bcrow, bcol] = block_pattern(crow, col);
   const int64_t nb = static_cast<int64_t>(bcrow.size()) - 1;
   const int64_t* cr = crow.data_ptr<int64_t>();
-  const int64_t* cl = col.data_ptr<int64_t>();
   std::vector<int64_t> pinv(nb);
   for (int64_t i = 0; i < nb; ++i) pinv[pm[i]] = i;
-  const int64_t nnzl = cp[nb];
-  std::vector<int64_t> li(nnzl), next(cp, cp + nb), s(nb), mark(nb, -1);
-  std::vector<Blk> lx(nnzl), xw(nb, Blk{});
+  std::vector<int64_t> next(cp, cp + nb), s(nb), mark(nb, -1);
+  std::vector<Blk> xw(nb, Blk{});
   double min_pivot = std::numeric_limits<double>::infinity();
-  int flag = 0;
-  for (int64_t k = 0; k < nb && flag == 0; ++k) {
+  for (int64_t k = 0; k < nb; ++k) {
     const int64_t top = ereach(k, bcrow, bcol, pm, pinv, parent, s, mark);
     // scatter block row perm[k] of H (columns i ≤ k of the permuted matrix) into the workspace
     const int64_t r = pm[k];
@@ -219,23 +220,20 @@ void factor_solve(const at::Tensor& crow, const at::Tensor& col, const T* val, c
     d[1] = d[3] = 0.5 * (d[1] + d[3]);
     d[2] = d[6] = 0.5 * (d[2] + d[6]);
     d[5] = d[7] = 0.5 * (d[5] + d[7]);
-    if (!chol3(d, min_pivot)) {
-      flag = 3;
-      break;
-    }
+    if (!chol3(d, min_pivot)) return {3, min_pivot};
     const int64_t p = next[k]++;
     li[p] = k;
     lx[p] = d;
   }
-  const int64_t n = 3 * nb;
-  if (flag != 0) {
-    for (int64_t i = 0; i < n; ++i) xo[i] = std::numeric_limits<T>::quiet_NaN();
-    info[1] = std::numeric_limits<double>::infinity();
-    info[2] = flag;
-    info[3] = min_pivot;
-    return;
-  }
+  return {0, min_pivot};
+}
+
+// x = Pᵀ L⁻ᵀ L⁻¹ P b with the factor of `factor_numeric`.
+template <typename T>
+void factor_apply(int64_t nb, const int64_t* li, const Blk* lx, const int64_t* pm, const int64_t* cp, const T* b,
+                  T* xo) {
   // forward L y = P b (column-oriented: diagonal first in each column), then Lᵀ z = y, x = Pᵀ z
+  const int64_t n = 3 * nb;
   std::vector<double> y(n);
   for (int64_t k = 0; k < nb; ++k)
     for (int a = 0; a < 3; ++a) y[3 * k + a] = static_cast<double>(b[3 * pm[k] + a]);
@@ -265,9 +263,24 @@ void factor_solve(const at::Tensor& crow, const at::Tensor& col, const T* val, c
   }
   for (int64_t k = 0; k < nb; ++k)
     for (int a = 0; a < 3; ++a) xo[3 * pm[k] + a] = static_cast<T>(y[3 * k + a]);
-  info[1] = true_residual_csr(cr, cl, val, xo, b, n);
-  info[2] = 0;
+}
+
+template <typename T>
+void factor_solve(const at::Tensor& crow, const at::Tensor& col, const T* val, const T* b, const int64_t* pm,
+                  const int64_t* parent, const int64_t* cp, T* xo, double* info) {
+  const int64_t n = crow.size(0) - 1, nb = n / 3;
+  std::vector<int64_t> li(cp[nb]);
+  std::vector<Blk> lx(cp[nb]);
+  const auto [flag, min_pivot] = factor_numeric<T>(crow, col, val, pm, parent, cp, li.data(), lx.data());
+  info[2] = flag;
   info[3] = min_pivot;
+  if (flag != 0) {
+    for (int64_t i = 0; i < n; ++i) xo[i] = std::numeric_limits<T>::quiet_NaN();
+    info[1] = std::numeric_limits<double>::infinity();
+    return;
+  }
+  factor_apply<T>(nb, li.data(), lx.data(), pm, cp, b, xo);
+  info[1] = true_residual_csr(crow.data_ptr<int64_t>(), col.data_ptr<int64_t>(), val, xo, b, n);
 }
 
 std::tuple<at::Tensor, at::Tensor> block_cholesky_solve(const at::Tensor& crow, const at::Tensor& col,
@@ -306,6 +319,79 @@ std::tuple<at::Tensor, at::Tensor> block_cholesky_solve(const at::Tensor& crow, 
   return {x, info};
 }
 
+void check_factor_inputs(const at::Tensor& perm, const at::Tensor& parent, const at::Tensor& l_colptr, int64_t nb) {
+  check_cpu_contiguous(perm, "perm");
+  check_cpu_contiguous(l_colptr, "l_colptr");
+  check_dtype(perm, "perm", at::kLong);
+  check_dtype(l_colptr, "l_colptr", at::kLong);
+  check_shape(perm, "perm", {nb});
+  check_shape(l_colptr, "l_colptr", {nb + 1});
+  if (parent.defined()) {
+    check_cpu_contiguous(parent, "parent");
+    check_dtype(parent, "parent", at::kLong);
+    check_shape(parent, "parent", {nb});
+  }
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor> block_cholesky_factor(const at::Tensor& crow, const at::Tensor& col,
+                                                                     const at::Tensor& val, const at::Tensor& perm,
+                                                                     const at::Tensor& parent,
+                                                                     const at::Tensor& l_colptr) {
+  check_cpu_contiguous(crow, "crow");
+  check_cpu_contiguous(col, "col");
+  check_cpu_contiguous(val, "val");
+  check_dtype(crow, "crow", at::kLong);
+  check_dtype(col, "col", at::kLong);
+  const int64_t n = crow.size(0) - 1;
+  TORCH_CHECK(n % 3 == 0, "diffavatar: block_cholesky_factor needs 3 dofs per vertex");
+  check_shape(val, "val", {col.size(0)});
+  const int64_t nb = n / 3;
+  check_factor_inputs(perm, parent, l_colptr, nb);
+  const int64_t nnzl = l_colptr.data_ptr<int64_t>()[nb];
+  at::Tensor l_row = at::empty({nnzl}, perm.options());
+  at::Tensor l_val = at::empty({nnzl, 9}, val.options().dtype(at::kDouble));
+  at::Tensor info = at::zeros({4}, val.options().dtype(at::kDouble));
+  static_assert(sizeof(Blk) == 9 * sizeof(double), "a block is nine packed doubles");
+  AT_DISPATCH_FLOATING_TYPES(val.scalar_type(), "block_cholesky_factor", [&] {
+    const auto [flag, min_pivot] = factor_numeric<scalar_t>(
+        crow, col, val.data_ptr<scalar_t>(), perm.data_ptr<int64_t>(), parent.data_ptr<int64_t>(),
+        l_colptr.data_ptr<int64_t>(), l_row.data_ptr<int64_t>(), reinterpret_cast<Blk*>(l_val.data_ptr<double>()));
+    info.data_ptr<double>()[2] = flag;
+    info.data_ptr<double>()[3] = min_pivot;
+  });
+  if (info.data_ptr<double>()[2] != 0) l_val.fill_(std::numeric_limits<double>::quiet_NaN());
+  return {l_row, l_val, info};
+}
+
+at::Tensor block_cholesky_apply(const at::Tensor& l_row, const at::Tensor& l_val, const at::Tensor& perm,
+                                const at::Tensor& l_colptr, const at::Tensor& b) {
+  check_cpu_contiguous(l_row, "l_row");
+  check_cpu_contiguous(l_val, "l_val");
+  check_cpu_contiguous(b, "b");
+  check_dtype(l_row, "l_row", at::kLong);
+  check_dtype(l_val, "l_val", at::kDouble);
+  const int64_t n = b.size(0);
+  check_shape(b, "b", {n});
+  TORCH_CHECK(n % 3 == 0, "diffavatar: block_cholesky_apply needs 3 dofs per vertex");
+  const int64_t nb = n / 3;
+  check_factor_inputs(perm, at::Tensor(), l_colptr, nb);
+  const int64_t* cp = l_colptr.data_ptr<int64_t>();
+  check_shape(l_row, "l_row", {cp[nb]});
+  check_shape(l_val, "l_val", {cp[nb], 9});
+  const int64_t* li = l_row.data_ptr<int64_t>();
+  for (int64_t j = 0; j < nb; ++j) {  // the layout `factor_apply` indexes: diagonal first, rows in range
+    TORCH_CHECK(cp[j] < cp[j + 1] && li[cp[j]] == j, "diffavatar: l_row/l_colptr are not a block Cholesky factor");
+    for (int64_t p = cp[j] + 1; p < cp[j + 1]; ++p)
+      TORCH_CHECK(li[p] > j && li[p] < nb, "diffavatar: l_row/l_colptr are not a block Cholesky factor");
+  }
+  at::Tensor x = at::empty_like(b);
+  AT_DISPATCH_FLOATING_TYPES(b.scalar_type(), "block_cholesky_apply", [&] {
+    factor_apply<scalar_t>(nb, li, reinterpret_cast<const Blk*>(l_val.data_ptr<double>()), perm.data_ptr<int64_t>(),
+                           cp, b.data_ptr<scalar_t>(), x.data_ptr<scalar_t>());
+  });
+  return x;
+}
+
 }  // namespace
 }  // namespace diffavatar
 
@@ -316,9 +402,18 @@ TORCH_LIBRARY_FRAGMENT(diffavatar, m) {
   m.def(
       "block_cholesky_solve(Tensor crow, Tensor col, Tensor val, Tensor b, Tensor perm, Tensor parent, "
       "Tensor l_colptr) -> (Tensor x, Tensor info)");
+  // The numeric factor alone, to solve again later (the fit's warm-start prediction): L's block rows
+  // (diagonal first per column) and its 3x3 blocks (row-major, float64); info = [0, 0, flag, min pivot].
+  m.def(
+      "block_cholesky_factor(Tensor crow, Tensor col, Tensor val, Tensor perm, Tensor parent, Tensor l_colptr) "
+      "-> (Tensor l_row, Tensor l_val, Tensor info)");
+  // x = H^-1 b with a factor of block_cholesky_factor.
+  m.def("block_cholesky_apply(Tensor l_row, Tensor l_val, Tensor perm, Tensor l_colptr, Tensor b) -> Tensor");
 }
 
 TORCH_LIBRARY_IMPL(diffavatar, CPU, m) {
   m.impl("block_cholesky_analyze", &diffavatar::block_cholesky_analyze);
   m.impl("block_cholesky_solve", &diffavatar::block_cholesky_solve);
+  m.impl("block_cholesky_factor", &diffavatar::block_cholesky_factor);
+  m.impl("block_cholesky_apply", &diffavatar::block_cholesky_apply);
 }

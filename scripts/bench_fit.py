@@ -35,6 +35,14 @@ def main() -> None:
     parser.add_argument("--iters", type=int, default=8)
     parser.add_argument("--adjoint", default=None, help="override the config's adjoint")
     parser.add_argument("--profile", default=None, metavar="PREFIX", help="cProfile the iterations")
+    parser.add_argument(
+        "--reference",
+        type=int,
+        default=0,
+        metavar="FRAMES",
+        help="after each iteration, drape its parameters from its start for FRAMES frames (no prediction, "
+        "no settle test) and report how far the iteration's drape ended from that reference",
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
 
@@ -81,7 +89,9 @@ def main() -> None:
             fitter.iteration += 1
             wall.append(time.perf_counter() - w0)
             cpu.append(time.process_time() - c0)
-            stats.append(dict(ev.stats))
+            stats.append({k: v for k, v in ev.stats.items() if isinstance(v, int | float | str | bool)})
+            if args.reference:
+                stats[-1].update(_reference_gap(fitter, ev, start, args.reference))
         if profiler:
             profiler.disable()
             path = f"{args.profile}.{spacing}.prof"
@@ -102,6 +112,8 @@ def main() -> None:
                     "s_per_iter_mean": round(sum(wall) / len(wall), 3),
                     "cpu_s_per_iter_median": round(statistics.median(cpu), 3),
                     "rejected_steps": fitter.rejected_steps,
+                    "xpbd_frames_per_iter_mean": round(statistics.mean(st["xpbd_steps"] for st in stats), 1),
+                    **_gap_summary(stats),
                     "adjoint_failures": fitter.adjoint_failures,
                     "last_iteration_stats": {
                         k: v for k, v in last.items() if isinstance(v, int | float | str | bool)
@@ -110,6 +122,45 @@ def main() -> None:
             ),
             flush=True,
         )
+
+
+def _reference_gap(fitter, ev, start, frames: int) -> dict:
+    """Distance [mm] of the iteration's drape ``ev.x`` from a ``frames``-frame forward drape of the same
+    parameters from the same start, without the prediction and without the settle test."""
+    from torch_diffavatar.fit_config import drape_config
+    from torch_diffavatar.sim.forward_drape import drape_to_equilibrium
+    from torch_diffavatar.sim.state import ClothState
+
+    objective = fitter.objective
+    config = replace(drape_config(fitter.config), min_steps=frames, max_steps=frames)
+    with torch.no_grad():
+        ref = drape_to_equilibrium(
+            objective.cloth_model,
+            ev.rest_uv.detach(),
+            body_verts=None if ev.body_verts is None else ev.body_verts.detach(),
+            body_faces=None if ev.body_verts is None else objective.body_faces,
+            material=objective.material_at(
+                ev.bend_stiffness.detach(), None if ev.stretch is None else ev.stretch.detach()
+            ),
+            state=ClothState(start.x, start.v),
+            config=config,
+            attach_height=objective.attach_height(
+                None if ev.waist_shift is None else ev.waist_shift.detach()
+            ),
+        )
+        gap = (ev.x.detach() - ref.x).norm(dim=-1) * 1000.0
+    return {"reference_gap_mean_mm": float(gap.mean()), "reference_gap_max_mm": float(gap.max())}
+
+
+def _gap_summary(stats: list[dict]) -> dict:
+    if "reference_gap_mean_mm" not in stats[0]:
+        return {}
+    means = [st["reference_gap_mean_mm"] for st in stats]
+    return {
+        "reference_gap_mean_mm": round(statistics.mean(means), 3),
+        "reference_gap_mean_mm_worst": round(max(means), 3),
+        "reference_gap_max_mm_worst": round(max(st["reference_gap_max_mm"] for st in stats), 3),
+    }
 
 
 # Parts of one iteration, by the function that does them (cumulative time, so the parts overlap where

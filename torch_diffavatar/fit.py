@@ -45,6 +45,8 @@ from torch_diffavatar.fit_checkpoint import (
     atomic_save,
     load_progress,
     progress_state,
+    start_from,
+    start_state,
     upgraded,
 )
 from torch_diffavatar.fit_config import (
@@ -259,8 +261,7 @@ def _params_copy(params: nn.Module) -> dict[str, torch.Tensor]:
 
 def best_snapshot(iteration: int, loss: float, params: FitParameters, start: ClothState) -> dict:
     """What `Fitter.run` keeps of its lowest-loss iteration: iteration, loss, parameters, drape start."""
-    x, v = start.x.detach().clone(), start.v.detach().clone()
-    return {"iteration": iteration, "loss": loss, "params": _params_copy(params), "start_x": x, "start_v": v}
+    return {"iteration": iteration, "loss": loss, "params": _params_copy(params), **start_state(start)}
 
 
 def restore_best(
@@ -277,7 +278,7 @@ def restore_best(
         return ev, iteration
     last = _params_copy(params)
     params.load_state_dict(best["params"])
-    again = evaluate(ClothState(best["start_x"], best["start_v"]))
+    again = evaluate(start_from(best, best["start_x"].dtype))
     if again is None:  # cannot happen for a deterministic drape; keep the last iteration then
         params.load_state_dict(last)
         return ev, iteration
@@ -426,12 +427,13 @@ class Fitter:
         if cage_group is not None:
             rest_prox(self.optimizer, cage_group, self.rest_loss, self.config.rest_prox_iterations)
         delta, retries = [p.detach() - b for p, b in zip(params, before)], self.config.max_retries
-        # trials continue from the accepted drape's end state, except after a dropped step: then they start
-        # where the reproduced drape started, so the halvings probe the very map (start -> drape) whose
-        # gradient was taken (on a T-shirt fit that stalls, rejected trials 95 -> 61 in 30 iterations; it
-        # still stalls: docs/RESULTS_HISTORY.md)
-        x = ev.x.detach()
-        next_start = start if self.trial_from_start else ClothState(x, torch.zeros_like(x))
+        # trials continue from the accepted drape's end state (with its backward's linearization: the trial
+        # drapes start at the predicted equilibrium), except after a dropped step: then they start where
+        # the reproduced drape started, so the halvings probe the very map (start -> drape) whose gradient
+        # was taken (on a T-shirt fit that stalls, rejected trials 95 -> 61 in 30 iterations; it still
+        # stalls: docs/RESULTS_HISTORY.md)
+        x, lin = ev.x.detach(), ev.stats.get("linearization") if self.config.predict_warm_starts else None
+        next_start = start if self.trial_from_start else ClothState(x, torch.zeros_like(x), lin)
         new, scale, rejected = backtrack(params, before, delta, lambda: self._trial(ev, next_start), retries)
         if new is not None:
             self.lr_scale = min(1.0, self.lr_scale * (1.25 if scale == 1.0 else scale))
@@ -576,8 +578,7 @@ class Fitter:
         return {
             "params": self.params.state_dict(),
             "optimizer": self.optimizer.state_dict(),
-            "start_x": start.x.detach().clone(),
-            "start_v": start.v.detach().clone(),
+            **start_state(start),
             **progress_state(self),
             "config": config_to_dict(self.config),
         }
@@ -588,7 +589,7 @@ class Fitter:
         self.params.load_state_dict(state["params"])
         self.optimizer.load_state_dict(state["optimizer"])
         load_progress(self, state)
-        return ClothState(state["start_x"].to(self.dtype), state["start_v"].to(self.dtype))
+        return start_from(state, self.dtype)
 
     def save_checkpoint(self, start: ClothState) -> None:
         if self.out_dir is not None:

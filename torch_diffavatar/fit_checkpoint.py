@@ -15,7 +15,9 @@ from torch_diffavatar.errors import InputError
 from torch_diffavatar.objective import ScanTarget
 from torch_diffavatar.pattern.garment_mesh import BoundaryLoop, GarmentMesh
 from torch_diffavatar.pattern.spec import Edge, EdgeRef, Panel, Pattern, Stitch
+from torch_diffavatar.sim.adjoint.linearization import Linearization
 from torch_diffavatar.sim.forward_drape import PoseRoute
+from torch_diffavatar.sim.state import ClothState
 
 CHECKPOINT = "checkpoint.pt"
 SETUP = "setup.pt"
@@ -74,6 +76,25 @@ def safe_load(path: str | os.PathLike):
     except (pickle.UnpicklingError, RuntimeError, EOFError, AttributeError, ModuleNotFoundError) as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise InputError(f"{path}: not a fit file this version reads safely ({first})") from exc
+
+
+def start_state(start: ClothState) -> dict:
+    """A drape start as plain data: ``start_x``, ``start_v`` and its linearization's inputs
+    (``start_linearization``, or None), from which `start_from` rebuilds the same start."""
+    lin = start.linearization
+    return {
+        "start_x": start.x.detach().clone(),
+        "start_v": start.v.detach().clone(),
+        "start_linearization": None if lin is None else lin.state_dict(),
+    }
+
+
+def start_from(state: dict, dtype: torch.dtype) -> ClothState:
+    """The drape start of `start_state` ``state`` in ``dtype`` (a checkpoint of an older version has no
+    linearization: its next drape is not predicted)."""
+    lin = state.get("start_linearization")
+    lin = None if lin is None else Linearization.from_state_dict(lin)
+    return ClothState(state["start_x"].to(dtype), state["start_v"].to(dtype), lin)
 
 
 def progress_state(driver) -> dict:

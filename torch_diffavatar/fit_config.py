@@ -129,6 +129,9 @@ class FitConfig:
             minimiser before the solve (0: the XPBD drape as it settled) [-].
         adjoint_hessian: equilibrium adjoint only: ``"projected"`` (PSD element Hessians, solvable on
             drapes that are not exact minimisers) or ``"exact"`` (`EquilibriumOptions.hessian`).
+        predict_warm_starts: equilibrium adjoint with the projected Hessian only: each drape starts from
+            the previous one's end moved by the first-order prediction of its backward
+            (`sim.adjoint.linearization`), so it settles in fewer frames.
         drape_substeps: XPBD substeps per frame of the fit's drapes [-].
         first_max_steps: frames at most of the first (sew and) drape [-].
         first_bend_scales: the first drape is sewn and draped once per entry, with the bending stiffness
@@ -216,6 +219,7 @@ class FitConfig:
     drape_steps: int = 3
     polish_iterations: int = 0
     adjoint_hessian: str = "projected"
+    predict_warm_starts: bool = True
     drape_substeps: int = 10
     first_max_steps: int = 400
     first_bend_scales: tuple[float, ...] = (1.0,)

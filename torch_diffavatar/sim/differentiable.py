@@ -47,7 +47,10 @@ class _Drape(torch.autograd.Function):
         t0 = time.perf_counter()
         adjoint = ADJOINTS[setup.saved["adjoint"]]
         with torch.no_grad():
-            x = adjoint.forward(setup, rest_uv, body_verts, attach_height, material_values)
+            # a new tensor: the adjoint keeps its own x in ``setup.saved``, and an output kept on ctx would
+            # make a reference cycle through the graph that Python's collector cannot see (a drape's whole
+            # setup, its linearization's factor too, was kept alive by every fit iteration)
+            x = adjoint.forward(setup, rest_uv, body_verts, attach_height, material_values).clone()
         ro = setup.saved.get("rollout")
         frames = ro.frames if ro is not None and ro.frames is not None else x.new_zeros(0, *x.shape)
         ctx.setup = setup
@@ -197,6 +200,7 @@ def _drape_setup(rest_uv, garment, body_verts, material, body_faces, state, conf
         v0=v0,
         options=options,
         stats=stats,
+        linearization=None if state is None else state.linearization,
     )
     setup.saved["adjoint"] = adjoint
     return setup, values
@@ -233,13 +237,17 @@ def drape(
             get gradients (see `adjoint.common.DIFFERENTIABLE_MATERIAL_FIELDS`).
         body_faces: (Fb, 3) int64 body triangles (outward normals), with ``body_verts``.
         state: start state (warm start, e.g. a previous drape's positions); default the placement at rest.
-            With a batch, its x and v may be (B, Vs, 3).
+            With a batch, its x and v may be (B, Vs, 3). Equilibrium adjoint: a state at the end of an
+            earlier drape that carries that drape's ``stats["linearization"]`` (its backward's) starts
+            from the predicted equilibrium (`sim.adjoint.linearization`).
         config: drape options (step count, tolerances, XPBD settings). For gradchecks use a fixed step
             count (``min_steps == max_steps``) with the trajectory adjoint.
         adjoint: ``"trajectory"`` or ``"equilibrium"`` (keys of `ADJOINTS`).
         options: the adjoint's options (`TrajectoryOptions` / `EquilibriumOptions`; default: theirs).
         stats: a dict that the forward and backward fill with diagnostics (steps, Newton residual,
-            solve residual, timings); with a batch, ``stats["batch"]`` holds one such dict per element.
+            solve residual, timings, the predicted move); with a batch, ``stats["batch"]`` holds one such
+            dict per element. The equilibrium backward also leaves its ``linearization`` there (when its
+            solve was a Cholesky factorisation), for the next drape's ``state``.
         attach_height: (A,) target heights y [m] of the model's attached vertices (the waist of a skirt or
             trousers; differentiable), default ``model.attach_height`` (their placement height). One
             vector for every element of a batch.

@@ -20,6 +20,8 @@ __all__ = [
     "bend_project_",
     "bend_project_jacobi_",
     "block_cholesky_analyze",
+    "block_cholesky_apply",
+    "block_cholesky_factor",
     "block_cholesky_solve",
     "closest_point_index",
     "closest_point_index_available",
@@ -79,6 +81,17 @@ def _register_fake(name: str) -> None:
     def fake_cholesky_solve(crow, col, val, b, *args):
         return torch.empty_like(b), b.new_empty((4,), dtype=torch.float64)
 
+    def fake_cholesky_factor(crow, col, val, perm, parent, l_colptr):
+        nnzl = torch.library.get_ctx().new_dynamic_size()  # l_colptr[-1]: data, not shape
+        return (
+            perm.new_empty((nnzl,)),
+            val.new_empty((nnzl, 9), dtype=torch.float64),
+            val.new_empty((4,), dtype=torch.float64),
+        )
+
+    def fake_cholesky_apply(l_row, l_val, perm, l_colptr, b):
+        return torch.empty_like(b)
+
     fake = {
         "closest_point_on_mesh": fake_closest,
         "max_abs_green_strain": fake_scalar,
@@ -86,6 +99,8 @@ def _register_fake(name: str) -> None:
         "bend_hessians": fake_bend_hessians,
         "block_cholesky_analyze": fake_analyze,
         "block_cholesky_solve": fake_cholesky_solve,
+        "block_cholesky_factor": fake_cholesky_factor,
+        "block_cholesky_apply": fake_cholesky_apply,
     }.get(name, fake_inplace)
     try:
         torch.library.register_fake(f"diffavatar::{name}")(fake)
@@ -335,3 +350,31 @@ def block_cholesky_solve(
     """Sparse Cholesky solve of the SPD ``H x = b``: (x, info) (see `reference.block_cholesky_solve`,
     whose dense twin is for small problems only)."""
     return _pick("block_cholesky_solve", b, use_extension)(crow, col, val, b, perm, parent, l_colptr)
+
+
+def block_cholesky_factor(
+    crow: torch.Tensor,
+    col: torch.Tensor,
+    val: torch.Tensor,
+    perm: torch.Tensor,
+    parent: torch.Tensor,
+    l_colptr: torch.Tensor,
+    *,
+    use_extension: bool = True,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The numeric block Cholesky factor of the SPD ``H``: (l_row, l_val, info) (see
+    `reference.block_cholesky_factor`), to solve with later (`block_cholesky_apply`)."""
+    return _pick("block_cholesky_factor", val, use_extension)(crow, col, val, perm, parent, l_colptr)
+
+
+def block_cholesky_apply(
+    l_row: torch.Tensor,
+    l_val: torch.Tensor,
+    perm: torch.Tensor,
+    l_colptr: torch.Tensor,
+    b: torch.Tensor,
+    *,
+    use_extension: bool = True,
+) -> torch.Tensor:
+    """``H⁻¹ b`` (n,) with a `block_cholesky_factor` of H (see `reference.block_cholesky_apply`)."""
+    return _pick("block_cholesky_apply", b, use_extension)(l_row, l_val, perm, l_colptr, b)

@@ -745,3 +745,80 @@ def block_cholesky_solve(
     info[1] = float((b.double() - hx @ x).norm()) / (nb_ if nb_ > 0 else 1.0)
     info[3] = float(chol.diagonal().min() ** 2)
     return x.to(b.dtype), info
+
+
+def _dense_lower(crow: torch.Tensor, col: torch.Tensor, val: torch.Tensor) -> torch.Tensor:
+    """(n, n) float64 symmetric matrix of the CSR's lower triangle (what the C++ factorisation reads)."""
+    n = crow.shape[0] - 1
+    row = torch.repeat_interleave(torch.arange(n), crow[1:] - crow[:-1])
+    h = torch.zeros(n, n, dtype=torch.float64)
+    h[row, col] = val.double()
+    return torch.tril(h) + torch.tril(h, -1).T
+
+
+def block_cholesky_factor(
+    crow: torch.Tensor,
+    col: torch.Tensor,
+    val: torch.Tensor,
+    perm: torch.Tensor,
+    parent: torch.Tensor,
+    l_colptr: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Numeric block Cholesky ``P H Pᵀ = L Lᵀ`` of an SPD CSR matrix with 3×3 block structure (dense here:
+    small problems only).
+
+    Args:
+        crow, col, val: H in CSR (both triangles); perm: (nb,) int64 new → old vertex ordering; parent,
+        l_colptr: `block_cholesky_analyze` of that ordering.
+
+    Returns:
+        l_row (nnzl,) int64: the block row of each stored block of L, column by column (column j holds
+        ``l_row[l_colptr[j]:l_colptr[j+1]]``: j itself first, then its rows below in increasing order);
+        l_val (nnzl, 9) float64: those 3×3 blocks, row-major; info (4,) float64 = [0, 0, flag (0 ok, 3 not
+        positive definite: l_val is NaN), smallest pivot].
+    """
+    nb = perm.shape[0]
+    p = (3 * perm[:, None] + torch.arange(3)).reshape(-1)
+    h = _dense_lower(crow, col, val)[p][:, p]
+    info = torch.zeros(4, dtype=torch.float64)
+    chol, err = torch.linalg.cholesky_ex(h)
+    rows, cp = [[] for _ in range(nb)], l_colptr.tolist()
+    # the structure of L: row k reaches up the elimination tree from each lower neighbour (cs_ereach)
+    c, cl, par, pinv = crow.tolist(), col.tolist(), parent.tolist(), torch.argsort(perm).tolist()
+    for k in range(nb):
+        r = int(perm[k])
+        seen = {k}
+        for t in range(c[3 * r], c[3 * r + 1], 3):
+            i = pinv[cl[t] // 3]
+            while i < k and i not in seen:
+                seen.add(i)
+                rows[i].append(k)
+                i = par[i]
+    l_row = torch.tensor([x for j in range(nb) for x in [j, *sorted(rows[j])]], dtype=torch.int64)
+    col_of = torch.repeat_interleave(torch.arange(nb), torch.tensor([cp[j + 1] - cp[j] for j in range(nb)]))
+    blocks = chol.reshape(nb, 3, nb, 3).permute(0, 2, 1, 3)  # [row block, col block, 3, 3]
+    l_val = blocks[l_row, col_of].reshape(-1, 9).contiguous()
+    if int(err) != 0:
+        info[2] = 3
+        return l_row, torch.full_like(l_val, float("nan")), info
+    info[3] = float(chol.diagonal().min() ** 2)
+    return l_row, l_val, info
+
+
+def block_cholesky_apply(
+    l_row: torch.Tensor, l_val: torch.Tensor, perm: torch.Tensor, l_colptr: torch.Tensor, b: torch.Tensor
+) -> torch.Tensor:
+    """``x = Pᵀ L⁻ᵀ L⁻¹ P b`` (n,) in b's dtype, with a `block_cholesky_factor` (l_row, l_val, l_colptr) and
+    its ordering ``perm`` (dense triangular solves: small problems only)."""
+    nb = perm.shape[0]
+    cp = l_colptr.tolist()
+    col_of = torch.repeat_interleave(torch.arange(nb), torch.tensor([cp[j + 1] - cp[j] for j in range(nb)]))
+    lower = torch.zeros(nb, nb, 3, 3, dtype=torch.float64)
+    lower[l_row, col_of] = l_val.reshape(-1, 3, 3)
+    lower = lower.permute(0, 2, 1, 3).reshape(3 * nb, 3 * nb)
+    p = (3 * perm[:, None] + torch.arange(3)).reshape(-1)
+    y = torch.linalg.solve_triangular(lower, b.double()[p][:, None], upper=False)
+    z = torch.linalg.solve_triangular(lower.T, y, upper=True)[:, 0]
+    x = torch.empty_like(z)
+    x[p] = z
+    return x.to(b.dtype)

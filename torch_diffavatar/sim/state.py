@@ -14,10 +14,15 @@ class ClothState:
     Attributes:
         x: (Vs, 3) positions [m].
         v: (Vs, 3) velocities [m/s].
+        linearization: how the equilibrium at x moves with the drape's inputs, when x is the end of an
+            equilibrium-adjoint drape whose backward ran (`sim.adjoint.linearization.Linearization`, from
+            that drape's ``stats["linearization"]``): the next drape from this state starts at the
+            predicted equilibrium. None otherwise.
     """
 
     x: torch.Tensor
     v: torch.Tensor
+    linearization: object | None = None
 
     def __post_init__(self):
         if self.x.ndim != 2 or self.x.shape[-1] != 3 or self.v.shape != self.x.shape:
@@ -27,7 +32,8 @@ class ClothState:
             )
 
     def clone(self) -> ClothState:
-        return ClothState(self.x.clone(), self.v.clone())
+        return ClothState(self.x.clone(), self.v.clone(), self.linearization)
 
     def to(self, device=None, dtype=None) -> ClothState:
-        return ClothState(self.x.to(device=device, dtype=dtype), self.v.to(device=device, dtype=dtype))
+        x, v = self.x.to(device=device, dtype=dtype), self.v.to(device=device, dtype=dtype)
+        return ClothState(x, v, self.linearization)

@@ -62,7 +62,9 @@ class DrapeSetup:
             values are passed separately); material_names: names of the differentiable material fields;
         body_faces: (Fb, 3) int64 or None; config: drape options; x0: (Vs, 3) start positions [m];
         v0: (Vs, 3) start velocities [m/s]; options: the adjoint's own options (a dataclass);
-        stats: caller-owned dict that forward/backward fill with diagnostics (or None).
+        stats: caller-owned dict that forward/backward fill with diagnostics (or None);
+        linearization: the start state's `linearization.Linearization` (the equilibrium adjoint predicts
+            the drape's end with it), or None.
     """
 
     model: ClothModel
@@ -74,6 +76,7 @@ class DrapeSetup:
     v0: torch.Tensor
     options: object
     stats: dict | None = None
+    linearization: object | None = None
     saved: dict = field(default_factory=dict)
 
     def record(self, **values) -> None:

@@ -26,6 +26,13 @@ import torch
 
 from torch_diffavatar.sim import collision
 from torch_diffavatar.sim.adjoint.common import DrapeSetup, Gradients, contacts_subset, material_with
+from torch_diffavatar.sim.adjoint.linearization import (
+    Linearization,
+    adjoint_matrix,
+    energy_gradient,
+    free_dofs,
+    predicted_start,
+)
 from torch_diffavatar.sim.adjoint.linsolve import SOLVE_METHODS, check_solve, solve_symmetric
 from torch_diffavatar.sim.collision import Contacts
 from torch_diffavatar.sim.energy import EnergyParams, drape_energy, hessian_blocks, hessian_pattern
@@ -97,30 +104,10 @@ def _params(setup: DrapeSetup, opts: EquilibriumOptions) -> EnergyParams:
     return EnergyParams(x.gravity, x.stitch_compliance, x.attach_compliance, opts.contact_stiffness)
 
 
-def _free(rest, model):
-    free_vert = rest.vert_inv_mass.detach() > 0
-    free_dof = free_vert[:, None].expand(-1, 3).reshape(-1)
-    idx = torch.full(free_dof.shape, -1, dtype=torch.int64, device=free_dof.device)
-    n = int(free_dof.sum())
-    idx[free_dof] = torch.arange(n, device=free_dof.device)
-    return free_dof, idx, n
-
-
-def _energy_grad(x, setup, rest, material, params, body_verts, contacts):
-    with torch.enable_grad():
-        xl = x.detach().requires_grad_(True)
-        u = drape_energy(
-            xl, setup.model, rest, material, params,
-            body_verts=body_verts, body_faces=setup.body_faces, contacts=contacts,
-        )  # fmt: skip
-        (g,) = torch.autograd.grad(u, xl)
-    return u.detach(), g
-
-
 def newton_polish(setup, rest, material, params, body_verts, contacts, x, opts, stats):
     """Projected Newton on U over the free dofs from ``x``; returns (x, iterations, force residual)."""
     model = setup.model
-    free_dof, _, nfree = _free(rest, model)
+    free_dof, _, nfree = free_dofs(rest, model)
     weight = float((rest.vert_mass.detach() * x.new_tensor(params.gravity).norm()).max())
     tol = max(opts.newton_tol, 1e-4 if x.dtype == torch.float32 else 0.0) * weight
     energy = lambda y: drape_energy(  # noqa: E731
@@ -139,7 +126,7 @@ def newton_polish(setup, rest, material, params, body_verts, contacts, x, opts, 
     # 2k-vertex dress it failed in every iteration and doubled the polish time)
     tries = (False, True)
     for it in range(opts.newton_iterations + 1):  # noqa: B007
-        u0, g = _energy_grad(x, setup, rest, material, params, body_verts, contacts)
+        u0, g = energy_gradient(x, setup, rest, material, params, body_verts, contacts)
         gf = g.reshape(-1)[free_dof]
         gmax = float(gf.abs().max()) if nfree else 0.0
         if gmax <= tol or it == opts.newton_iterations:
@@ -253,18 +240,19 @@ def equilibrium_forward(
     opts: EquilibriumOptions = setup.options
     model = setup.model
     material = material_with(setup.material, setup.material_names, material_values)
+    rest = model.rest_data(rest_uv, material, attach_height)
+    params = _params(setup, opts)
+    x_start, predicted_move = predicted_start(setup, rest, material, params, body_verts, opts)
     res = drape_to_equilibrium(
         model,
         rest_uv,
         body_verts=body_verts,
         body_faces=setup.body_faces,
         material=material,
-        state=ClothState(setup.x0, setup.v0),
+        state=ClothState(x_start, setup.v0),
         config=setup.config,
         attach_height=attach_height,
     )
-    rest = model.rest_data(rest_uv, material, attach_height)
-    params = _params(setup, opts)
     x = res.x
     contacts = initial_contacts(x, setup, material, body_verts, opts)
     total_it, gmax, rounds = 0, float("inf"), 0
@@ -281,6 +269,7 @@ def equilibrium_forward(
         xpbd_steps=res.steps,
         xpbd_converged=res.converged,
         xpbd_max_speed=res.max_speed,
+        predicted_move=predicted_move,
         polish_displacement=float((x - res.x).norm(dim=-1).max()),
         newton_iterations=total_it,
         newton_force_residual=gmax,
@@ -301,16 +290,8 @@ def equilibrium_backward(
     material = material_with(setup.material, setup.material_names, material_values)
     params = _params(setup, opts)
     rest = model.rest_data(rest_uv.detach(), material, attach_height)
-    free_dof, _, nfree = _free(rest, model)
-    project = opts.hessian == "projected"
-    # float64 element Hessians, assembled through the model's cached CSR pattern (exactly symmetric)
-    blocks = hessian_blocks(
-        x, model, rest, material, params, body_verts=body_verts, body_faces=setup.body_faces,
-        contacts=contacts, project=project, dtype=torch.float64, use_extension=opts.use_extension,
-    )  # fmt: skip
-    shift = opts.regularization * blocks.max_diagonal() if project and opts.regularization > 0 else 0.0
-    pattern = hessian_pattern(model, free_dof[0::3])
-    val = pattern.assemble(blocks, shift)
+    free_dof, _, nfree = free_dofs(rest, model)
+    pattern, val = adjoint_matrix(x, setup, rest, material, params, body_verts, contacts, opts)
     # The solve runs in float64 whatever the model's dtype: the cloth's stiffness spread makes H too
     # ill-conditioned for a float32 factorisation (measured: relative residual ~5e-4 on the dress).
     b = grad_x.reshape(-1)[free_dof].to(torch.float64)
@@ -319,6 +300,14 @@ def equilibrium_backward(
         use_extension=opts.use_extension, cache=pattern.solver_cache,
     )  # fmt: skip
     lam_free = lam_free.to(x.dtype)
+    if info.factor is not None:  # the next drape's warm start predicts its equilibrium with it
+        detached = tuple(v.detach() for v in material_values)
+        body = None if body_verts is None else body_verts.detach()
+        linearization = Linearization(
+            x, contacts, rest_uv.detach(), body, attach_height.detach(), setup.material_names, detached,
+            info.factor,
+        )  # fmt: skip
+        setup.record(linearization=linearization)
     setup.record(
         adjoint_solve_method=info.method,
         adjoint_solve_iterations=info.iterations,

@@ -35,13 +35,14 @@ below 1e-11; solves cut short by the iteration cap had forward errors 1e-7–1.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
 from torch_diffavatar._ext import has_extension
 from torch_diffavatar.errors import SimulationError
+from torch_diffavatar.sim import ops
 from torch_diffavatar.sim.ops import extension_op
 
 SOLVE_METHODS = ("auto", "cg", "minres", "direct")
@@ -85,6 +86,26 @@ class SolveInfo:
     attempts: tuple[str, ...]
     converged: bool
     backward_error: float
+    factor: CholeskyFactor | None = field(default=None, repr=False, compare=False)
+
+
+@dataclass(frozen=True)
+class CholeskyFactor:
+    """A block Cholesky factor of H (`cholesky_factor`), kept to solve with the same H again.
+
+    Attributes:
+        l_row: (nnzl,) int64; l_val: (nnzl, 9) float64; perm: (n/3,) int64; l_colptr: (n/3+1,) int64
+        (`ops.block_cholesky_factor`).
+    """
+
+    l_row: torch.Tensor
+    l_val: torch.Tensor
+    perm: torch.Tensor
+    l_colptr: torch.Tensor
+
+    def solve(self, b: torch.Tensor) -> torch.Tensor:
+        """(n,) ``H⁻¹ b`` in b's dtype."""
+        return ops.block_cholesky_apply(self.l_row, self.l_val, self.perm, self.l_colptr, b.contiguous())
 
 
 def _scipy_matrix(crow, col, val):
@@ -171,32 +192,45 @@ def vertex_ordering(crow: torch.Tensor, col: torch.Tensor) -> torch.Tensor:
     return torch.as_tensor(np.argsort(lu.perm_c).astype(np.int64))
 
 
-def _cholesky(crow, col, val, b, cache: dict):
-    """Block sparse Cholesky solve with the symbolic analysis kept in ``cache``; None without the ops."""
-    analyze, solve = extension_op("block_cholesky_analyze"), extension_op("block_cholesky_solve")
-    if analyze is None or solve is None or b.device.type != "cpu":
-        return None
+def cholesky_factor(crow, col, val, cache: dict) -> tuple[CholeskyFactor | None, int]:
+    """The block Cholesky factor of the SPD CSR matrix (crow, col, val), its ordering and symbolic analysis
+    kept in ``cache`` (computed once per pattern); (None, 3) when H is not positive definite, (None, -1)
+    without the C++ ops."""
+    analyze, factor = extension_op("block_cholesky_analyze"), extension_op("block_cholesky_factor")
+    if analyze is None or factor is None or val.device.type != "cpu":
+        return None, -1
     if cache.get("col") is not col:  # a new pattern: order and analyse once
         perm = vertex_ordering(crow, col)
         parent, colptr = analyze(crow, col, perm)
         cache.update(col=col, perm=perm, parent=parent, l_colptr=colptr)
-    x, info = solve(crow, col, val, b, cache["perm"], cache["parent"], cache["l_colptr"])
-    return x, int(info[2])
+    l_row, l_val, info = factor(crow, col, val, cache["perm"], cache["parent"], cache["l_colptr"])
+    flag = int(info[2])
+    return (CholeskyFactor(l_row, l_val, cache["perm"], cache["l_colptr"]) if flag == 0 else None), flag
+
+
+def _cholesky(crow, col, val, b, cache: dict):
+    """Block sparse Cholesky solve (x, flag, factor) with `cholesky_factor`; None without the ops."""
+    factor, flag = cholesky_factor(crow, col, val, cache)
+    if flag == -1:
+        return None
+    if factor is None:
+        return torch.full_like(b, float("nan")), flag, None
+    return factor.solve(b), 0, factor
 
 
 def _one(crow, col, val, b, method, tol, max_iter, use_extension, cache=None):
     if method == "cholesky":
-        x, flag = _cholesky(crow, col, val, b, cache)
-        return x, 0, flag
+        x, flag, factor = _cholesky(crow, col, val, b, cache)
+        return x, 0, flag, factor
     op = solve_op() if (use_extension and b.device.type == "cpu") else None
     if method == "direct" or op is None:
         x, iters, flag = solve_reference(crow, col, val, b, method, tol, max_iter)
-        return x, iters, flag
+        return x, iters, flag, None
     x, info = op(
         crow.contiguous(), col.contiguous(), val.contiguous(), b.contiguous(), 0 if method == "cg" else 1,
         float(tol), int(max_iter),
     )  # fmt: skip
-    return x, int(info[0]), int(info[2])
+    return x, int(info[0]), int(info[2]), None
 
 
 def solve_symmetric(
@@ -228,25 +262,25 @@ def solve_symmetric(
     chain = {"auto": ("cg", "minres", "direct")}.get(method, (method,))
     if method == "direct" and cache is not None and use_extension and _cholesky_available(b):
         chain = ("cholesky", "direct")  # SuperLU only when H is not positive definite
-    attempts, indefinite = [], False
+    attempts, indefinite, factor = [], False, None
     x, iters, res, used, converged = b.new_zeros(b.shape), 0, float("inf"), chain[0], False
     for m in chain:
         attempts.append(m)
-        xm, it, flag = _one(crow, col, val, b, m, tol, max_iter, use_extension, cache)
+        xm, it, flag, fm = _one(crow, col, val, b, m, tol, max_iter, use_extension, cache)
         indefinite |= flag == 2
         rm = residual(crow, col, val, xm, b)
         if np.isfinite(rm) and (rm < res or not np.isfinite(res)):
-            x, iters, res, used, converged = xm, it, rm, m, flag == 0
+            x, iters, res, used, converged, factor = xm, it, rm, m, flag == 0, fm
         if np.isfinite(rm) and rm <= max(10 * tol, 1e-12) and flag in (0, 1):
             break
     info = SolveInfo(
-        used, iters, res, indefinite, tuple(attempts), converged, backward_error(crow, col, val, x, b)
+        used, iters, res, indefinite, tuple(attempts), converged, backward_error(crow, col, val, x, b), factor
     )
     return x, info
 
 
 def _cholesky_available(b: torch.Tensor) -> bool:
-    return b.device.type == "cpu" and extension_op("block_cholesky_solve") is not None
+    return b.device.type == "cpu" and extension_op("block_cholesky_factor") is not None
 
 
 def check_solve(info: SolveInfo, tol: float, what: str, dtype: torch.dtype = torch.float64) -> None:
