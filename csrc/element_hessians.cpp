@@ -11,7 +11,10 @@
 // project the reduced (6×6 / 9×9) matrix in an orthonormal basis of that complement (same result as
 // projecting the full block, a quarter of the work), skip the eigensolve when a Cholesky shows the
 // reduced matrix is already positive definite, and otherwise use Householder tridiagonalisation + QL
-// (tred2/tql2, the EISPACK algorithm as in JAMA).
+// (tred2/tql2, the EISPACK algorithm as in JAMA). A bending block has one more exact null vector (sliding
+// the vertices along the hinge, `bend_project`), so its Cholesky never succeeds: it is projected in the
+// 8-dimensional complement of that one too (with plain roots for std::hypot in tql2: 0.117 → 0.081 s per
+// call on the 8k-vertex dress, docs/BENCHMARKS.md).
 // Arithmetic in double whatever the input dtype. PyTorch twins: reference.stretch_hessians /
 // reference.bend_hessians (torch.func.hessian of the energies + eigh projection).
 
@@ -121,7 +124,7 @@ void tql2(double (&V)[N][N], double (&d)[N], double (&e)[N]) {
       for (int iter = 0; iter < 64; ++iter) {  // converges in 2-3; the cap only guards NaN input
         double g = d[l];
         double p = (d[l + 1] - g) / (2.0 * e[l]);
-        double r = std::hypot(p, 1.0);
+        double r = std::sqrt(p * p + 1.0);  // not std::hypot: this chain of roots is the op's critical path
         if (p < 0) r = -r;
         d[l] = e[l] / (p + r);
         d[l + 1] = e[l] * (p + r);
@@ -138,7 +141,7 @@ void tql2(double (&V)[N][N], double (&d)[N], double (&e)[N]) {
           s2 = s;
           g = c * e[i];
           h = c * p;
-          r = std::hypot(p, e[i]);
+          r = std::sqrt(p * p + e[i] * e[i]);  // |p|, |e| ≪ 1e150 here: no overflow to guard
           e[i + 1] = s * r;
           s = e[i] / r;
           c = p / r;
@@ -248,6 +251,58 @@ void expand(const double (&M)[3 * (C - 1)][3 * (C - 1)], const double (&Qc)[C][C
         for (int m = 0; m < R; ++m) s += Qc[a][m] * U[3 * m + k][j];
         out[(3 * a + k) * 3 * C + j] = static_cast<T>(s);
       }
+}
+
+// A ← P A P with P = I − β w wᵀ, β = 2 / wᵀw (a Householder reflection; A symmetric).
+template <int N>
+void reflect(double (&A)[N][N], const double (&w)[N], double beta) {
+  double p[N], wp = 0.0;
+  for (int i = 0; i < N; ++i) {
+    double s = 0.0;
+    for (int j = 0; j < N; ++j) s += A[i][j] * w[j];
+    p[i] = beta * s;
+    wp += w[i] * p[i];
+  }
+  const double k = 0.5 * beta * wp;
+  for (int i = 0; i < N; ++i) p[i] -= k * w[i];
+  for (int i = 0; i < N; ++i)
+    for (int j = 0; j < N; ++j) A[i][j] -= w[i] * p[j] + p[i] * w[j];
+}
+
+// PSD part of a bending block, in the 8-dimensional complement of its null space: the translations and
+// v_a = ((x_a − x_0)·ê) ê (each vertex slid along the hinge, which leaves θ unchanged; v is null for the
+// whole block since every ∇_a θ ⊥ ê and Σ_a ∇_a θ (x_a·ê) = 0 by rotation invariance).
+template <typename T>
+void bend_project(const double (&H)[12][12], const double (&xq)[4][3], T* out) {
+  double M[9][9];
+  reduce<4>(H, kQ4, M);
+  double eh[3], L2 = 0.0;
+  for (int k = 0; k < 3; ++k) eh[k] = xq[1][k] - xq[0][k], L2 += eh[k] * eh[k];
+  const double L = std::sqrt(L2);
+  for (int k = 0; k < 3; ++k) eh[k] /= L;
+  double c[4];
+  for (int a = 0; a < 4; ++a)
+    c[a] = (xq[a][0] - xq[0][0]) * eh[0] + (xq[a][1] - xq[0][1]) * eh[1] + (xq[a][2] - xq[0][2]) * eh[2];
+  double w[9], yy = 0.0;  // w ← y = Qᵀ v, the null vector in the reduced basis (|y| ≥ L/√2 > 0)
+  for (int m = 0; m < 3; ++m) {
+    const double cm = kQ4[0][m] * c[0] + kQ4[1][m] * c[1] + kQ4[2][m] * c[2] + kQ4[3][m] * c[3];
+    for (int k = 0; k < 3; ++k) w[3 * m + k] = cm * eh[k], yy += w[3 * m + k] * w[3 * m + k];
+  }
+  const double ny = std::sqrt(yy);
+  const double y8 = std::abs(w[8]);
+  w[8] += w[8] >= 0.0 ? ny : -ny;  // then P y = ∓|y| e₈ (the sign that avoids cancellation)
+  const double beta = 1.0 / (ny * (ny + y8));  // 2 / wᵀw
+  for (int i = 0; i < 9; ++i)
+    for (int j = 0; j < i; ++j) M[i][j] = M[j][i] = 0.5 * (M[i][j] + M[j][i]);
+  reflect(M, w, beta);
+  double B[8][8];
+  for (int i = 0; i < 8; ++i)
+    for (int j = 0; j < 8; ++j) B[i][j] = M[i][j];
+  project_psd(B);
+  for (int i = 0; i < 9; ++i)
+    for (int j = 0; j < 9; ++j) M[i][j] = i < 8 && j < 8 ? B[i][j] : 0.0;
+  reflect(M, w, beta);
+  expand<4>(M, kQ4, out);
 }
 
 // ---- StVK membrane --------------------------------------------------------------------------------
@@ -463,10 +518,7 @@ void bend_kernel(const T* x, const int64_t* quads, const T* weight, const T* res
     bend_full(xq, static_cast<double>(weight[q]), static_cast<double>(rest_angle[q]), kb, H);
     T* o = out + 144 * q;
     if (project) {
-      double M[9][9];
-      reduce<4>(H, kQ4, M);
-      project_psd(M);
-      expand<4>(M, kQ4, o);
+      bend_project(H, xq, o);
     } else {
       for (int i = 0; i < 12; ++i)
         for (int j = 0; j < 12; ++j) o[12 * i + j] = static_cast<T>(H[i][j]);

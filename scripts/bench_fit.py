@@ -173,9 +173,12 @@ PARTS = {
     "    contact detection (closest point)": "collision.py:.*\\(detect_contacts\\)",
     "adjoint backward": "equilibrium.py:.*\\(equilibrium_backward\\)",
     "  element Hessians": "energy.py:.*\\((hessian_blocks|hessian_elements)\\)",
+    "    bending (C++)": "ops.py:.*\\(bend_hessians\\)",
+    "    membrane (C++)": "ops.py:.*\\(stretch_hessians\\)",
     "  CSR assembly": "energy.py:.*\\((assemble|assemble_csr)\\)",
     "  pattern build (first use)": "energy.py:.*\\(_build_pattern\\)",
     "  sparse solve": "linsolve.py:.*\\(solve_symmetric\\)",
+    "rest-term proximal step (L-BFGS)": "fit.py:.*\\(rest_prox\\)",
 }
 
 

@@ -99,6 +99,30 @@ def test_projection_is_psd_and_not_trivial(tube):
         assert float((proj @ t).abs().max()) < 1e-9 * float(scale.max())
 
 
+def test_bending_blocks_have_the_hinge_null_vector(tube):
+    """The bending kernel projects in the complement of v_a = ((x_a − x_0)·ê) ê (every vertex slid along the
+    hinge ê = (x_1 − x_0)/|x_1 − x_0|, leaving θ unchanged) besides the translations: v must be a null
+    vector of the exact block (the autograd twin's), and the projected block must keep it null."""
+    model, rest, x = tube
+    args = _bend_args(*tube)
+    xq = x[model.edge_quads]  # (E, 4, 3)
+    e = xq[:, 1] - xq[:, 0]
+    eh = e / e.norm(dim=1, keepdim=True)
+    c = ((xq - xq[:, :1]) * eh[:, None]).sum(-1)  # (E, 4)
+    v = (c[:, :, None] * eh[:, None, :]).reshape(-1, 12)
+    assert float((c - c.mean(1, keepdim=True)).abs().amax(1).min()) > 1e-3  # not a translation
+
+    def worst(h):  # max over edges of |H v| / (max|H| |v|)
+        return float(
+            ((h @ v[:, :, None]).squeeze(-1).norm(dim=1) / (h.abs().amax((1, 2)) * v.norm(dim=1))).max()
+        )
+
+    assert worst(reference.bend_hessians(*args, False)) < 1e-12
+    assert worst(reference.bend_hessians(*args, True)) < 1e-12
+    if has_extension():
+        assert worst(ops.bend_hessians(*args, True)) < 1e-12
+
+
 def test_pattern_assembly_matches_reference(tube):
     model, rest, x = tube
     params = energy.EnergyParams()
