@@ -10,7 +10,8 @@ Adam step with its guards.
 
     PYTHONPATH=. python scripts/bench_fit.py --spacings 0.03 0.02 0.015 --iters 8
 
-Prints one JSON line per spacing. One intra-op thread (measured faster on the 2-core machine).
+Prints one JSON line per spacing. One intra-op thread (measured faster on the 2-core machine), or
+``--threads N`` for the iterations.
 ``--profile PREFIX`` runs the timed iterations under cProfile (CPU clock; slower, so compare its figures
 with each other only), writes ``PREFIX.<spacing>.prof`` and prints the CPU seconds per iteration by part.
 """
@@ -43,8 +44,14 @@ def main() -> None:
         help="after each iteration, drape its parameters from its start for FRAMES frames (no prediction, "
         "no settle test) and report how far the iteration's drape ended from that reference",
     )
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="torch intra-op threads during the iterations (the drapes' too)",
+    )
     args = parser.parse_args()
-    torch.set_num_threads(1)
+    torch.set_num_threads(1)  # the set-up: Anny's body fit is fastest on one thread
 
     from torch_diffavatar.body.anny_model import load_anny
     from torch_diffavatar.body.model import BodyModel
@@ -83,6 +90,7 @@ def main() -> None:
         profiler = cProfile.Profile(time.process_time) if args.profile else None  # CPU seconds
         if profiler:
             profiler.enable()
+        torch.set_num_threads(args.threads)
         for _ in range(args.iters):
             w0, c0 = time.perf_counter(), time.process_time()
             ev, start, _ = fitter.step(ev, start)
@@ -92,6 +100,7 @@ def main() -> None:
             stats.append({k: v for k, v in ev.stats.items() if isinstance(v, int | float | str | bool)})
             if args.reference:
                 stats[-1].update(_reference_gap(fitter, ev, start, args.reference))
+        torch.set_num_threads(1)
         if profiler:
             profiler.disable()
             path = f"{args.profile}.{spacing}.prof"
@@ -106,6 +115,7 @@ def main() -> None:
                     "faces": garment.tri_count,
                     "adjoint": config.adjoint,
                     "iterations": args.iters,
+                    "threads": args.threads,
                     "setup_s": round(setup_s, 2),
                     "first_drape_s": round(first_s, 2),
                     "s_per_iter_median": round(statistics.median(wall), 3),

@@ -235,6 +235,23 @@ def test_checkpoint_resume_gives_the_same_state(skirt_problem, tmp_path):
     assert last["material/k_vv"] == pytest.approx(ClothMaterial().k_vv * last["material/stretch_scale"])
 
 
+def test_predicted_warm_starts_are_used_and_resume_exactly(skirt_problem, tmp_path):
+    """With ``predict_warm_starts`` each drape starts at the equilibrium its predecessor's backward
+    predicts; a resumed fit rebuilds that linearization from the checkpoint and ends bit for bit alike."""
+    config = _config(
+        iterations=3, adjoint="equilibrium", drape_steps=40, predict_warm_starts=True, lr_cage=0.002
+    )
+    straight = _fitter(skirt_problem, config, out_dir=tmp_path / "a", tensorboard=False).run()
+    moves = [h["drape/predicted_move"] for h in straight.history]
+    assert min(moves) > 1e-4  # every iteration's drape starts from its predecessor's prediction
+    plain = _fitter(skirt_problem, replace(config, predict_warm_starts=False), tensorboard=False).run()
+    assert max(h["drape/predicted_move"] for h in plain.history) == 0.0
+    assert not torch.equal(plain.x, straight.x)
+    _fitter(skirt_problem, config, out_dir=tmp_path / "b", tensorboard=False).run(iterations=2)
+    resumed = _fitter(skirt_problem, config, out_dir=tmp_path / "b", tensorboard=False).run(resume=True)
+    assert torch.equal(resumed.x, straight.x) and torch.equal(resumed.rest_uv, straight.rest_uv)
+
+
 def test_a_checkpoint_from_before_the_membrane_resumes_exactly(skirt_problem, tmp_path):
     """A checkpoint written before ``log_stretch`` and ``raw_waist_shift`` existed (no such parameters, no
     factor or shift in its first summary) resumes at the base membrane and the placed waist, as its fit ran,

@@ -22,6 +22,10 @@ from torch_diffavatar.sim.solver import XPBDConfig
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"  # shipped in the package (wheel included)
 # strain limit of every drape of a fit, the sewing's (see `drape_config` for why it is above the solver's 3)
 FIT_MAX_STRAIN = SEW_MAX_STRAIN
+# threads of the C++ substep op in a fit's drapes: 0, torch's intra-op setting (`torch.set_num_threads`),
+# so that a pipeline that gives torch the machine's cores gives them to the drapes too (the op's Gauss–Seidel
+# colours make every thread count give the same result). `diffavatar fit` runs on one thread.
+FIT_THREADS = 0
 # a fit's resolved config in its output folder (`write_resolved_config`)
 RESOLVED_CONFIG = "config.yaml"
 # [N·m] a fit's bending stiffness stays in here: fabrics span about 1e-7 (silk) to 1e-4 (denim, leather)
@@ -131,7 +135,9 @@ class FitConfig:
             drapes that are not exact minimisers) or ``"exact"`` (`EquilibriumOptions.hessian`).
         predict_warm_starts: equilibrium adjoint with the projected Hessian only: each drape starts from
             the previous one's end moved by the first-order prediction of its backward
-            (`sim.adjoint.linearization`), so it settles in fewer frames.
+            (`sim.adjoint.linearization`). Off by default: on the demo dress it saved 8-17 % of the frames
+            but no CPU time, and its drapes ended 0.47-0.67 mm (mean) from 200-frame drapes of the same
+            steps, against 0.17-0.27 mm without it (docs/BENCHMARKS.md, "Warm starts that land").
         drape_substeps: XPBD substeps per frame of the fit's drapes [-].
         first_max_steps: frames at most of the first (sew and) drape [-].
         first_bend_scales: the first drape is sewn and draped once per entry, with the bending stiffness
@@ -219,7 +225,7 @@ class FitConfig:
     drape_steps: int = 3
     polish_iterations: int = 0
     adjoint_hessian: str = "projected"
-    predict_warm_starts: bool = True
+    predict_warm_starts: bool = False
     drape_substeps: int = 10
     first_max_steps: int = 400
     first_bend_scales: tuple[float, ...] = (1.0,)
@@ -383,11 +389,12 @@ class FitConfig:
 
 def with_fit_strain_limit(config: DrapeConfig) -> DrapeConfig:
     """``config`` with the strain limit of a fit's drapes, `FIT_MAX_STRAIN`, while sewing and draping (a
-    seam-corner triangle of a sewn template can pass the solver's default for a few frames)."""
+    seam-corner triangle of a sewn template can pass the solver's default for a few frames), and the
+    substep op on torch's intra-op threads (`FIT_THREADS`)."""
     return replace(
         config,
-        xpbd=replace(config.xpbd, max_strain=FIT_MAX_STRAIN),
-        sew_xpbd=replace(config.sew_xpbd, max_strain=FIT_MAX_STRAIN),
+        xpbd=replace(config.xpbd, max_strain=FIT_MAX_STRAIN, num_threads=FIT_THREADS),
+        sew_xpbd=replace(config.sew_xpbd, max_strain=FIT_MAX_STRAIN, num_threads=FIT_THREADS),
     )
 
 
@@ -553,7 +560,9 @@ def drape_config(config: FitConfig, steps: int | None = None, adjoint: str | Non
     # shoulder tips of the long-sleeve shirt and the T-shirt, where four panels meet at 6 mm pattern
     # edges (72-81 rejections in 30 iterations at a limit of 10). The fit catches real blow-ups by
     # the speed limit and the `max_drape_jump` guard instead.
-    xpbd = XPBDConfig(substeps=config.drape_substeps, iterations=1, max_strain=FIT_MAX_STRAIN)
+    xpbd = XPBDConfig(
+        substeps=config.drape_substeps, iterations=1, max_strain=FIT_MAX_STRAIN, num_threads=FIT_THREADS
+    )
     if adjoint == "equilibrium":
         return DrapeConfig(xpbd=xpbd, min_steps=min(5, n), max_steps=n)
     return DrapeConfig(xpbd=xpbd, min_steps=n, max_steps=n)

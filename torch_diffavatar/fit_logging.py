@@ -64,7 +64,7 @@ def fit_scalars(
             scalars[f"body/translation_{axis}"] = value
     scalars["steps/rejected_total"] = rejected_total
     scalars["steps/nan_gradients"] = nan_gradients
-    for k in ("newton_force_residual", "forward_seconds", "backward_seconds"):
+    for k in ("newton_force_residual", "forward_seconds", "backward_seconds", "xpbd_steps", "predicted_move"):
         if isinstance(out.stats.get(k), int | float):
             scalars[f"drape/{k}"] = float(out.stats[k])
     return scalars
