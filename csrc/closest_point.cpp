@@ -198,7 +198,7 @@ struct Hit {
 
 template <typename T>
 Hit query(const GridView& g, const T* verts, const int64_t* faces, int64_t nf, const double p[3], double max_dist,
-          std::vector<int64_t>& stamp, int64_t stamp_id) {
+          std::vector<int64_t>& stamp, int64_t stamp_id, int64_t hint = -1) {
   Hit hit;
   for (int a = 0; a < 3; ++a) {
     if (!std::isfinite(p[a])) return hit;
@@ -219,15 +219,41 @@ Hit query(const GridView& g, const T* verts, const int64_t* faces, int64_t nf, c
     return b * b;  // inf stays inf
   };
   const double reach = std::sqrt(slacked(max2));  // >= max_dist
-  int64_t c[3], lim_lo[3], lim_hi[3];
-  for (int a = 0; a < 3; ++a) {
-    c[a] = g.axis_cell(a, p[a]);
-    lim_lo[a] = g.axis_cell(a, p[a] - reach);
-    lim_hi[a] = g.axis_cell(a, p[a] + reach);
-  }
   // slacked bounds of the best distance so far (max_dist before the first hit), updated on each hit
   double cell_bound2 = slacked(max2);
   float bound_f = static_cast<float>(cell_bound2);
+  // The exact distance test of triangle f, kept when it is closer (ties: the lowest id).
+  auto test_triangle = [&](int64_t f) {
+    const V3 va = load3d(verts, faces[3 * f]), vb = load3d(verts, faces[3 * f + 1]),
+             vc = load3d(verts, faces[3 * f + 2]);
+    double bc[3];
+    closest_on_triangle(pv, va, vb, vc, bc);
+    const V3 q = bc[0] * va + bc[1] * vb + bc[2] * vc;
+    const V3 d = pv - q;
+    const double d2 = dot(d, d);
+    // ties (equal in double) go to the lowest triangle id, whatever the visiting order
+    if (d2 <= max2 && (d2 < hit.dist2 || (d2 == hit.dist2 && f < hit.tri))) {
+      hit.tri = f;
+      hit.dist2 = d2;
+      hit.bary[0] = bc[0], hit.bary[1] = bc[1], hit.bary[2] = bc[2];
+      cell_bound2 = slacked(d2);
+      bound_f = static_cast<float>(cell_bound2);
+    }
+  };
+  // A hint (e.g. the point's triangle of the last frame) is tested first: when it is close, the search
+  // below prunes with its distance from the start. The search still sees every triangle within that
+  // bound, so the result is the same whatever the hint.
+  if (hint >= 0 && hint < nf) {
+    stamp[hint] = stamp_id;
+    test_triangle(hint);
+  }
+  const double lim_r = std::sqrt(cell_bound2);  // nothing beyond the bound can be the result
+  int64_t c[3], lim_lo[3], lim_hi[3];
+  for (int a = 0; a < 3; ++a) {
+    c[a] = g.axis_cell(a, p[a]);
+    lim_lo[a] = g.axis_cell(a, p[a] - lim_r);
+    lim_hi[a] = g.axis_cell(a, p[a] + lim_r);
+  }
   auto visit_cell = [&](int64_t i, int64_t j, int64_t k) {
     const double clo[3] = {g.lo[0] + i * g.h, g.lo[1] + j * g.h, g.lo[2] + k * g.h};
     const double chi[3] = {clo[0] + g.h, clo[1] + g.h, clo[2] + g.h};
@@ -245,21 +271,7 @@ Hit query(const GridView& g, const T* verts, const int64_t* faces, int64_t nf, c
       if (f < 0 || f >= nf) continue;  // cannot happen with an index built for these faces; keeps reads in range
       if (stamp[f] == stamp_id) continue;
       stamp[f] = stamp_id;
-      const V3 va = load3d(verts, faces[3 * f]), vb = load3d(verts, faces[3 * f + 1]),
-               vc = load3d(verts, faces[3 * f + 2]);
-      double bc[3];
-      closest_on_triangle(pv, va, vb, vc, bc);
-      const V3 q = bc[0] * va + bc[1] * vb + bc[2] * vc;
-      const V3 d = pv - q;
-      const double d2 = dot(d, d);
-      // ties (equal in double) go to the lowest triangle id, whatever the visiting order
-      if (d2 <= max2 && (d2 < hit.dist2 || (d2 == hit.dist2 && f < hit.tri))) {
-        hit.tri = f;
-        hit.dist2 = d2;
-        hit.bary[0] = bc[0], hit.bary[1] = bc[1], hit.bary[2] = bc[2];
-        cell_bound2 = slacked(d2);
-        bound_f = static_cast<float>(cell_bound2);
-      }
+      test_triangle(f);
     }
   };
   for (int64_t r = 0;; ++r) {
@@ -294,7 +306,7 @@ Hit query(const GridView& g, const T* verts, const int64_t* faces, int64_t nf, c
 // OpenMP over the points (pragmas cannot sit inside AT_DISPATCH's lambda).
 template <typename T>
 void query_all(const GridView& grid, const T* pp, int64_t n, const T* vp, const int64_t* fp, int64_t nf,
-               double max_dist, int64_t* tp, T* bp, T* dp) {
+               double max_dist, int64_t* tp, T* bp, T* dp, const int64_t* hints = nullptr) {
   const int nt = num_threads();
 #pragma omp parallel if (n >= kParallelGrain / 8 && nt > 1) num_threads(nt)
   {
@@ -303,7 +315,7 @@ void query_all(const GridView& grid, const T* pp, int64_t n, const T* vp, const 
     for (int64_t i = 0; i < n; ++i) {
       const double p[3] = {static_cast<double>(pp[3 * i]), static_cast<double>(pp[3 * i + 1]),
                            static_cast<double>(pp[3 * i + 2])};
-      const Hit hit = query(grid, vp, fp, nf, p, max_dist, stamp, i);
+      const Hit hit = query(grid, vp, fp, nf, p, max_dist, stamp, i, hints ? hints[i] : -1);
       if (hit.tri < 0) continue;
       tp[i] = hit.tri;
       for (int k = 0; k < 3; ++k) bp[3 * i + k] = static_cast<T>(hit.bary[k]);
@@ -396,11 +408,12 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> closest_point_index(const at::Ten
   return {header, start, items};
 }
 
-// closest_point_on_mesh on a grid built by closest_point_index from the same (verts, faces).
-std::tuple<at::Tensor, at::Tensor, at::Tensor> closest_point_query(const at::Tensor& points, const at::Tensor& verts,
-                                                                    const at::Tensor& faces, const at::Tensor& header,
-                                                                    const at::Tensor& cell_start,
-                                                                    const at::Tensor& cell_items, double max_dist) {
+// closest_point_on_mesh on a grid built by closest_point_index from the same (verts, faces); hints (N,) int64
+// or undefined: a triangle per point to test first (-1: none), which changes the speed, never the result.
+std::tuple<at::Tensor, at::Tensor, at::Tensor> query_index(const at::Tensor& points, const at::Tensor& verts,
+                                                            const at::Tensor& faces, const at::Tensor& header,
+                                                            const at::Tensor& cell_start, const at::Tensor& cell_items,
+                                                            const at::Tensor& hints, double max_dist) {
   check_mesh(verts, faces);
   check_points(points, verts, max_dist);
   check_cpu_contiguous(header, "header");
@@ -431,15 +444,36 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> closest_point_query(const at::Ten
   g.start = sp;
   g.items = reinterpret_cast<const Entry*>(cell_items.data_ptr<int32_t>());
 
-  auto [tri, bary, dist] = empty_result(points);
   const int64_t n = points.size(0);
+  const int64_t* hp = nullptr;
+  if (hints.defined()) {
+    check_cpu_contiguous(hints, "hint");
+    check_dtype(hints, "hint", at::kLong);
+    TORCH_CHECK(hints.dim() == 1 && hints.size(0) == n, "diffavatar: hint must be (", n, ",), got ", hints.sizes());
+    hp = hints.data_ptr<int64_t>();  // out-of-range hints are ignored by `query`
+  }
+  auto [tri, bary, dist] = empty_result(points);
   if (n == 0 || nf == 0) return {tri, bary, dist};
   const int64_t* fp = faces.data_ptr<int64_t>();
   AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "closest_point_query", [&] {
     query_all<scalar_t>(g, points.data_ptr<scalar_t>(), n, verts.data_ptr<scalar_t>(), fp, nf, max_dist,
-                        tri.data_ptr<int64_t>(), bary.data_ptr<scalar_t>(), dist.data_ptr<scalar_t>());
+                        tri.data_ptr<int64_t>(), bary.data_ptr<scalar_t>(), dist.data_ptr<scalar_t>(), hp);
   });
   return {tri, bary, dist};
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor> closest_point_query(const at::Tensor& points, const at::Tensor& verts,
+                                                                    const at::Tensor& faces, const at::Tensor& header,
+                                                                    const at::Tensor& cell_start,
+                                                                    const at::Tensor& cell_items, double max_dist) {
+  return query_index(points, verts, faces, header, cell_start, cell_items, at::Tensor(), max_dist);
+}
+
+// closest_point_query that tests hint[i] first for point i (a cache of the last frame's triangles).
+std::tuple<at::Tensor, at::Tensor, at::Tensor> closest_point_query_hinted(
+    const at::Tensor& points, const at::Tensor& verts, const at::Tensor& faces, const at::Tensor& header,
+    const at::Tensor& cell_start, const at::Tensor& cell_items, const at::Tensor& hint, double max_dist) {
+  return query_index(points, verts, faces, header, cell_start, cell_items, hint, max_dist);
 }
 
 }  // namespace
@@ -453,10 +487,14 @@ TORCH_LIBRARY_FRAGMENT(diffavatar, m) {
   m.def(
       "closest_point_query(Tensor points, Tensor verts, Tensor faces, Tensor header, Tensor cell_start, "
       "Tensor cell_items, float max_dist) -> (Tensor tri, Tensor bary, Tensor dist)");
+  m.def(
+      "closest_point_query_hinted(Tensor points, Tensor verts, Tensor faces, Tensor header, Tensor cell_start, "
+      "Tensor cell_items, Tensor hint, float max_dist) -> (Tensor tri, Tensor bary, Tensor dist)");
 }
 
 TORCH_LIBRARY_IMPL(diffavatar, CPU, m) {
   m.impl("closest_point_on_mesh", &diffavatar::closest_point_on_mesh);
   m.impl("closest_point_index", &diffavatar::closest_point_index);
   m.impl("closest_point_query", &diffavatar::closest_point_query);
+  m.impl("closest_point_query_hinted", &diffavatar::closest_point_query_hinted);
 }

@@ -195,7 +195,8 @@ def closest_point_on_mesh(
 
 
 def _index_op(name: str):
-    """``closest_point_index`` / ``closest_point_query`` with their fake kernels (None without the op)."""
+    """``closest_point_index`` / ``closest_point_query`` / ``closest_point_query_hinted`` with their fake
+    kernels (None without the op)."""
     if has_extension() and hasattr(torch.ops.diffavatar, name) and name not in _FAKES_REGISTERED:
         _FAKES_REGISTERED.add(name)  # registered here, before `extension_op` would register a default
 
@@ -207,7 +208,7 @@ def _index_op(name: str):
                 verts.new_empty((ctx.new_dynamic_size(), 7), dtype=torch.int32),
             )
 
-        def fake_query(points, verts, faces, header, cell_start, cell_items, max_dist):
+        def fake_query(points, verts, faces, header, cell_start, cell_items, *hint_and_max_dist):
             n = points.shape[0]
             return (
                 points.new_empty((n,), dtype=torch.int64),
@@ -256,13 +257,22 @@ def closest_point_query(
     faces: torch.Tensor,
     grid: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
     max_dist: float,
+    hint: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """`closest_point_on_mesh` on a prebuilt ``grid`` = `closest_point_index` (verts, faces): the same
-    (tri, bary, dist), bit for bit (C++ only)."""
-    op = _index_op("closest_point_query")
+    (tri, bary, dist), bit for bit (C++ only).
+
+    ``hint``: (N,) int64, a triangle per point that the search tests first (-1: none), e.g. the point's
+    triangle of the last frame: a close one prunes the search from the start. The result does not depend
+    on it (its PyTorch twin ignores it).
+    """
+    name = "closest_point_query" if hint is None else "closest_point_query_hinted"
+    op = _index_op(name)
     if op is None:
-        raise RuntimeError("closest_point_query needs the C++ extension")
-    return op(points, verts, faces, *grid, float(max_dist))
+        raise RuntimeError(f"{name} needs the C++ extension")
+    if hint is None:
+        return op(points, verts, faces, *grid, float(max_dist))
+    return op(points, verts, faces, *grid, hint, float(max_dist))
 
 
 def xpbd_substeps_(
