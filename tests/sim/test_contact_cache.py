@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from torch_diffavatar.sim import collision, ops
+from torch_diffavatar.sim import collision, ops, reference
 from torch_diffavatar.sim.material import ClothMaterial
 from torch_diffavatar.sim.model import ClothModelBuilder
 from torch_diffavatar.sim.solver import XPBDConfig, XPBDSolver
@@ -39,7 +39,7 @@ def test_random_walk_contacts_equal_the_full_query(dtype):
     x = (direction * (0.3 + 0.08 * torch.rand(500, 1, generator=gen, dtype=F64))).to(dtype)
     index = collision.BodyIndex(verts, faces, cell_size=0.04)
     cache = collision.ContactCache(index, probe=0.02)
-    partial = 0
+    partial = among = 0
     for frame in range(60):
         scale = [1e-4, 1e-3, 5e-3, 5e-2][frame % 4]
         x = x + (scale * torch.randn(500, 3, generator=gen, dtype=F64)).to(dtype)
@@ -49,7 +49,9 @@ def test_random_walk_contacts_equal_the_full_query(dtype):
         assert want.count > 0
         _assert_same_contacts(got, want)
         partial += cache.queried < x.shape[0]
+        among += cache.among
     assert partial > 20  # the cache did skip vertices (else this test would not test it)
+    assert among > 1000  # and looked among candidates
 
 
 def test_vertex_moving_into_the_band_is_found():
@@ -65,6 +67,24 @@ def test_vertex_moving_into_the_band_is_found():
     got = collision.detect_contacts(x, verts, faces, 0.02, cache=cache)
     assert got.vert.tolist() == [0, 1, 2]
     _assert_same_contacts(got, collision.detect_contacts(x, verts, faces, 0.02))
+
+
+def test_vertex_sliding_within_the_margin_keeps_the_full_query_contacts():
+    """Just above a fine sheet, a vertex slides almost ``margin`` along it: its closest triangle moves far
+    outside the few triangles that were that close at the start, so the candidates must reach out to
+    distance + 2 margin."""
+    n, h = 40, 5e-4  # 2 cm sheet of 0.5 mm squares
+    i, j = torch.meshgrid(torch.arange(n + 1), torch.arange(n + 1), indexing="ij")
+    verts = torch.stack([h * i, h * j, torch.zeros_like(i)], -1).reshape(-1, 3).to(F64)
+    v = (i[:-1, :-1] * (n + 1) + j[:-1, :-1]).reshape(-1)
+    faces = torch.cat([torch.stack([v, v + n + 1, v + 1], 1), torch.stack([v + 1, v + n + 1, v + n + 2], 1)])
+    cache = collision.ContactCache(collision.BodyIndex(verts, faces, cell_size=0.004), margin=0.002)
+    x = torch.tensor([[0.0051, 0.0052, 1e-4]], dtype=F64)
+    for step in range(20):
+        y = x + torch.tensor([[0.0019 * step / 19, 0.0, 0.0]], dtype=F64)
+        got = collision.detect_contacts(y, verts, faces, 0.01, cache=cache)
+        _assert_same_contacts(got, collision.detect_contacts(y, verts, faces, 0.01))
+        assert cache.among == (1 if step else 0)  # the candidates of step 0 served all the others
 
 
 def test_hints_never_change_the_query():
@@ -90,6 +110,37 @@ def test_hints_never_change_the_query():
     )
 
 
+def test_candidates_and_among_match_their_twins():
+    verts, faces = _sphere(subdivisions=2)
+    gen = torch.Generator().manual_seed(6)
+    direction = torch.nn.functional.normalize(torch.randn(200, 3, generator=gen, dtype=F64), dim=-1)
+    points = direction * (0.25 + 0.1 * torch.rand(200, 1, generator=gen, dtype=F64))
+    radius = 0.1 * torch.rand(200, generator=gen, dtype=F64)
+    radius[:5] = -1.0  # no candidates
+    grid = ops.closest_point_index(verts, faces, 0.05)
+    cand = ops.closest_point_candidates(points, verts, faces, grid, radius)
+    want = reference.closest_point_candidates(points, verts, faces, radius)
+    got = torch.where(cand < 0, faces.shape[0], cand).sort(1).values
+    assert torch.equal(torch.where(got == faces.shape[0], -1, got)[:, : want.shape[1]], want)
+    assert (cand[:5] == -1).all() and (cand >= 0).any(1).sum() > 100
+    # among: the twin's answer; with candidates out to the closest distance, the grid query's, bit for bit
+    tri, bary, dist = ops.closest_point_among(points, verts, faces, cand, 0.08)
+    ref = reference.closest_point_among(points, verts, faces, want, 0.08)
+    assert torch.equal(tri, ref[0])
+    torch.testing.assert_close(bary, ref[1], rtol=0, atol=1e-12)
+    torch.testing.assert_close(dist, ref[2], rtol=0, atol=1e-12)
+    full = ops.closest_point_query(points, verts, faces, grid, 0.5)
+    enough = ops.closest_point_candidates(points, verts, faces, grid, full[2])
+    got = ops.closest_point_among(points, verts, faces, enough, 0.5)
+    assert all(torch.equal(g, w) for g, w in zip(got, full, strict=True))
+    torch.library.opcheck(
+        ops._index_op("closest_point_candidates").default, (points[:20], verts, faces, *grid, radius[:20])
+    )
+    torch.library.opcheck(
+        ops._index_op("closest_point_among").default, (points[:20], verts, faces, cand[:20], 0.1)
+    )
+
+
 def _sheet_over_sphere(dtype):
     mat = ClothMaterial(k_uu=1e3, k_vv=1e3, k_uv=100.0, bend_stiffness=1e-6, thickness=0.005, damping=2.0)
     g = rectangle_garment(16, 16, 1.0, 1.0, origin=(-0.5, 0.35, 0.5))  # 5 cm above the top, corners far
@@ -110,10 +161,11 @@ def test_drape_on_a_sphere_is_bit_identical_with_and_without_the_cache(dtype):
             state = step.state
             frames.append((state.x, state.v, step.contacts))
             if solver._contact_cache is not None:
-                queried.append(solver._contact_cache.queried)
+                queried.append((solver._contact_cache.queried, solver._contact_cache.among))
         runs[cached] = frames, queried
     assert runs[False][1] == []  # contact_cache=False: no cache
-    assert min(runs[True][1]) < model.vert_count  # the cache skipped vertices
+    assert min(q for q, _ in runs[True][1]) < model.vert_count  # the cache skipped vertices
+    assert max(a for _, a in runs[True][1]) > 50  # and looked among candidates
     assert runs[True][0][-1][2].count > 50  # the sheet lies on the sphere
     for (x0, v0, c0), (x1, v1, c1) in zip(runs[False][0], runs[True][0], strict=True):
         assert torch.equal(x0, x1) and torch.equal(v0, v1)
