@@ -87,6 +87,16 @@ def test_vertex_sliding_within_the_margin_keeps_the_full_query_contacts():
         assert cache.among == (1 if step else 0)  # the candidates of step 0 served all the others
 
 
+def test_no_candidates_beyond_max_radius():
+    verts, faces = _sphere()
+    x = torch.tensor([[0.0, 0.0, 0.305], [0.0, 0.0, -0.325]], dtype=F64)  # 5 mm and 2.5 cm away
+    cache = collision.ContactCache(collision.BodyIndex(verts, faces), margin=0.002, max_radius=0.02)
+    for _ in range(3):
+        got = collision.detect_contacts(x, verts, faces, 0.03, cache=cache)
+    assert got.vert.tolist() == [0, 1]
+    assert cache.has_cand.tolist() == [True, False] and cache.among == 1 and cache.cand.shape[1] < 20
+
+
 def test_hints_never_change_the_query():
     verts, faces = _sphere(subdivisions=4)
     gen = torch.Generator().manual_seed(5)

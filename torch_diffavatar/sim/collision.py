@@ -114,14 +114,19 @@ class ContactCache:
             to learn how far it is (a larger probe costs more per probe but skips the vertex for longer).
         margin: how far [m] a vertex may move before its candidates are collected again (larger: longer
             lists that last longer).
+        max_radius: no candidates for a vertex farther than ``max_radius - 2 margin`` [m] from the body:
+            its list would be long (a wide band while sewing), and it is grid-queried instead.
     """
 
-    def __init__(self, index: BodyIndex, *, probe: float = 0.02, margin: float = 0.002):
+    def __init__(
+        self, index: BodyIndex, *, probe: float = 0.02, margin: float = 0.002, max_radius: float = 0.03
+    ):
         if index.grid is None:
             raise ValueError("ContactCache needs a BodyIndex with its C++ grid")
         self.index = index
         self.probe = probe
         self.margin = margin
+        self.max_radius = max_radius
         self.x: torch.Tensor | None = None  # (Vs, 3) float64 [m], at the last query
         self.lower: torch.Tensor | None = None  # (Vs,) float64 [m]
         self.tri: torch.Tensor | None = None  # (Vs,) int64
@@ -178,7 +183,7 @@ class ContactCache:
         if slow.numel():
             ids = active[slow]
             tri[slow], bary[slow], dist[slow] = index.closest_point(x[ids], band, self.tri[ids])
-            hit = tri[slow] >= 0
+            hit = (tri[slow] >= 0) & (dist[slow] + 2 * self.margin <= self.max_radius)
             self.has_cand[ids] = hit
             self._collect(x, x64, ids[hit], dist[slow][hit])
         return tri, bary, dist
