@@ -198,7 +198,7 @@ struct Hit {
 
 template <typename T>
 Hit query(const GridView& g, const T* verts, const int64_t* faces, int64_t nf, const double p[3], double max_dist,
-          std::vector<int64_t>& stamp, int64_t stamp_id) {
+          std::vector<int64_t>& stamp, int64_t stamp_id, int64_t hint = -1) {
   Hit hit;
   for (int a = 0; a < 3; ++a) {
     if (!std::isfinite(p[a])) return hit;
@@ -219,15 +219,41 @@ Hit query(const GridView& g, const T* verts, const int64_t* faces, int64_t nf, c
     return b * b;  // inf stays inf
   };
   const double reach = std::sqrt(slacked(max2));  // >= max_dist
-  int64_t c[3], lim_lo[3], lim_hi[3];
-  for (int a = 0; a < 3; ++a) {
-    c[a] = g.axis_cell(a, p[a]);
-    lim_lo[a] = g.axis_cell(a, p[a] - reach);
-    lim_hi[a] = g.axis_cell(a, p[a] + reach);
-  }
   // slacked bounds of the best distance so far (max_dist before the first hit), updated on each hit
   double cell_bound2 = slacked(max2);
   float bound_f = static_cast<float>(cell_bound2);
+  // The exact distance test of triangle f, kept when it is closer (ties: the lowest id).
+  auto test_triangle = [&](int64_t f) {
+    const V3 va = load3d(verts, faces[3 * f]), vb = load3d(verts, faces[3 * f + 1]),
+             vc = load3d(verts, faces[3 * f + 2]);
+    double bc[3];
+    closest_on_triangle(pv, va, vb, vc, bc);
+    const V3 q = bc[0] * va + bc[1] * vb + bc[2] * vc;
+    const V3 d = pv - q;
+    const double d2 = dot(d, d);
+    // ties (equal in double) go to the lowest triangle id, whatever the visiting order
+    if (d2 <= max2 && (d2 < hit.dist2 || (d2 == hit.dist2 && f < hit.tri))) {
+      hit.tri = f;
+      hit.dist2 = d2;
+      hit.bary[0] = bc[0], hit.bary[1] = bc[1], hit.bary[2] = bc[2];
+      cell_bound2 = slacked(d2);
+      bound_f = static_cast<float>(cell_bound2);
+    }
+  };
+  // A hint (e.g. the point's triangle of the last frame) is tested first: when it is close, the search
+  // below prunes with its distance from the start. The search still sees every triangle within that
+  // bound, so the result is the same whatever the hint.
+  if (hint >= 0 && hint < nf) {
+    stamp[hint] = stamp_id;
+    test_triangle(hint);
+  }
+  const double lim_r = std::sqrt(cell_bound2);  // nothing beyond the bound can be the result
+  int64_t c[3], lim_lo[3], lim_hi[3];
+  for (int a = 0; a < 3; ++a) {
+    c[a] = g.axis_cell(a, p[a]);
+    lim_lo[a] = g.axis_cell(a, p[a] - lim_r);
+    lim_hi[a] = g.axis_cell(a, p[a] + lim_r);
+  }
   auto visit_cell = [&](int64_t i, int64_t j, int64_t k) {
     const double clo[3] = {g.lo[0] + i * g.h, g.lo[1] + j * g.h, g.lo[2] + k * g.h};
     const double chi[3] = {clo[0] + g.h, clo[1] + g.h, clo[2] + g.h};
@@ -245,21 +271,7 @@ Hit query(const GridView& g, const T* verts, const int64_t* faces, int64_t nf, c
       if (f < 0 || f >= nf) continue;  // cannot happen with an index built for these faces; keeps reads in range
       if (stamp[f] == stamp_id) continue;
       stamp[f] = stamp_id;
-      const V3 va = load3d(verts, faces[3 * f]), vb = load3d(verts, faces[3 * f + 1]),
-               vc = load3d(verts, faces[3 * f + 2]);
-      double bc[3];
-      closest_on_triangle(pv, va, vb, vc, bc);
-      const V3 q = bc[0] * va + bc[1] * vb + bc[2] * vc;
-      const V3 d = pv - q;
-      const double d2 = dot(d, d);
-      // ties (equal in double) go to the lowest triangle id, whatever the visiting order
-      if (d2 <= max2 && (d2 < hit.dist2 || (d2 == hit.dist2 && f < hit.tri))) {
-        hit.tri = f;
-        hit.dist2 = d2;
-        hit.bary[0] = bc[0], hit.bary[1] = bc[1], hit.bary[2] = bc[2];
-        cell_bound2 = slacked(d2);
-        bound_f = static_cast<float>(cell_bound2);
-      }
+      test_triangle(f);
     }
   };
   for (int64_t r = 0;; ++r) {
@@ -294,7 +306,7 @@ Hit query(const GridView& g, const T* verts, const int64_t* faces, int64_t nf, c
 // OpenMP over the points (pragmas cannot sit inside AT_DISPATCH's lambda).
 template <typename T>
 void query_all(const GridView& grid, const T* pp, int64_t n, const T* vp, const int64_t* fp, int64_t nf,
-               double max_dist, int64_t* tp, T* bp, T* dp) {
+               double max_dist, int64_t* tp, T* bp, T* dp, const int64_t* hints = nullptr) {
   const int nt = num_threads();
 #pragma omp parallel if (n >= kParallelGrain / 8 && nt > 1) num_threads(nt)
   {
@@ -303,13 +315,87 @@ void query_all(const GridView& grid, const T* pp, int64_t n, const T* vp, const 
     for (int64_t i = 0; i < n; ++i) {
       const double p[3] = {static_cast<double>(pp[3 * i]), static_cast<double>(pp[3 * i + 1]),
                            static_cast<double>(pp[3 * i + 2])};
-      const Hit hit = query(grid, vp, fp, nf, p, max_dist, stamp, i);
+      const Hit hit = query(grid, vp, fp, nf, p, max_dist, stamp, i, hints ? hints[i] : -1);
       if (hit.tri < 0) continue;
       tp[i] = hit.tri;
       for (int k = 0; k < 3; ++k) bp[3 * i + k] = static_cast<T>(hit.bary[k]);
       dp[i] = static_cast<T>(std::sqrt(hit.dist2));
     }
   }
+}
+
+// Every triangle within `radius` of p (exact distance, with query's slack so that rounding never drops
+// one), appended to `out`.
+template <typename T>
+void collect(const GridView& g, const T* verts, const int64_t* faces, int64_t nf, const double p[3], double radius,
+             std::vector<int64_t>& stamp, int64_t stamp_id, std::vector<int64_t>& out) {
+  for (int a = 0; a < 3; ++a) {
+    if (!std::isfinite(p[a])) return;
+  }
+  const double slack = 1e-6 * (1.0 + std::max(std::fabs(p[0]), std::max(std::fabs(p[1]), std::fabs(p[2]))));
+  const double r = radius * (1.0 + 1e-6) + slack, r2 = r * r;
+  if (box_dist2(p, g.lo, g.hi) > r2) return;
+  const float pf[3] = {static_cast<float>(p[0]), static_cast<float>(p[1]), static_cast<float>(p[2])};
+  const float r2f = static_cast<float>(r2);
+  const V3 pv{p[0], p[1], p[2]};
+  int64_t lo[3], hi[3];
+  for (int a = 0; a < 3; ++a) lo[a] = g.axis_cell(a, p[a] - r), hi[a] = g.axis_cell(a, p[a] + r);
+  for (int64_t i = lo[0]; i <= hi[0]; ++i)
+    for (int64_t j = lo[1]; j <= hi[1]; ++j)
+      for (int64_t k = lo[2]; k <= hi[2]; ++k) {
+        const double clo[3] = {g.lo[0] + i * g.h, g.lo[1] + j * g.h, g.lo[2] + k * g.h};
+        const double chi[3] = {clo[0] + g.h, clo[1] + g.h, clo[2] + g.h};
+        if (box_dist2(p, clo, chi) > r2) continue;
+        const int64_t cid = g.cell(i, j, k);
+        for (int64_t s = g.start[cid]; s < g.start[cid + 1]; ++s) {
+          const Entry& e = g.items[s];
+          float d2f = 0.0f;
+          for (int a = 0; a < 3; ++a) {
+            const float d = std::max(std::max(e.lo[a] - pf[a], pf[a] - e.hi[a]), 0.0f);
+            d2f += d * d;
+          }
+          const int32_t f = e.tri;
+          if (d2f > r2f || f < 0 || f >= nf || stamp[f] == stamp_id) continue;
+          stamp[f] = stamp_id;
+          const V3 va = load3d(verts, faces[3 * f]), vb = load3d(verts, faces[3 * f + 1]),
+                   vc = load3d(verts, faces[3 * f + 2]);
+          double bc[3];
+          closest_on_triangle(pv, va, vb, vc, bc);
+          const V3 d = pv - (bc[0] * va + bc[1] * vb + bc[2] * vc);
+          if (dot(d, d) <= r2) out.push_back(f);
+        }
+      }
+}
+
+// The closest of the candidate triangles cand[0..k) (up to the first -1) within max_dist: the same
+// distance test and tie-break (lowest id) as `query`, so when the candidates hold every triangle as close
+// as the closest one, the result is `query`'s, bit for bit.
+template <typename T>
+Hit closest_among(const T* verts, const int64_t* faces, int64_t nf, const double p[3], double max_dist,
+                  const int64_t* cand, int64_t k) {
+  Hit hit;
+  for (int a = 0; a < 3; ++a) {
+    if (!std::isfinite(p[a])) return hit;
+  }
+  const double max2 = max_dist * max_dist;
+  const V3 pv{p[0], p[1], p[2]};
+  for (int64_t c = 0; c < k; ++c) {
+    const int64_t f = cand[c];
+    if (f < 0) break;  // rows are padded with -1 at their end
+    if (f >= nf) continue;
+    const V3 va = load3d(verts, faces[3 * f]), vb = load3d(verts, faces[3 * f + 1]),
+             vc = load3d(verts, faces[3 * f + 2]);
+    double bc[3];
+    closest_on_triangle(pv, va, vb, vc, bc);
+    const V3 d = pv - (bc[0] * va + bc[1] * vb + bc[2] * vc);
+    const double d2 = dot(d, d);
+    if (d2 <= max2 && (d2 < hit.dist2 || (d2 == hit.dist2 && f < hit.tri))) {
+      hit.tri = f;
+      hit.dist2 = d2;
+      hit.bary[0] = bc[0], hit.bary[1] = bc[1], hit.bary[2] = bc[2];
+    }
+  }
+  return hit;
 }
 
 void check_mesh(const at::Tensor& verts, const at::Tensor& faces) {
@@ -396,13 +482,54 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> closest_point_index(const at::Ten
   return {header, start, items};
 }
 
-// closest_point_on_mesh on a grid built by closest_point_index from the same (verts, faces).
+GridView grid_view(const at::Tensor& faces, const at::Tensor& header, const at::Tensor& cell_start,
+                   const at::Tensor& cell_items);
+
+// closest_point_on_mesh on a grid built by closest_point_index from the same (verts, faces); hints (N,) int64
+// or undefined: a triangle per point to test first (-1: none), which changes the speed, never the result.
+std::tuple<at::Tensor, at::Tensor, at::Tensor> query_index(const at::Tensor& points, const at::Tensor& verts,
+                                                            const at::Tensor& faces, const at::Tensor& header,
+                                                            const at::Tensor& cell_start, const at::Tensor& cell_items,
+                                                            const at::Tensor& hints, double max_dist) {
+  check_mesh(verts, faces);
+  check_points(points, verts, max_dist);
+  const int64_t nf = faces.size(0);
+  const GridView g = grid_view(faces, header, cell_start, cell_items);
+  const int64_t n = points.size(0);
+  const int64_t* hp = nullptr;
+  if (hints.defined()) {
+    check_cpu_contiguous(hints, "hint");
+    check_dtype(hints, "hint", at::kLong);
+    TORCH_CHECK(hints.dim() == 1 && hints.size(0) == n, "diffavatar: hint must be (", n, ",), got ", hints.sizes());
+    hp = hints.data_ptr<int64_t>();  // out-of-range hints are ignored by `query`
+  }
+  auto [tri, bary, dist] = empty_result(points);
+  if (n == 0 || nf == 0) return {tri, bary, dist};
+  const int64_t* fp = faces.data_ptr<int64_t>();
+  AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "closest_point_query", [&] {
+    query_all<scalar_t>(g, points.data_ptr<scalar_t>(), n, verts.data_ptr<scalar_t>(), fp, nf, max_dist,
+                        tri.data_ptr<int64_t>(), bary.data_ptr<scalar_t>(), dist.data_ptr<scalar_t>(), hp);
+  });
+  return {tri, bary, dist};
+}
+
 std::tuple<at::Tensor, at::Tensor, at::Tensor> closest_point_query(const at::Tensor& points, const at::Tensor& verts,
                                                                     const at::Tensor& faces, const at::Tensor& header,
                                                                     const at::Tensor& cell_start,
                                                                     const at::Tensor& cell_items, double max_dist) {
-  check_mesh(verts, faces);
-  check_points(points, verts, max_dist);
+  return query_index(points, verts, faces, header, cell_start, cell_items, at::Tensor(), max_dist);
+}
+
+// closest_point_query that tests hint[i] first for point i (a cache of the last frame's triangles).
+std::tuple<at::Tensor, at::Tensor, at::Tensor> closest_point_query_hinted(
+    const at::Tensor& points, const at::Tensor& verts, const at::Tensor& faces, const at::Tensor& header,
+    const at::Tensor& cell_start, const at::Tensor& cell_items, const at::Tensor& hint, double max_dist) {
+  return query_index(points, verts, faces, header, cell_start, cell_items, hint, max_dist);
+}
+
+// The grid of `closest_point_index` as a view (shared by the query ops).
+GridView grid_view(const at::Tensor& faces, const at::Tensor& header, const at::Tensor& cell_start,
+                   const at::Tensor& cell_items) {
   check_cpu_contiguous(header, "header");
   check_cpu_contiguous(cell_start, "cell_start");
   check_cpu_contiguous(cell_items, "cell_items");
@@ -412,9 +539,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> closest_point_query(const at::Ten
   check_shape(header, "header", {kHeader});
   check_shape(cell_items, "cell_items", {-1, 7});
   const double* hd = header.data_ptr<double>();
-  const int64_t nf = faces.size(0);
-  TORCH_CHECK(hd[10] == static_cast<double>(nf), "diffavatar: the index was built for ", hd[10],
-              " faces, got ", nf);
+  TORCH_CHECK(hd[10] == static_cast<double>(faces.size(0)), "diffavatar: the index was built for ", hd[10],
+              " faces, got ", faces.size(0));
   GridView g;
   for (int a = 0; a < 3; ++a) {
     g.lo[a] = hd[a];
@@ -430,14 +556,67 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> closest_point_query(const at::Ten
   TORCH_CHECK(sp[0] == 0 && sp[n_cells] == cell_items.size(0), "diffavatar: cell_start does not match cell_items");
   g.start = sp;
   g.items = reinterpret_cast<const Entry*>(cell_items.data_ptr<int32_t>());
+  return g;
+}
 
+// For each point i every triangle within radius[i] (float64, (N,)) of it: (N, K) int64 padded with -1, K the
+// longest list (at least 1).
+at::Tensor closest_point_candidates(const at::Tensor& points, const at::Tensor& verts, const at::Tensor& faces,
+                                    const at::Tensor& header, const at::Tensor& cell_start,
+                                    const at::Tensor& cell_items, const at::Tensor& radius) {
+  check_mesh(verts, faces);
+  check_points(points, verts, 0.0);
+  check_cpu_contiguous(radius, "radius");
+  check_dtype(radius, "radius", at::kDouble);
+  const int64_t n = points.size(0), nf = faces.size(0);
+  TORCH_CHECK(radius.dim() == 1 && radius.size(0) == n, "diffavatar: radius must be (", n, ",), got ",
+              radius.sizes());
+  const GridView g = grid_view(faces, header, cell_start, cell_items);
+  const double* rp = radius.data_ptr<double>();
+  std::vector<int64_t> offsets(static_cast<size_t>(n) + 1, 0), tris;
+  std::vector<int64_t> stamp(static_cast<size_t>(nf), -1);
+  int64_t width = 1;
+  AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "closest_point_candidates", [&] {
+    const scalar_t* pp = points.data_ptr<scalar_t>();
+    for (int64_t i = 0; i < n; ++i) {
+      const double p[3] = {static_cast<double>(pp[3 * i]), static_cast<double>(pp[3 * i + 1]),
+                           static_cast<double>(pp[3 * i + 2])};
+      if (rp[i] >= 0) collect(g, verts.data_ptr<scalar_t>(), faces.data_ptr<int64_t>(), nf, p, rp[i], stamp, i, tris);
+      offsets[i + 1] = static_cast<int64_t>(tris.size());
+      width = std::max(width, offsets[i + 1] - offsets[i]);
+    }
+  });
+  at::Tensor out = at::full({n, width}, -1, points.options().dtype(at::kLong));
+  int64_t* op = out.data_ptr<int64_t>();
+  for (int64_t i = 0; i < n; ++i) std::copy(&tris[offsets[i]], &tris[offsets[i]] + (offsets[i + 1] - offsets[i]), op + i * width);
+  return out;
+}
+
+// (tri, bary, dist) of the closest of each point's candidates cand[i, :] (ending at the first -1) within max_dist.
+std::tuple<at::Tensor, at::Tensor, at::Tensor> closest_point_among(const at::Tensor& points, const at::Tensor& verts,
+                                                                    const at::Tensor& faces, const at::Tensor& cand,
+                                                                    double max_dist) {
+  check_mesh(verts, faces);
+  check_points(points, verts, max_dist);
+  check_cpu_contiguous(cand, "cand");
+  check_dtype(cand, "cand", at::kLong);
+  const int64_t n = points.size(0), nf = faces.size(0);
+  TORCH_CHECK(cand.dim() == 2 && cand.size(0) == n, "diffavatar: cand must be (", n, ", K), got ", cand.sizes());
   auto [tri, bary, dist] = empty_result(points);
-  const int64_t n = points.size(0);
-  if (n == 0 || nf == 0) return {tri, bary, dist};
-  const int64_t* fp = faces.data_ptr<int64_t>();
-  AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "closest_point_query", [&] {
-    query_all<scalar_t>(g, points.data_ptr<scalar_t>(), n, verts.data_ptr<scalar_t>(), fp, nf, max_dist,
-                        tri.data_ptr<int64_t>(), bary.data_ptr<scalar_t>(), dist.data_ptr<scalar_t>());
+  const int64_t k = cand.size(1);
+  const int64_t* cp = cand.data_ptr<int64_t>();
+  AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "closest_point_among", [&] {
+    const scalar_t* pp = points.data_ptr<scalar_t>();
+    scalar_t* bp = bary.data_ptr<scalar_t>();
+    for (int64_t i = 0; i < n; ++i) {
+      const double p[3] = {static_cast<double>(pp[3 * i]), static_cast<double>(pp[3 * i + 1]),
+                           static_cast<double>(pp[3 * i + 2])};
+      const Hit hit = closest_among(verts.data_ptr<scalar_t>(), faces.data_ptr<int64_t>(), nf, p, max_dist, cp + i * k, k);
+      if (hit.tri < 0) continue;
+      tri.data_ptr<int64_t>()[i] = hit.tri;
+      for (int c = 0; c < 3; ++c) bp[3 * i + c] = static_cast<scalar_t>(hit.bary[c]);
+      dist.data_ptr<scalar_t>()[i] = static_cast<scalar_t>(std::sqrt(hit.dist2));
+    }
   });
   return {tri, bary, dist};
 }
@@ -453,10 +632,22 @@ TORCH_LIBRARY_FRAGMENT(diffavatar, m) {
   m.def(
       "closest_point_query(Tensor points, Tensor verts, Tensor faces, Tensor header, Tensor cell_start, "
       "Tensor cell_items, float max_dist) -> (Tensor tri, Tensor bary, Tensor dist)");
+  m.def(
+      "closest_point_query_hinted(Tensor points, Tensor verts, Tensor faces, Tensor header, Tensor cell_start, "
+      "Tensor cell_items, Tensor hint, float max_dist) -> (Tensor tri, Tensor bary, Tensor dist)");
+  m.def(
+      "closest_point_candidates(Tensor points, Tensor verts, Tensor faces, Tensor header, Tensor cell_start, "
+      "Tensor cell_items, Tensor radius) -> Tensor");
+  m.def(
+      "closest_point_among(Tensor points, Tensor verts, Tensor faces, Tensor cand, float max_dist) "
+      "-> (Tensor tri, Tensor bary, Tensor dist)");
 }
 
 TORCH_LIBRARY_IMPL(diffavatar, CPU, m) {
   m.impl("closest_point_on_mesh", &diffavatar::closest_point_on_mesh);
   m.impl("closest_point_index", &diffavatar::closest_point_index);
   m.impl("closest_point_query", &diffavatar::closest_point_query);
+  m.impl("closest_point_query_hinted", &diffavatar::closest_point_query_hinted);
+  m.impl("closest_point_candidates", &diffavatar::closest_point_candidates);
+  m.impl("closest_point_among", &diffavatar::closest_point_among);
 }

@@ -76,14 +76,150 @@ class BodyIndex:
             and torch.equal(body_verts.detach(), self.verts)
         )
 
-    def closest_point(self, points: torch.Tensor, max_dist: float):
-        """(tri, bary, dist) of `ops.closest_point_on_mesh` (points, verts, faces, max_dist)."""
+    def closest_point(self, points: torch.Tensor, max_dist: float, hint: torch.Tensor | None = None):
+        """(tri, bary, dist) of `ops.closest_point_on_mesh` (points, verts, faces, max_dist). ``hint``: (N,)
+        int64 triangles to test first (`ops.closest_point_query`; speed only, ignored without the grid)."""
         points = points.detach().contiguous()
         if self.grid is not None and points.device.type == "cpu":
-            return ops.closest_point_query(points, self.verts, self.faces, self.grid, max_dist)
+            return ops.closest_point_query(points, self.verts, self.faces, self.grid, max_dist, hint)
         return ops.closest_point_on_mesh(
             points, self.verts, self.faces, max_dist, use_extension=self.use_extension
         )
+
+
+class ContactCache:
+    """What the last queries against one static body learnt about each cloth vertex, so that the next
+    frame's detection queries only the vertices that can be in its band, and those mostly among a few
+    triangles.
+
+    Per vertex: its position at its last query, a lower bound of its distance to the body from there
+    (the distance found, or the probe radius when nothing was closer) and the triangle found (-1: none);
+    for a vertex found in the band, the triangles within (its distance + 2 ``margin``) of where it was
+    (its candidates). Each frame:
+
+    - a vertex whose lower bound minus how far it has moved since is beyond the band cannot be in contact:
+      not queried;
+    - a vertex within ``margin`` of where its candidates were collected: its closest triangle is among
+      them (it is at most its old distance + ``margin`` from the body, and any triangle that close lies
+      within old distance + 2 ``margin`` of the old position), found by `ops.closest_point_among`;
+    - any other vertex: the grid query (`ops.closest_point_query`) in the full band, with last frame's
+      triangle as its first candidate; new candidates are collected for it when it is in the band.
+
+    All three give exactly the full query's result (the same distance test and tie-break), so the contacts
+    equal those of `detect_contacts` without a cache: only the speed depends on the cache.
+
+    Args:
+        index: the `BodyIndex` of the body (the cache applies to it only; needs its C++ grid).
+        probe: a vertex queried and found outside the band is probed again out to ``band + probe`` [m],
+            to learn how far it is (a larger probe costs more per probe but skips the vertex for longer).
+        margin: how far [m] a vertex may move before its candidates are collected again (larger: longer
+            lists that last longer).
+        max_radius: no candidates for a vertex farther than ``max_radius - 2 margin`` [m] from the body:
+            its list would be long (a wide band while sewing), and it is grid-queried instead.
+    """
+
+    def __init__(
+        self, index: BodyIndex, *, probe: float = 0.02, margin: float = 0.002, max_radius: float = 0.03
+    ):
+        if index.grid is None:
+            raise ValueError("ContactCache needs a BodyIndex with its C++ grid")
+        self.index = index
+        self.probe = probe
+        self.margin = margin
+        self.max_radius = max_radius
+        self.x: torch.Tensor | None = None  # (Vs, 3) float64 [m], at the last query
+        self.lower: torch.Tensor | None = None  # (Vs,) float64 [m]
+        self.tri: torch.Tensor | None = None  # (Vs,) int64
+        self.x_cand: torch.Tensor | None = None  # (Vs, 3) float64 [m], where the candidates were collected
+        self.cand: torch.Tensor | None = None  # (Vs, K) int64, -1 padded
+        self.has_cand: torch.Tensor | None = None  # (Vs,) bool
+        self.queried = 0  # vertices queried by the last `closest_point` (for benchmarks and tests)
+        self.among = 0  # of which among their candidates
+
+    def closest_point(self, x: torch.Tensor, band: float):
+        """(tri (Vs,) int64, bary (Vs, 3)) of ``index.closest_point(x, band)``, bit for bit (-1 and zeros
+        outside the band); x: (Vs, 3) [m]."""
+        x = x.detach()
+        x64 = x.to(torch.float64)
+        n = x.shape[0]
+        if self.x is None or self.x.shape != x64.shape or self.x.device != x.device:
+            self._reset(x64)
+        moved = (x64 - self.x).norm(dim=-1)
+        # the C++ query decides on double distances: 1e-5 m covers their rounding and float32 distances
+        # (NaN positions compare False: queried)
+        active = torch.nonzero(~(self.lower - moved > band + _CACHE_SLACK)).squeeze(1)
+        self.queried = int(active.numel())
+        sub_tri, sub_bary, sub_dist = self._query(x, x64, active, band)
+        tri = torch.full((n,), -1, dtype=torch.int64, device=x.device)
+        bary = x.new_zeros(n, 3)
+        tri[active], bary[active] = sub_tri, sub_bary
+        self._remember(x, x64, active, band, sub_tri, sub_dist)
+        return tri, bary
+
+    def _reset(self, x64):
+        n = x64.shape[0]
+        self.x, self.x_cand = x64.clone(), x64.clone()
+        self.lower = x64.new_zeros(n)
+        self.tri = torch.full((n,), -1, dtype=torch.int64, device=x64.device)
+        self.cand = torch.full((n, 1), -1, dtype=torch.int64, device=x64.device)
+        self.has_cand = torch.zeros(n, dtype=torch.bool, device=x64.device)
+
+    def _query(self, x, x64, active, band):
+        """(tri, bary, dist) of the ``active`` vertices: among their candidates where they still hold,
+        else the grid query (then new candidates for those in the band)."""
+        index = self.index
+        drift = (x64[active] - self.x_cand[active]).norm(dim=-1)
+        near = self.has_cand[active] & (drift <= self.margin - _CACHE_SLACK)
+        m = active.numel()
+        tri = torch.full((m,), -1, dtype=torch.int64, device=x.device)
+        bary, dist = x.new_zeros(m, 3), x.new_full((m,), torch.inf)
+        fast, slow = torch.nonzero(near).squeeze(1), torch.nonzero(~near).squeeze(1)
+        self.among = int(fast.numel())
+        if fast.numel():
+            ids = active[fast]
+            tri[fast], bary[fast], dist[fast] = ops.closest_point_among(
+                x[ids].contiguous(), index.verts, index.faces, self.cand[ids], band
+            )
+        if slow.numel():
+            ids = active[slow]
+            tri[slow], bary[slow], dist[slow] = index.closest_point(x[ids], band, self.tri[ids])
+            hit = (tri[slow] >= 0) & (dist[slow] + 2 * self.margin <= self.max_radius)
+            self.has_cand[ids] = hit
+            self._collect(x, x64, ids[hit], dist[slow][hit])
+        return tri, bary, dist
+
+    def _collect(self, x, x64, ids, dist):
+        """New candidates of vertices ``ids`` at distance ``dist`` [m] from the body."""
+        if ids.numel() == 0:
+            return
+        radius = dist.to(torch.float64) + 2 * self.margin
+        cand = ops.closest_point_candidates(
+            x[ids].contiguous(), self.index.verts, self.index.faces, self.index.grid, radius
+        )
+        width = max(cand.shape[1], self.cand.shape[1])
+        if self.cand.shape[1] < width:
+            self.cand = torch.nn.functional.pad(self.cand, (0, width - self.cand.shape[1]), value=-1)
+        self.cand[ids] = torch.nn.functional.pad(cand, (0, width - cand.shape[1]), value=-1)
+        self.x_cand[ids] = x64[ids]
+
+    def _remember(self, x, x64, active, band, sub_tri, sub_dist):
+        """Store the queried vertices' positions, distance bounds and triangles; probe the misses."""
+        lower = sub_dist.to(torch.float64)
+        miss = torch.nonzero(sub_tri < 0).squeeze(1)
+        if miss.numel():
+            reach = band + self.probe
+            far_tri, _, far_dist = self.index.closest_point(x[active[miss]], reach)
+            sub_tri = sub_tri.clone()
+            sub_tri[miss] = far_tri  # a hint for when the vertex comes closer
+            lower[miss] = torch.where(
+                far_tri >= 0, far_dist.to(torch.float64), torch.full_like(lower[miss], reach)
+            )
+        self.x[active] = x64[active]
+        self.lower[active] = lower
+        self.tri[active] = sub_tri
+
+
+_CACHE_SLACK = 1e-5  # [m]
 
 
 def detect_contacts(
@@ -94,18 +230,28 @@ def detect_contacts(
     *,
     use_extension=True,
     index: BodyIndex | None = None,
+    cache: ContactCache | None = None,
 ) -> Contacts:
     """Closest body triangle of every cloth vertex within ``band`` [m] (no autograd).
 
     Args:
         x: (Vs, 3) cloth positions [m]; body_verts: (Vb, 3) [m]; body_faces: (Fb, 3) int64.
         index: a `BodyIndex` of exactly (body_verts, body_faces) to reuse (ValueError otherwise).
+        cache: a `ContactCache` of that index (or of the body's, without ``index``): the same contacts,
+            faster from frame to frame.
     """
     with torch.no_grad():
+        if cache is not None:
+            if index is not None and cache.index is not index:
+                raise ValueError("cache was built for another index")
+            index = cache.index
         if index is not None:
             if not index.matches(body_verts, body_faces):
                 raise ValueError("index was built for another body mesh")
-            tri, bary, _ = index.closest_point(x, band)
+            if cache is not None:
+                tri, bary = cache.closest_point(x, band)
+            else:
+                tri, bary, _ = index.closest_point(x, band)
         else:
             tri, bary, _ = ops.closest_point_on_mesh(
                 x.detach().contiguous(),

@@ -27,6 +27,8 @@ __all__ = [
     "closest_point_index_available",
     "closest_point_on_mesh",
     "closest_point_query",
+    "closest_point_candidates",
+    "closest_point_among",
     "extension_op",
     "max_abs_green_strain",
     "stretch_hessians",
@@ -210,7 +212,8 @@ def closest_point_on_mesh(
 
 
 def _index_op(name: str):
-    """``closest_point_index`` / ``closest_point_query`` with their fake kernels (None without the op)."""
+    """``closest_point_index`` / ``closest_point_query`` / ``closest_point_query_hinted`` with their fake
+    kernels (None without the op)."""
     if has_extension() and hasattr(torch.ops.diffavatar, name) and name not in _FAKES_REGISTERED:
         _FAKES_REGISTERED.add(name)  # registered here, before `extension_op` would register a default
 
@@ -222,7 +225,7 @@ def _index_op(name: str):
                 verts.new_empty((ctx.new_dynamic_size(), 7), dtype=torch.int32),
             )
 
-        def fake_query(points, verts, faces, header, cell_start, cell_items, max_dist):
+        def fake_query(points, verts, faces, header, cell_start, cell_items, *hint_and_max_dist):
             n = points.shape[0]
             return (
                 points.new_empty((n,), dtype=torch.int64),
@@ -230,7 +233,19 @@ def _index_op(name: str):
                 points.new_empty((n,)),
             )
 
-        fake = fake_index if name == "closest_point_index" else fake_query
+        def fake_candidates(points, verts, faces, header, cell_start, cell_items, radius):
+            ctx = torch.library.get_ctx()
+            return points.new_empty((points.shape[0], ctx.new_dynamic_size()), dtype=torch.int64)
+
+        def fake_among(points, verts, faces, cand, max_dist):
+            return fake_query(points, verts, faces, None, None, None, max_dist)
+
+        fakes = {
+            "closest_point_index": fake_index,
+            "closest_point_candidates": fake_candidates,
+            "closest_point_among": fake_among,
+        }
+        fake = fakes.get(name, fake_query)
         try:
             torch.library.register_fake(f"diffavatar::{name}")(fake)
         except RuntimeError:
@@ -271,13 +286,64 @@ def closest_point_query(
     faces: torch.Tensor,
     grid: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
     max_dist: float,
+    hint: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """`closest_point_on_mesh` on a prebuilt ``grid`` = `closest_point_index` (verts, faces): the same
-    (tri, bary, dist), bit for bit (C++ only)."""
-    op = _index_op("closest_point_query")
+    (tri, bary, dist), bit for bit (C++ only).
+
+    ``hint``: (N,) int64, a triangle per point that the search tests first (-1: none), e.g. the point's
+    triangle of the last frame: a close one prunes the search from the start. The result does not depend
+    on it (its PyTorch twin ignores it).
+    """
+    name = "closest_point_query" if hint is None else "closest_point_query_hinted"
+    op = _index_op(name)
     if op is None:
-        raise RuntimeError("closest_point_query needs the C++ extension")
-    return op(points, verts, faces, *grid, float(max_dist))
+        raise RuntimeError(f"{name} needs the C++ extension")
+    if hint is None:
+        return op(points, verts, faces, *grid, float(max_dist))
+    return op(points, verts, faces, *grid, hint, float(max_dist))
+
+
+def closest_point_candidates(
+    points: torch.Tensor,
+    verts: torch.Tensor,
+    faces: torch.Tensor,
+    grid: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+    radius: torch.Tensor,
+) -> torch.Tensor:
+    """Every triangle within ``radius`` of each point, found on a prebuilt ``grid`` (C++ only; twin:
+    `reference.closest_point_candidates`). The radii get the query's rounding slack (1e-6 relative plus
+    1e-6 (1 + |p|) m), so that no triangle within the radius is ever missed.
+
+    Args:
+        points: (N, 3) [m]; verts, faces, grid: as `closest_point_query`; radius: (N,) float64 [m] (< 0:
+            none).
+
+    Returns:
+        (N, K) int64 triangle ids, each row padded with -1 (K >= 1, in no particular order).
+    """
+    op = _index_op("closest_point_candidates")
+    if op is None:
+        raise RuntimeError("closest_point_candidates needs the C++ extension")
+    return op(points, verts, faces, *grid, radius)
+
+
+def closest_point_among(
+    points: torch.Tensor,
+    verts: torch.Tensor,
+    faces: torch.Tensor,
+    cand: torch.Tensor,
+    max_dist: float,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(tri, bary, dist) as `closest_point_on_mesh`, but among each point's candidate triangles only:
+    ``cand`` (N, K) int64, each row ending at its first -1 (C++ only; twin: `reference.closest_point_among`).
+    The same distance test and tie-break (lowest id) as the grid query: when every triangle as close as the
+    closest one is a candidate (`closest_point_candidates` within a large enough radius), the result is the
+    grid query's, bit for bit."""
+    op = _index_op("closest_point_among")
+    if op is None:
+        raise RuntimeError("closest_point_among needs the C++ extension")
+    return op(points, verts, faces, cand, float(max_dist))
 
 
 def xpbd_substeps_(

@@ -40,6 +40,10 @@ Conventions shared with the C++ (test against these, not against the prose):
 * **closest_point_on_mesh**: for each point the closest point on a triangle mesh, exact
   (Ericson, "Real-Time Collision Detection", 5.1.5); returns ``tri`` (-1 when none within
   ``max_dist``), barycentric ``bary`` (zeros when ``tri`` is -1) and unsigned ``dist`` (inf when -1).
+* **closest_point_candidates** / **closest_point_among** (the contact cache, `collision.ContactCache`):
+  the triangles within a radius of each point, and the closest among given candidates, with the grid
+  query's distance test and tie-break (lowest id). The grid ops (``closest_point_index``,
+  ``closest_point_query`` and its ``hint``) have ``closest_point_on_mesh`` as their twin.
 * **max_abs_green_strain**: 0-dim tensor, the largest ``|C_k|`` of the stretch constraint vectors
   ``C = [E00, E11, E01]`` over all triangles (0 without triangles; NaN when any is NaN).
 * **xpbd_substeps_** (fused): ``substeps`` × [predict, ``iterations`` × (stretch, bend, attachments,
@@ -65,6 +69,49 @@ from torch_diffavatar.geometry import (
 )
 from torch_diffavatar.sim.contacts import Contacts, apply_friction, contact_frames, push_out
 from torch_diffavatar.sim.substep import SubstepInputs
+
+
+def closest_point_candidates(points, verts, faces, radius):
+    """Twin of the C++ ``closest_point_candidates`` (brute force): (N, K) int64 ids of the triangles within
+    ``radius`` (N,) [m] of each point (the op's slack, 1e-6 relative plus 1e-6 (1 + |p|) m, included),
+    padded with -1, ascending."""
+    n, nf = points.shape[0], faces.shape[0]
+    p = points.to(torch.float64)
+    a, b, c = (verts.to(torch.float64)[faces[:, k]] for k in range(3))
+    bc = closest_point_on_triangles(p[:, None], a[None], b[None], c[None])  # (N, Fb, 3)
+    q = bc[..., :1] * a + bc[..., 1:2] * b + bc[..., 2:] * c
+    d2 = ((p[:, None] - q) ** 2).sum(-1)
+    r = radius.to(torch.float64) * (1 + 1e-6) + 1e-6 * (1 + p.abs().amax(-1))
+    inside = (d2 <= (r * r)[:, None]) & (radius[:, None] >= 0)
+    ids = torch.where(inside, torch.arange(nf).expand(n, nf), torch.full((n, nf), nf))
+    width = max(int(inside.sum(1).max()) if n else 0, 1)
+    ids = ids.sort(1).values[:, :width]
+    return torch.where(ids == nf, -1, ids)
+
+
+def closest_point_among(points, verts, faces, cand, max_dist):
+    """Twin of the C++ ``closest_point_among``: `closest_point_on_mesh` restricted to each point's
+    candidates ``cand`` (N, K) int64 (each row's end at its first -1); ties to the lowest id."""
+    n = points.shape[0]
+    tri = torch.full((n,), -1, dtype=torch.int64)
+    bary, dist = points.new_zeros(n, 3), points.new_full((n,), float("inf"))
+    p = points.to(torch.float64)
+    safe = cand.clamp_min(0)
+    a, b, c = (verts.to(torch.float64)[faces[safe, k]] for k in range(3))  # (N, K, 3)
+    bc = closest_point_on_triangles(p[:, None], a, b, c)
+    d2 = ((p[:, None] - (bc[..., :1] * a + bc[..., 1:2] * b + bc[..., 2:] * c)) ** 2).sum(-1)
+    listed = torch.cumprod((cand >= 0).to(torch.int64), 1) > 0  # up to the first -1
+    d2 = torch.where(listed & (d2 <= max_dist * max_dist), d2, torch.inf)
+    best = d2.min(1, keepdim=True).values
+    # lowest id among the minima
+    pick = torch.where(d2 == best, cand, torch.iinfo(torch.int64).max).argmin(1)
+    hit = torch.isfinite(best[:, 0])
+    rows = torch.nonzero(hit).squeeze(1)
+    tri[rows] = cand[rows, pick[rows]]
+    bary[rows] = bc[rows, pick[rows]].to(points.dtype)
+    dist[rows] = best[rows, 0].sqrt().to(points.dtype)
+    return tri, bary, dist
+
 
 _BEND_EPS_LEN = 1e-12
 _BEND_EPS_N2 = 1e-24

@@ -78,6 +78,9 @@ class XPBDConfig:
         num_threads: OpenMP threads of the C++ substep op (0 = ``torch.get_num_threads()``). 1 by
             default: its Gauss–Seidel colours need a barrier each, and on the shared 2-core development
             machine a second thread made a substep slower, not faster (scripts/bench_kernels.py).
+        contact_cache: against a static body, query only the vertices that can be in the contact band,
+            seeded with last frame's triangles (`collision.ContactCache`; C++ only). The contacts, hence
+            the results, are the same with and without it.
     """
 
     substeps: int = 40
@@ -94,6 +97,7 @@ class XPBDConfig:
     max_strain: float = 3.0
     use_extension: bool = True
     num_threads: int = 1
+    contact_cache: bool = True
 
     def __post_init__(self):
         if self.scheme not in SCHEMES:
@@ -125,7 +129,9 @@ class XPBDSolver:
     """Steps a `ClothModel` (static data) from one `ClothState` to the next.
 
     The solver keeps nothing that changes the results between frames: each frame's contacts are an
-    output of `advance`. (It caches the closest-point grid of a static body, which only saves time.)
+    output of `advance`. (It caches the closest-point grid of a static body and, with
+    ``config.contact_cache``, what the last frames' contact queries learnt about each vertex
+    (`collision.ContactCache`): both only save time, the contacts are those of a full query.)
 
     Args:
         model: the cloth model.
@@ -135,8 +141,10 @@ class XPBDSolver:
     def __init__(self, model: ClothModel, config: XPBDConfig | None = None):
         self.model = model
         self.config = XPBDConfig() if config is None else config
-        # closest-point grid of the last static body seen by `advance` (rebuilt when the body changes)
+        # closest-point grid of the last static body seen by `advance` (rebuilt when the body changes), and
+        # what the last frames' queries against it learnt per cloth vertex (dropped with it)
         self._body_index: collision.BodyIndex | None = None
+        self._contact_cache: collision.ContactCache | None = None
 
     def step(self, state: ClothState, rest: RestData, dt: float, **kwargs) -> ClothState:
         """Advance one frame and return the new `ClothState` (`advance` without the contacts; the same
@@ -213,7 +221,7 @@ class XPBDSolver:
         band = contact_band(v, rest.material, self.config, dt)
         if body_verts_end is not None:
             band += float((body_verts_end - body_verts).norm(dim=-1).max())
-        index = None
+        index = cache = None
         if body_verts_end is None:  # a static body: reuse its grid from frame to frame
             index = self._body_index
             if index is None or not index.matches(body_verts, body_faces):
@@ -221,8 +229,13 @@ class XPBDSolver:
                     body_verts, body_faces, cell_size=_CONTACT_CELL, use_extension=self.config.use_extension
                 )
                 self._body_index = index
+                self._contact_cache = None
+            if self.config.contact_cache and index.grid is not None:
+                if self._contact_cache is None:
+                    self._contact_cache = collision.ContactCache(index)
+                cache = self._contact_cache
         contacts = collision.detect_contacts(
-            x, body_verts, body_faces, band, use_extension=self.config.use_extension, index=index
+            x, body_verts, body_faces, band, use_extension=self.config.use_extension, index=index, cache=cache
         )
         return contacts if contacts.count else None
 
