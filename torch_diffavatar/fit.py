@@ -427,11 +427,11 @@ class Fitter:
         if cage_group is not None:
             rest_prox(self.optimizer, cage_group, self.rest_loss, self.config.rest_prox_iterations)
         delta, retries = [p.detach() - b for p, b in zip(params, before)], self.config.max_retries
-        # trials continue from the accepted drape's end state (with its backward's linearization: the trial
-        # drapes start at the predicted equilibrium), except after a dropped step: then they start where
-        # the reproduced drape started, so the halvings probe the very map (start -> drape) whose gradient
-        # was taken (on a T-shirt fit that stalls, rejected trials 95 -> 61 in 30 iterations; it still
-        # stalls: docs/RESULTS_HISTORY.md)
+        # trials continue from the accepted drape's end state (with `predict_warm_starts`, from the
+        # equilibrium its backward's linearization predicts), except after a dropped step: then they
+        # start where the reproduced drape started, so the halvings probe the very map (start -> drape)
+        # whose gradient was taken (on a T-shirt fit that stalls, rejected trials 95 -> 61 in 30
+        # iterations; it still stalls: docs/RESULTS_HISTORY.md)
         x, lin = ev.x.detach(), ev.stats.get("linearization") if self.config.predict_warm_starts else None
         next_start = start if self.trial_from_start else ClothState(x, torch.zeros_like(x), lin)
         new, scale, rejected = backtrack(params, before, delta, lambda: self._trial(ev, next_start), retries)

@@ -589,4 +589,5 @@ def adjoint_options(config: FitConfig, adjoint: str | None = None):
         hessian=config.adjoint_hessian,
         # measured on the 2k-vertex dress: sparse LU 0.26 s vs CG 0.83 s on the projected H
         solve_method="direct" if config.adjoint_hessian == "projected" else EquilibriumOptions.solve_method,
+        keep_linearization=config.predict_warm_starts,
     )

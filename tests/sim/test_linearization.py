@@ -103,3 +103,17 @@ def test_friction_holds_the_contacts_in_the_prediction():
     free = predicted - x0
     free[lin.contacts.vert] = 0.0
     assert float(free.abs().max()) > 0  # the rest of the sheet moves
+
+
+def test_keep_linearization_false_frees_the_factor(scene):
+    from dataclasses import replace
+
+    g, model, body, faces = scene
+    uv = g.vert_uv.to(DT).clone().requires_grad_(True)
+    stats: dict = {}
+    x = drape(
+        uv, model, body, material(), body_faces=faces, config=settle_config(120), adjoint="equilibrium",
+        options=replace(OPTIONS, keep_linearization=False), stats=stats,
+    )  # fmt: skip
+    x[:, 1].sum().backward()
+    assert stats["adjoint_solve_method"] == "cholesky" and "linearization" not in stats

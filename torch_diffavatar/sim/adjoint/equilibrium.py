@@ -72,6 +72,9 @@ class EquilibriumOptions:
             cloth, frictionless sliding modes. The fit uses it.
         regularization: see ``hessian`` (relative to the largest diagonal entry) [-].
         use_extension: use the C++ solve op when built.
+        keep_linearization: when the solve was a Cholesky factorisation, leave its factor and inputs in
+            the drape's ``stats["linearization"]`` (`linearization.Linearization`) for the next drape's
+            warm start; False frees the factor with the backward.
     """
 
     newton_iterations: int = 30
@@ -86,6 +89,7 @@ class EquilibriumOptions:
     hessian: str = "exact"
     regularization: float = 1e-6
     use_extension: bool = True
+    keep_linearization: bool = True
 
     def __post_init__(self):
         for name in ("solve_method", "newton_solve_method"):
@@ -300,7 +304,7 @@ def equilibrium_backward(
         use_extension=opts.use_extension, cache=pattern.solver_cache,
     )  # fmt: skip
     lam_free = lam_free.to(x.dtype)
-    if info.factor is not None:  # the next drape's warm start predicts its equilibrium with it
+    if info.factor is not None and opts.keep_linearization:  # the next drape's start predicts with it
         detached = tuple(v.detach() for v in material_values)
         body = None if body_verts is None else body_verts.detach()
         linearization = Linearization(

@@ -6,8 +6,9 @@
   Jacobi-preconditioned CG that stops on non-positive curvature, or |diag|-preconditioned MINRES for
   indefinite H, OpenMP mat-vecs), falling back to SciPy's ``cg``/``minres`` without the extension;
 * ``"direct"``: given a ``cache`` (a matrix with 3×3 block structure, `energy.HessianPattern`) and the
-  extension, the C++ block sparse Cholesky (``torch.ops.diffavatar.block_cholesky_solve``; its symbolic
-  analysis and fill-reducing ordering are computed once and kept in the cache, the topology being fixed);
+  extension, the C++ block sparse Cholesky (``torch.ops.diffavatar.block_cholesky_factor``, then
+  ``block_cholesky_apply``; its symbolic analysis and fill-reducing ordering are computed once and kept in
+  the cache, the topology being fixed; the factor comes back in `SolveInfo.factor`, to solve again);
   otherwise, or when H is not positive definite, SciPy's sparse LU (SuperLU, ``scipy.sparse.linalg.splu``,
   symmetric mode);
 * ``"auto"``: CG; when it meets non-positive curvature (H indefinite: compressed cloth, a saddle) or does
