@@ -775,31 +775,31 @@ def block_cholesky_solve(
         x (n,), info (4,) float64 = [0, |b − H x| / |b|, flag (0 ok, 3 H not positive definite),
         smallest pivot of the factorisation (squared diagonal of L; it depends on the ordering)].
     """
-    n = b.shape[0]
-    row = torch.repeat_interleave(torch.arange(n), crow[1:] - crow[:-1])
-    h = torch.zeros(n, n, dtype=torch.float64)
-    h[row, col] = val.double()
-    h = torch.tril(h) + torch.tril(h, -1).T  # the lower triangle, as the C++ factorisation reads it
+    h = _dense_lower(crow, col, val)
     info = torch.zeros(4, dtype=torch.float64)
     chol, err = torch.linalg.cholesky_ex(h)
     if int(err) != 0:
         info[1], info[2] = float("inf"), 3
         return torch.full_like(b, float("nan")), info
     x = torch.cholesky_solve(b.double()[:, None], chol)[:, 0]
-    hx = torch.zeros(n, n, dtype=torch.float64)
-    hx[row, col] = val.double()
     nb_ = float(b.double().norm())
-    info[1] = float((b.double() - hx @ x).norm()) / (nb_ if nb_ > 0 else 1.0)
+    info[1] = float((b.double() - _dense(crow, col, val) @ x).norm()) / (nb_ if nb_ > 0 else 1.0)
     info[3] = float(chol.diagonal().min() ** 2)
     return x.to(b.dtype), info
 
 
-def _dense_lower(crow: torch.Tensor, col: torch.Tensor, val: torch.Tensor) -> torch.Tensor:
-    """(n, n) float64 symmetric matrix of the CSR's lower triangle (what the C++ factorisation reads)."""
+def _dense(crow: torch.Tensor, col: torch.Tensor, val: torch.Tensor) -> torch.Tensor:
+    """(n, n) float64 dense matrix of the CSR (crow, col, val)."""
     n = crow.shape[0] - 1
     row = torch.repeat_interleave(torch.arange(n), crow[1:] - crow[:-1])
     h = torch.zeros(n, n, dtype=torch.float64)
     h[row, col] = val.double()
+    return h
+
+
+def _dense_lower(crow: torch.Tensor, col: torch.Tensor, val: torch.Tensor) -> torch.Tensor:
+    """(n, n) float64 symmetric matrix of the CSR's lower triangle (what the C++ factorisation reads)."""
+    h = _dense(crow, col, val)
     return torch.tril(h) + torch.tril(h, -1).T
 
 
