@@ -196,6 +196,34 @@ struct Hit {
   double dist2 = std::numeric_limits<double>::infinity();
 };
 
+// The triangles of grid cell (i, j, k) that may lie within the bound of p and are not stamped yet: the
+// cell is skipped when farther than `bound2()`, an entry when its float box is farther than `bound_f()`
+// (both read anew each time: the query's bound shrinks with every closer hit); each triangle passed to
+// `fn` is stamped first.
+template <typename Bound2, typename BoundF, typename Fn>
+inline void visit_cell(const GridView& g, int64_t i, int64_t j, int64_t k, const double p[3], const float pf[3],
+                       int64_t nf, std::vector<int64_t>& stamp, int64_t stamp_id, Bound2 bound2, BoundF bound_f,
+                       Fn fn) {
+  const double clo[3] = {g.lo[0] + i * g.h, g.lo[1] + j * g.h, g.lo[2] + k * g.h};
+  const double chi[3] = {clo[0] + g.h, clo[1] + g.h, clo[2] + g.h};
+  if (box_dist2(p, clo, chi) > bound2()) return;
+  const int64_t cid = g.cell(i, j, k);
+  for (int64_t s = g.start[cid]; s < g.start[cid + 1]; ++s) {
+    const Entry& e = g.items[s];
+    float d2f = 0.0f;
+    for (int a = 0; a < 3; ++a) {
+      const float d = std::max(std::max(e.lo[a] - pf[a], pf[a] - e.hi[a]), 0.0f);
+      d2f += d * d;
+    }
+    if (d2f > bound_f()) continue;
+    const int32_t f = e.tri;
+    if (f < 0 || f >= nf) continue;  // cannot happen with an index built for these faces; keeps reads in range
+    if (stamp[f] == stamp_id) continue;
+    stamp[f] = stamp_id;
+    fn(f);
+  }
+}
+
 template <typename T>
 Hit query(const GridView& g, const T* verts, const int64_t* faces, int64_t nf, const double p[3], double max_dist,
           std::vector<int64_t>& stamp, int64_t stamp_id, int64_t hint = -1) {
@@ -254,25 +282,9 @@ Hit query(const GridView& g, const T* verts, const int64_t* faces, int64_t nf, c
     lim_lo[a] = g.axis_cell(a, p[a] - lim_r);
     lim_hi[a] = g.axis_cell(a, p[a] + lim_r);
   }
-  auto visit_cell = [&](int64_t i, int64_t j, int64_t k) {
-    const double clo[3] = {g.lo[0] + i * g.h, g.lo[1] + j * g.h, g.lo[2] + k * g.h};
-    const double chi[3] = {clo[0] + g.h, clo[1] + g.h, clo[2] + g.h};
-    if (box_dist2(p, clo, chi) > cell_bound2) return;
-    const int64_t cid = g.cell(i, j, k);
-    for (int64_t s = g.start[cid]; s < g.start[cid + 1]; ++s) {
-      const Entry& e = g.items[s];
-      float d2f = 0.0f;
-      for (int a = 0; a < 3; ++a) {
-        const float d = std::max(std::max(e.lo[a] - pf[a], pf[a] - e.hi[a]), 0.0f);
-        d2f += d * d;
-      }
-      if (d2f > bound_f) continue;
-      const int32_t f = e.tri;
-      if (f < 0 || f >= nf) continue;  // cannot happen with an index built for these faces; keeps reads in range
-      if (stamp[f] == stamp_id) continue;
-      stamp[f] = stamp_id;
-      test_triangle(f);
-    }
+  auto visit = [&](int64_t i, int64_t j, int64_t k) {
+    visit_cell(
+        g, i, j, k, p, pf, nf, stamp, stamp_id, [&] { return cell_bound2; }, [&] { return bound_f; }, test_triangle);
   };
   for (int64_t r = 0;; ++r) {
     // Visit the shell of Chebyshev radius r around c, clipped to the search limits.
@@ -283,10 +295,10 @@ Hit query(const GridView& g, const T* verts, const int64_t* faces, int64_t nf, c
       const bool i_shell = (i == c[0] - r) || (i == c[0] + r);
       for (int64_t j = j0; j <= j1; ++j) {
         if (i_shell || (j == c[1] - r) || (j == c[1] + r)) {
-          for (int64_t k = k0; k <= k1; ++k) visit_cell(i, j, k);
+          for (int64_t k = k0; k <= k1; ++k) visit(i, j, k);
         } else {
-          if (c[2] - r >= k0) visit_cell(i, j, c[2] - r);
-          if (r > 0 && c[2] + r <= k1) visit_cell(i, j, c[2] + r);
+          if (c[2] - r >= k0) visit(i, j, c[2] - r);
+          if (r > 0 && c[2] + r <= k1) visit(i, j, c[2] + r);
         }
       }
     }
@@ -343,27 +355,16 @@ void collect(const GridView& g, const T* verts, const int64_t* faces, int64_t nf
   for (int64_t i = lo[0]; i <= hi[0]; ++i)
     for (int64_t j = lo[1]; j <= hi[1]; ++j)
       for (int64_t k = lo[2]; k <= hi[2]; ++k) {
-        const double clo[3] = {g.lo[0] + i * g.h, g.lo[1] + j * g.h, g.lo[2] + k * g.h};
-        const double chi[3] = {clo[0] + g.h, clo[1] + g.h, clo[2] + g.h};
-        if (box_dist2(p, clo, chi) > r2) continue;
-        const int64_t cid = g.cell(i, j, k);
-        for (int64_t s = g.start[cid]; s < g.start[cid + 1]; ++s) {
-          const Entry& e = g.items[s];
-          float d2f = 0.0f;
-          for (int a = 0; a < 3; ++a) {
-            const float d = std::max(std::max(e.lo[a] - pf[a], pf[a] - e.hi[a]), 0.0f);
-            d2f += d * d;
-          }
-          const int32_t f = e.tri;
-          if (d2f > r2f || f < 0 || f >= nf || stamp[f] == stamp_id) continue;
-          stamp[f] = stamp_id;
-          const V3 va = load3d(verts, faces[3 * f]), vb = load3d(verts, faces[3 * f + 1]),
-                   vc = load3d(verts, faces[3 * f + 2]);
-          double bc[3];
-          closest_on_triangle(pv, va, vb, vc, bc);
-          const V3 d = pv - (bc[0] * va + bc[1] * vb + bc[2] * vc);
-          if (dot(d, d) <= r2) out.push_back(f);
-        }
+        visit_cell(
+            g, i, j, k, p, pf, nf, stamp, stamp_id, [&] { return r2; }, [&] { return r2f; },
+            [&](int64_t f) {
+              const V3 va = load3d(verts, faces[3 * f]), vb = load3d(verts, faces[3 * f + 1]),
+                       vc = load3d(verts, faces[3 * f + 2]);
+              double bc[3];
+              closest_on_triangle(pv, va, vb, vc, bc);
+              const V3 d = pv - (bc[0] * va + bc[1] * vb + bc[2] * vc);
+              if (dot(d, d) <= r2) out.push_back(f);
+            });
       }
 }
 
