@@ -221,8 +221,8 @@ def _run_and_gather(ray, jobs, todo, rows: dict, out: Path, args) -> list[dict]:
     def ordered() -> list[dict]:
         return [rows[j.name] for j in jobs if j.name in rows]
 
-    bar = tqdm(total=len(jobs), initial=len(jobs) - len(todo), unit="scan", file=sys.stderr)
-    bar.disable = args.no_progress or bar.disable
+    initial = len(jobs) - len(todo)
+    bar = tqdm(total=len(jobs), initial=initial, unit="scan", file=sys.stderr, disable=args.no_progress)
 
     def on_row(row: dict) -> None:
         rows[row["name"]] = row
