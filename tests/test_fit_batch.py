@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from torch_diffavatar.batch import BatchJob, output_names, read_manifest
+from torch_diffavatar.batch import BatchJob, fit_state, output_names, read_manifest
 from torch_diffavatar.cli import main
 from torch_diffavatar.errors import InputError
 
@@ -82,13 +82,14 @@ def test_a_rerun_skips_finished_scans(batch, scans):
 
 
 def test_a_killed_batch_reruns_to_the_uninterrupted_results(batch, scans):
-    """SIGKILL to the driver once a fit has its set-up, then a rerun: the same per-scan results."""
+    """One worker; SIGKILL to the driver once the first scan is done and the second has its set-up; a
+    rerun skips the first, finishes the second, and each ends as in the uninterrupted batch."""
     reference, _ = batch
     out = scans / "killed"
     argv = [sys.executable, "-m", "torch_diffavatar.cli", "fit-batch", str(scans / "good.jsonl")]
     env = dict(os.environ, PYTHONPATH=str(ROOT), OMP_NUM_THREADS="1")
     proc = subprocess.Popen(
-        [*argv, "--out", str(out), "--workers", "2", *FIT_OPTIONS],
+        [*argv, "--out", str(out), "--workers", "1", *FIT_OPTIONS],
         env=env,
         start_new_session=True,  # Ray's helpers join its group: removed with it at the end
         stdout=subprocess.DEVNULL,
@@ -96,12 +97,12 @@ def test_a_killed_batch_reruns_to_the_uninterrupted_results(batch, scans):
     )
     try:
         deadline = time.monotonic() + 120
-        while not list(out.glob("*/setup.pt")) and time.monotonic() < deadline and proc.poll() is None:
+        while not (out / "b-scan" / "setup.pt").exists() and time.monotonic() < deadline:
+            assert proc.poll() is None, "the batch ended before it was killed"
             time.sleep(0.05)
         proc.send_signal(signal.SIGKILL)
         proc.wait()
-        assert not (out / "summary.png").exists()  # killed before the batch ended
-        assert any((out / n / "INCOMPLETE").exists() for n in ("a-scan", "b-scan"))
+        assert fit_state(out / "a-scan") == "done" and (out / "b-scan" / "INCOMPLETE").exists()
         code = main(
             ["fit-batch", str(scans / "good.jsonl"), "--out", str(out), "--workers", "2", *FIT_OPTIONS]
         )
@@ -112,6 +113,7 @@ def test_a_killed_batch_reruns_to_the_uninterrupted_results(batch, scans):
             pass
     assert code == 0
     rows, expected = _summary(out), _summary(reference)
+    assert rows["a-scan"]["run"] == "skipped"
     for name in ("a-scan", "b-scan"):
         assert rows[name]["status"] == "ok"
         for key in ("chamfer_initial", "chamfer_final"):
@@ -154,6 +156,7 @@ def test_manifest_rows_resolve_against_its_folder(tmp_path):
         ("scan,garment\n", ".csv", "lists no scans"),
         ("scan,garment\nx.ply,\n", ".csv", "line 2: no garment"),
         ("[1]\n", ".jsonl", "not a JSON object"),
+        ("scan,garment,units\nx.ply,skirt,inch\n", ".csv", "units 'inch' is not one of"),
     ],
 )
 def test_bad_manifests_are_one_line_errors(tmp_path, text, suffix, message):
@@ -208,3 +211,14 @@ def test_each_task_fits_with_one_thread_and_resumes_a_half_done_folder(tmp_path,
     assert (row["status"], row["run"], row["chamfer_final"], row["warnings"]) == ("ok", "fitted", 0.01, ["w"])
     assert resumed["run"] == "resumed"
     assert failed["status"] == "error" and failed["error"] == "RuntimeError: went wrong"
+
+
+def test_the_benchmark_compares_each_scans_chamfer(tmp_path):
+    """scripts/bench_fit_batch.py's check that the loop and the batches fitted the same: per scan folder."""
+    from helpers_scripts import load_script
+
+    bench = load_script("bench_fit_batch")
+    for name, chamfer in (("s1-scan", 0.01), ("s2", 0.02)):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "report.json").write_text(json.dumps({"chamfer_final": chamfer}))
+    assert bench.chamfers(tmp_path) == {"s1": 0.01, "s2": 0.02}

@@ -94,6 +94,11 @@ def _job(row: dict, where: str, folder: Path) -> BatchJob:
     scan = resolve(values["scan"])
     if not Path(scan).is_file():
         raise InputError(f"{where}: scan {values['scan']} not found ({scan})")
+    from torch_diffavatar.scan import UNITS, UP_AXES
+
+    for key, known in (("units", UNITS), ("up", UP_AXES)):
+        if values.get(key) and values[key] not in known:
+            raise InputError(f"{where}: {key} {values[key]!r} is not one of {', '.join(known)}")
     garment = values["garment"]
     if (folder / garment).is_file():  # a pattern file beside the manifest; else a template's name
         garment = resolve(garment)
