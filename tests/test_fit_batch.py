@@ -65,8 +65,11 @@ def test_a_broken_scan_is_an_error_row_and_the_others_complete(batch):
     assert csv_lines[0].startswith("name,scan,status") and len(csv_lines) == 4
     from PIL import Image
 
+    with Image.open(out / "a-scan" / "before_after.png") as im:
+        tile_h = round(im.height * 480 / im.width)
     with Image.open(out / "summary.png") as im:  # a 2-column grid of 3 tiles: 2 rows
-        assert im.width == 2 * 480 and im.height == 2 * (240 + 18)
+        assert im.width == 2 * 480 and im.height == 2 * (tile_h + 18)
+        assert im.getpixel((480 + 240, 18 + tile_h // 2)) == (235, 235, 235)  # the broken scan's: grey
 
 
 def test_a_rerun_skips_finished_scans(batch, scans):

@@ -206,26 +206,33 @@ def write_summary(out: Path, rows: list[dict]) -> None:
 
 def summary_picture(out: Path, rows: list[dict], *, tile_width: int = 480, columns: int = 2) -> Path:
     """``out/summary.png``: a grid of each scan's before/after picture (``NAME/before_after.png``, rendered
-    by `render` when the fit wrote its assets), scaled to ``tile_width`` pixels, with its name and status
+    by `render` when the fit wrote its assets), scaled to ``tile_width`` pixels wide (the tiles as high as
+    the highest; a quarter of the width without any picture), its name, status and Chamfer before -> after
     above it; a failed scan's tile is grey with its error."""
     import numpy as np
     from PIL import Image, ImageDraw
 
     from torch_diffavatar.render import save_png
 
-    label_h, tile_h = 18, tile_width // 2
+    pictures = {}
+    for row in rows:
+        path = out / row["name"] / "before_after.png"
+        if row["status"] == "ok" and path.is_file():
+            with Image.open(path) as im:
+                im = im.convert("RGB")
+            pictures[row["name"]] = im.resize((tile_width, max(1, round(im.height * tile_width / im.width))))
+    label_h = 18
+    tile_h = max((im.height for im in pictures.values()), default=tile_width // 4)
     tiles = []
     for row in rows:
         tile = Image.new("RGB", (tile_width, tile_h + label_h), (235, 235, 235))
-        picture = out / row["name"] / "before_after.png"
-        if row["status"] == "ok" and picture.is_file():
-            with Image.open(picture) as im:
-                im = im.convert("RGB")
-                im.thumbnail((tile_width, tile_h))
-                tile.paste(im, ((tile_width - im.width) // 2, label_h))
-        chamfer = row.get("chamfer_final")
+        if row["name"] in pictures:
+            tile.paste(pictures[row["name"]], (0, label_h))
         text = f"{row['name']}: {row['status']}"
-        text += f", Chamfer {1e3 * chamfer:.1f} mm" if chamfer is not None else f" ({row.get('error')})"
+        if row["status"] == "ok" and row.get("chamfer_final") is not None:
+            text += f", Chamfer {1e3 * row['chamfer_initial']:.1f} -> {1e3 * row['chamfer_final']:.1f} mm"
+        else:
+            text += f" ({row.get('error')})"
         ImageDraw.Draw(tile).text((4, 3), text[:90], fill=(0, 0, 0) if row["status"] == "ok" else (170, 0, 0))
         tiles.append(tile)
     columns = max(1, min(columns, len(tiles)))
