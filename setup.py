@@ -59,7 +59,11 @@ setup(
         "tqdm",
         "tensorboard",
     ],
-    extras_require={"test": ["pytest", "ruff", "rtree"], "newton": ["warp-lang==1.19.0", "newton==1.8.0"]},
+    extras_require={
+        "test": ["pytest", "ruff", "rtree"],
+        "newton": ["warp-lang==1.19.0", "newton==1.8.0"],
+        "ray": ["ray>=2.9"],
+    },
     ext_modules=ext_modules,
     cmdclass=cmdclass,
     entry_points={"console_scripts": ["diffavatar=torch_diffavatar.cli:main"]},

@@ -41,6 +41,7 @@ LAYERS = {
     "evaluation": (4, "evaluation"),
     "animate": (4, "animate"),
     "fit": (5, "fit"),
+    "batch": (5, "fit"),  # batch fitting's manifest and summary: reads the fit folders it gathers
     "commands": (6, "commands"),
     "cli": (7, "cli"),
 }

@@ -13,7 +13,7 @@ from torch_diffavatar.json_io import dumps_json
 # Each module defines `register(subparsers)`; its sub-commands set `func(args) -> int | dict`.
 _COMMAND_MODULES = tuple(
     f"torch_diffavatar.commands.{name}"
-    for name in ("mesh", "drape", "body", "fit", "demo", "animate", "make_scan", "eval")
+    for name in ("mesh", "drape", "body", "fit", "fit_batch", "demo", "animate", "make_scan", "eval")
 )
 
 
