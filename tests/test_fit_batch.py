@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -82,6 +83,24 @@ def test_a_rerun_skips_finished_scans(batch, scans):
     for name, stamp in stamps.items():
         assert rows[name]["run"] == "skipped" and (out / name / "report.json").stat().st_mtime_ns == stamp
         assert rows[name]["chamfer_final"] == before[name]["chamfer_final"]
+
+
+def test_a_finished_scan_with_other_settings_is_an_error_not_skipped(batch, scans, tmp_path):
+    """A folder that a batch fitted with ``--iters 1`` is not passed off as the result of ``--iters 2`` (or
+    of an edited scan): its row is an error that names what changed, and the folder stays as it was."""
+    reference, _ = batch
+    out = tmp_path / "out"
+    shutil.copytree(reference / "a-scan", out / "scan")  # alone in its manifest, the scan's folder is "scan"
+    manifest = tmp_path / "a.csv"
+    manifest.write_text(f"scan,garment\n{scans / 'a' / 'scan.ply'},skirt\n")
+    stamp = (out / "scan" / "report.json").stat().st_mtime_ns
+    assert main(["fit-batch", str(manifest), "--out", str(out), *FIT_OPTIONS]) == 0
+    assert _summary(out)["scan"]["run"] == "skipped" and _summary(out)["scan"]["status"] == "ok"
+    options = ["--iters", "2", *FIT_OPTIONS[2:]]
+    assert main(["fit-batch", str(manifest), "--out", str(out), *options]) == 1
+    row = _summary(out)["scan"]
+    assert row["status"] == "error" and "other settings (iters)" in row["error"]
+    assert (out / "scan" / "report.json").stat().st_mtime_ns == stamp
 
 
 def test_a_killed_batch_reruns_to_the_uninterrupted_results(batch, scans):
@@ -194,6 +213,7 @@ def test_each_task_fits_with_one_thread_and_resumes_a_half_done_folder(tmp_path,
         seen.append((torch.get_num_threads(), args))
         if args.garment == "boom":
             raise RuntimeError("went\nwrong")
+        Path(args.out).mkdir(exist_ok=True)  # a fit writes its folder (and the batch its record there)
         return {"chamfer_initial": 0.02, "chamfer_final": 0.01, "warnings": ["w"]}
 
     monkeypatch.setattr(fit, "fit_command", fake_fit)
@@ -202,7 +222,6 @@ def test_each_task_fits_with_one_thread_and_resumes_a_half_done_folder(tmp_path,
     try:
         job = BatchJob(scan=str(tmp_path / "s.ply"), garment="skirt", name="s", units="cm")
         row = fit_one(job.to_dict(), str(tmp_path), 3, 0.05)
-        (tmp_path / "s" / "setup.pt").parent.mkdir()
         (tmp_path / "s" / "setup.pt").write_text("")
         resumed = fit_one(job.to_dict(), str(tmp_path), 3, 0.05)
         failed = fit_one({**job.to_dict(), "garment": "boom", "name": "t"}, str(tmp_path), 3, 0.05)
@@ -212,7 +231,9 @@ def test_each_task_fits_with_one_thread_and_resumes_a_half_done_folder(tmp_path,
     assert threads == 1 and args.out == str(tmp_path / "s") and (args.iters, args.spacing) == (3, 0.05)
     assert args.units == "cm" and args.json and not args.resume and args2.resume
     assert (row["status"], row["run"], row["chamfer_final"], row["warnings"]) == ("ok", "fitted", 0.01, ["w"])
-    assert resumed["run"] == "resumed"
+    assert (
+        resumed["run"] == "resumed" and json.loads((tmp_path / "s" / "batch.json").read_text())["iters"] == 3
+    )
     assert failed["status"] == "error" and failed["error"] == "RuntimeError: went wrong"
 
 

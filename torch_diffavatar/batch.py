@@ -9,6 +9,7 @@ batch's ``--out``, named after its file (`output_names`).
 from __future__ import annotations
 
 import csv
+import hashlib
 import io
 import json
 from dataclasses import asdict, dataclass
@@ -21,6 +22,7 @@ from torch_diffavatar.fit_scan import INCOMPLETE
 MANIFEST_KEYS = ("scan", "garment", "config", "units", "up", "body")
 REQUIRED_KEYS = ("scan", "garment")
 SUMMARY_CSV, SUMMARY_JSON, SUMMARY_PNG = "summary.csv", "summary.json", "summary.png"
+BATCH_RECORD = "batch.json"  # in a scan's folder: the batch settings it was fitted with (`batch_settings`)
 SUMMARY_FIELDS = (
     "name",
     "scan",
@@ -171,6 +173,47 @@ def fit_state(folder: Path) -> str:
     if folder.is_dir() and any(folder.iterdir()):
         return "partial"
     return "new"
+
+
+def batch_settings(job: BatchJob, iters: int | None, spacing: float | None) -> dict:
+    """What a batch fits ``job``'s folder with: its manifest row (the scan, config and body files also by
+    content, SHA-256) and the batch's ``--iters`` / ``--spacing``, as plain data (`BATCH_RECORD`)."""
+    row = {k: v for k, v in job.to_dict().items() if k != "name"}
+    digests = {}
+    for key in ("scan", "config", "body"):
+        path = row.get(key)
+        if path and Path(path).is_file():
+            digests[key] = hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    return {"row": row, "sha256": digests, "iters": iters, "spacing": spacing}
+
+
+def record_settings(folder: Path, settings: dict) -> None:
+    """Write ``settings`` (`batch_settings`) into the finished ``folder``'s `BATCH_RECORD`."""
+    atomic_write_text(folder / BATCH_RECORD, json.dumps(settings, indent=1) + "\n")
+
+
+def changed_settings(folder: Path, settings: dict) -> list[str]:
+    """What differs between ``settings`` and those the finished ``folder`` was fitted with by a batch
+    (``iters``, ``spacing``, ``scan``, ``config``, ...; sorted); [] when they agree or when no batch recorded
+    them (a folder fitted otherwise is taken as it is)."""
+    path = folder / BATCH_RECORD
+    if not path.is_file():
+        return []
+    try:
+        old = json.loads(path.read_text())
+    except json.JSONDecodeError:
+        return ["batch.json unreadable"]
+
+    def flat(d: dict) -> dict:
+        return {
+            **d.get("row", {}),
+            **{f"{k} contents": v for k, v in d.get("sha256", {}).items()},
+            "iters": d.get("iters"),
+            "spacing": d.get("spacing"),
+        }
+
+    a, b = flat(old), flat(settings)
+    return sorted(k for k in {**a, **b} if a.get(k) != b.get(k))
 
 
 def result_row(job: BatchJob, run: str, seconds: float, report: dict | None, error: str | None) -> dict:

@@ -20,8 +20,11 @@ from pathlib import Path
 
 from torch_diffavatar.batch import (
     BatchJob,
+    batch_settings,
+    changed_settings,
     fit_state,
     read_manifest,
+    record_settings,
     result_row,
     summary_picture,
     write_summary,
@@ -84,9 +87,26 @@ def fit_one(job: dict, out: str, iters: int | None, spacing: float | None) -> di
         folder = Path(out) / job.name
         state = fit_state(folder)
         if state == "done":  # finished by a task of a killed batch while this one waited
-            report = _read_report(folder)
-            return result_row(job, "skipped", report.get("total_seconds", 0.0), report, None)
-        return _fit_in_folder(job, folder, state == "partial", iters, spacing)
+            return finished_row(job, folder, iters, spacing)
+        row = _fit_in_folder(job, folder, state == "partial", iters, spacing)
+        if row["status"] == "ok":
+            record_settings(folder, batch_settings(job, iters, spacing))
+        return row
+
+
+def finished_row(job: BatchJob, folder: Path, iters, spacing) -> dict:
+    """The row of a scan whose ``folder`` holds a finished fit: ``skipped`` when a batch fitted it with the
+    same row, files and ``--iters`` / ``--spacing`` (`batch.changed_settings`), else an error naming what
+    changed (never a silent result of other settings)."""
+    changed = changed_settings(folder, batch_settings(job, iters, spacing))
+    if changed:
+        message = (
+            f"{folder} holds a fit made with other settings ({', '.join(changed)}); remove that folder "
+            "(or choose another --out) to fit it again"
+        )
+        return result_row(job, "skipped", 0.0, None, message)
+    report = _read_report(folder)
+    return result_row(job, "skipped", report.get("total_seconds", 0.0), report, None)
 
 
 @contextlib.contextmanager
@@ -187,8 +207,7 @@ def fit_batch_command(args) -> int:
     rows, todo = {}, []
     for job in jobs:
         if fit_state(out / job.name) == "done":
-            report = _read_report(out / job.name)
-            rows[job.name] = result_row(job, "skipped", report.get("total_seconds", 0.0), report, None)
+            rows[job.name] = finished_row(job, out / job.name, args.iters, args.spacing)
         else:
             todo.append(job)
     rows = _run_and_gather(ray, jobs, todo, rows, out, args)
