@@ -55,6 +55,9 @@ class LossWeights:
         pattern_change: [1/m], times `pattern_change_loss` (the robust mean distance of the pattern from
             the template outside each panel's design changes, `design_modes`: moves, scales, shears and
             flares are free): the fit reshapes a panel only where the scan's evidence outweighs it. 0: off.
+        opening_length: [-], times `opening_lengths.opening_length_loss` (the hems' squared relative
+            shortfall of their rest length below the length the scan's hem points trace, less
+            ``FitConfig.opening_length_tolerance``): a hem is never narrower than the scan shows. 0: off.
     """
 
     boundary: float = 1.0e4
@@ -66,6 +69,7 @@ class LossWeights:
     rest_shape: float = 100.0
     skin: float = 3.0e5
     pattern_change: float = 0.0
+    opening_length: float = 0.0
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
@@ -168,6 +172,9 @@ class FitConfig:
         boundary_trim: fraction of the largest point distances left out of each direction of each
             opening's Chamfer (`boundary_loss` ``trim``): scan openings pick up the rims of nearby holes [-].
         boundary_samples: points per loop edge of the boundary loss (`boundary_loss` samples_per_edge).
+        opening_length_bin: the bin length [m] along a scan hem of `opening_lengths.scan_loop_length`.
+        opening_length_tolerance: the fraction [0, 1) of a scan hem's traced length that a fitted hem may
+            fall short of it before ``weights.opening_length`` holds it.
         min_rest_area_ratio: a step is rejected when a rest triangle's signed area falls below this
             fraction of its template area [-].
         max_drape_jump: a step is rejected when a cloth vertex moves more than this between two
@@ -238,6 +245,8 @@ class FitConfig:
     robust_scale: float = 0.01
     boundary_trim: float = 0.0
     boundary_samples: int = 2
+    opening_length_bin: float = 0.02
+    opening_length_tolerance: float = 0.0
     min_rest_area_ratio: float = 0.1
     max_drape_jump: float = 0.15
     max_retries: int = 3
@@ -302,6 +311,14 @@ class FitConfig:
                 raise ValueError(f"FitConfig.{name} must be one of {ROBUST_KERNELS}, got {kernel!r}")
         if not 0.0 <= self.boundary_trim < 1.0:
             raise ValueError(f"FitConfig.boundary_trim must be in [0, 1), got {self.boundary_trim}")
+        if not 0.0 <= self.opening_length_tolerance < 1.0:
+            raise ValueError(
+                f"FitConfig.opening_length_tolerance must be in [0, 1), got {self.opening_length_tolerance}"
+            )
+        if not 0 < self.opening_length_bin < math.inf:
+            raise ValueError(
+                f"FitConfig.opening_length_bin must be a length > 0 [m], got {self.opening_length_bin}"
+            )
         if not self.robust_scale > 0:
             raise ValueError(f"FitConfig.robust_scale must be a positive length [m], got {self.robust_scale}")
         if not 0 <= self.tie_close < math.inf:

@@ -14,6 +14,7 @@ from torch_diffavatar.chamfer import nearest_indices, surface_chamfer_m
 from torch_diffavatar.losses import rest_area_ratio
 from torch_diffavatar.metrics import scan_noise_sigma_m, triangle_quality
 from torch_diffavatar.objective import FitObjective, ObjectiveOutput, membrane_stiffnesses
+from torch_diffavatar.opening_lengths import rest_loop_length
 
 # a draped triangle below this quality (`metrics.triangle_quality`) is flagged in the fit's report: the
 # evaluation's target for a simulation-ready drape (docs/RESULTS.md)
@@ -130,9 +131,25 @@ def fit_report(first: dict, final: dict, objective: FitObjective, run: dict) -> 
         "vertices": garment.sim_vert_count,
         "faces": garment.tri_count,
         "matched_boundaries": [lp.name for lp in objective.loops],
+        "hem_lengths": hem_lengths(objective, first["rest_uv"], final["rest_uv"]),
         "first_drape_candidates": list(run["first_drape_candidates"]),
         "warnings": result_warnings(final["x"], garment.sim_faces, ratio, config.spacing),
     }
+
+
+def hem_lengths(objective: FitObjective, first_uv: torch.Tensor, final_uv: torch.Tensor) -> dict:
+    """Each hem's length [m] as the scan's points trace it (``scan``: a lower bound, `opening_lengths`), and
+    as the pattern's rest edges give it at the first (``initial``) and at the resulting rest coordinates
+    ``first_uv``, ``final_uv`` (V, 2) [m] (``final``): hem name -> those three."""
+    out = {}
+    hems = zip(objective.hem_names, objective.hem_traced, objective.hem_edges, strict=True)
+    for name, traced, edges in hems:
+        out[name] = {
+            "scan": traced,
+            "initial": float(rest_loop_length(first_uv.detach(), edges)),
+            "final": float(rest_loop_length(final_uv.detach(), edges)),
+        }
+    return out
 
 
 def result_warnings(

@@ -37,6 +37,7 @@ from torch_diffavatar.losses import (
     skin_loss,
     template_edge_inverse,
 )
+from torch_diffavatar.opening_lengths import is_hem, opening_length_loss, rest_loop_edges, scan_loop_length
 from torch_diffavatar.pattern.garment_mesh import BoundaryLoop, GarmentMesh
 from torch_diffavatar.sim.material import ClothMaterial
 from torch_diffavatar.sim.model import ClothModel, ClothModelBuilder
@@ -330,6 +331,7 @@ class FitObjective(nn.Module):
         self.register_buffer("initial_phenotypes", initial_phenotypes)
         self.seam_segments = seam_segments(garment)
         self.loops = [lp for lp in garment.boundary_loops if lp.name in self.boundary_names]
+        self._register_hem_lengths(target, dtype)
         self._model: ClothModel = ClothModelBuilder(self.material).add_garment(garment).finalize(dtype=dtype)
 
     @classmethod
@@ -389,6 +391,23 @@ class FitObjective(nn.Module):
         for k, points in enumerate(target.boundaries.values()):
             self.register_buffer(f"scan_boundary_{k}", points.to(dtype))
 
+    def _register_hem_lengths(self, target: ScanTarget, dtype: torch.dtype) -> None:
+        """The K matched hems with a length the scan's points trace (`scan_loop_length`): ``hem_names``,
+        ``hem_traced`` (K floats [m]), ``hem_edges`` (their rest edges, `rest_loop_edges`) and the buffer
+        ``hem_least`` (K,) [m], the traced lengths less ``config.opening_length_tolerance``."""
+        cfg = self.config
+        self.hem_names, self.hem_traced, self.hem_edges = [], [], []
+        for loop in self.loops:
+            if not is_hem(loop.name):
+                continue
+            length, _ = scan_loop_length(target.boundaries[loop.name], bin_length=cfg.opening_length_bin)
+            if math.isfinite(length):
+                self.hem_names.append(loop.name)
+                self.hem_traced.append(length)
+                self.hem_edges.append(rest_loop_edges(self.garment, loop))
+        least = [length * (1.0 - cfg.opening_length_tolerance) for length in self.hem_traced]
+        self.register_buffer("hem_least", torch.tensor(least, dtype=dtype).reshape(-1))
+
     # -- the pieces ----------------------------------------------------------------------------------------
 
     @property
@@ -447,6 +466,8 @@ class FitObjective(nn.Module):
             terms["pattern_change"] = pattern_change_loss(
                 rest_uv, self.template_uv, self.garment.vert_panel, modes=self.design_modes
             )
+        if self.weight_opening_length > 0 and self.hem_edges:
+            terms["opening_length"] = opening_length_loss(rest_uv, self.hem_edges, self.hem_least)
         return terms
 
     def rest_loss(self, rest_uv: torch.Tensor) -> torch.Tensor:

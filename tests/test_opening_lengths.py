@@ -1,0 +1,148 @@
+"""A hem's length read off a scan's opening points and off a pattern's rest shape, and the fit term that
+keeps a fitted hem from being narrower than the scan shows (`torch_diffavatar.opening_lengths`)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torch_diffavatar.opening_lengths import (
+    is_hem,
+    opening_length_loss,
+    rest_loop_edges,
+    rest_loop_length,
+    scan_loop_length,
+)
+
+
+def _ring(radius, n=2000, noise=0.0, wave=(0.0, 0), tilt=0.0, gap_deg=0.0, seed=0):
+    """(n, 3) points around a hem-like loop of ``radius`` [m] at height 0.9 m: folds ``wave`` = (amplitude
+    [m], count), a Gaussian ``noise`` [m], the loop tilted by ``tilt`` [rad] about X, points of a
+    ``gap_deg`` sector left out. Returns (points, the noiseless loop's length [m])."""
+    rng = np.random.default_rng(seed)
+    t = np.sort(rng.uniform(0, 2 * np.pi, n))
+    amp, k = wave
+    r = radius + amp * np.sin(k * t)
+    p = np.stack([r * np.cos(t), 0.9 + 0.01 * np.sin(2 * t), r * np.sin(t)], 1)
+    fine = np.linspace(0, 2 * np.pi, 20001)
+    rf = radius + amp * np.sin(k * fine)
+    q = np.stack([rf * np.cos(fine), 0.01 * np.sin(2 * fine), rf * np.sin(fine)], 1)
+    length = np.linalg.norm(np.diff(q, axis=0), axis=1).sum()
+    c, s = np.cos(tilt), np.sin(tilt)
+    p = p @ np.array([[1, 0, 0], [0, c, -s], [0, s, c]]).T
+    keep = np.degrees(t) >= gap_deg
+    return p[keep] + rng.normal(0, noise, p[keep].shape), length
+
+
+def test_scan_loop_length_of_a_noisy_folded_ring():
+    # a 1.2 m hem with 8 folds of 1.5 cm (15 cm wavelength), 3 mm noise, tilted 20 degrees
+    points, truth = _ring(0.19, noise=0.003, wave=(0.015, 8), tilt=math.radians(20))
+    length, coverage = scan_loop_length(points)
+    assert coverage == 1.0
+    assert truth > 2 * math.pi * 0.19 * 1.05  # the folds add length a circle would not have
+    assert length == pytest.approx(truth, rel=0.01)
+    # folds finer than a few bins are smoothed away: shorter, never longer (14 folds: 8.5 cm wavelength)
+    points, truth = _ring(0.19, noise=0.003, wave=(0.015, 14), tilt=math.radians(20))
+    assert 0.9 * truth < scan_loop_length(points)[0] < truth
+
+
+def test_scan_loop_length_is_short_where_the_scan_has_a_hole():
+    full, _ = scan_loop_length(_ring(0.19, noise=0.003, wave=(0.015, 14))[0])
+    holed, coverage = scan_loop_length(_ring(0.19, noise=0.003, wave=(0.015, 14), gap_deg=60)[0])
+    assert 300 / 360 - 0.01 < coverage < 0.9  # the centroid moves away from the hole: it looks narrower
+    assert holed < full  # a chord crosses the hole: a lower bound
+
+
+def test_scan_loop_length_needs_points():
+    assert math.isnan(scan_loop_length(np.zeros((5, 3)))[0])
+    with pytest.raises(ValueError, match=r"\(k, 3\)"):
+        scan_loop_length(np.zeros((40, 2)))
+    with pytest.raises(ValueError, match="bin_length"):
+        scan_loop_length(np.zeros((40, 3)), bin_length=0.0)
+
+
+@pytest.mark.parametrize("template", ["dress", "pants"])
+def test_rest_loop_length_is_the_patterns_hem(template):
+    from torch_diffavatar.pattern import load_template, mesh_pattern
+    from torch_diffavatar.pattern.measurements import measure_pattern
+
+    pattern = load_template(template)
+    garment = mesh_pattern(pattern, spacing=0.03)
+    measured = measure_pattern(pattern).lengths
+    hems = [lp for lp in garment.boundary_loops if is_hem(lp.name)]
+    assert hems and all(not is_hem(lp.name) for lp in garment.boundary_loops if lp not in hems)
+    for loop in hems:
+        length = rest_loop_length(garment.vert_uv, rest_loop_edges(garment, loop))
+        assert float(length) == pytest.approx(measured[f"{loop.name}_circumference"], rel=1e-9)
+
+
+def test_rest_loop_edges_refuses_another_garments_loop():
+    from torch_diffavatar.pattern import load_template, mesh_pattern
+    from torch_diffavatar.pattern.garment_mesh import BoundaryLoop
+
+    garment = mesh_pattern(load_template("skirt"), spacing=0.1)
+    with pytest.raises(ValueError, match="no panel outline"):
+        rest_loop_edges(garment, BoundaryLoop("hem", torch.tensor([0, 5, 9])))
+
+
+def test_opening_length_loss_is_one_sided_and_its_gradient_checks():
+    from torch_diffavatar.pattern import load_template, mesh_pattern
+
+    garment = mesh_pattern(load_template("skirt"), spacing=0.1)
+    hem = next(lp for lp in garment.boundary_loops if lp.name == "hem")
+    edges = [rest_loop_edges(garment, hem)]
+    uv = garment.vert_uv.double()
+    length = float(rest_loop_length(uv, edges[0]))
+    assert float(opening_length_loss(uv, edges, torch.tensor([0.9 * length]))) == 0.0
+    short = opening_length_loss(uv, edges, torch.tensor([1.1 * length], dtype=torch.float64))
+    assert float(short) == pytest.approx((0.1 / 1.1) ** 2, rel=1e-9)
+    x = uv.clone().requires_grad_()
+    least = torch.tensor([1.1 * length], dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda u: opening_length_loss(u, edges, least), (x,))
+    opening_length_loss(x, edges, least).backward()
+    step = x.detach() - 0.01 * x.grad  # a step down the loss lengthens the hem
+    assert float(rest_loop_length(step, edges[0])) > length
+    with pytest.raises(ValueError, match="openings"):
+        opening_length_loss(uv, edges, torch.tensor([1.0, 2.0]))
+
+
+def test_objective_holds_a_hem_no_narrower_than_the_scan_shows():
+    """The skirt's scan hem 20 % wider than the template's: with the weight the rest terms hold an
+    ``opening_length`` term that the template pays and whose gradient widens the hem; without it, none."""
+    from dataclasses import replace
+
+    from helpers_fit import fit_config
+
+    from torch_diffavatar import fit_report
+    from torch_diffavatar.fit_config import LossWeights
+    from torch_diffavatar.objective import FitObjective, ScanTarget
+    from torch_diffavatar.pattern import load_template, mesh_pattern
+
+    garment = mesh_pattern(load_template("skirt"), spacing=0.1)
+    hem = next(lp for lp in garment.boundary_loops if lp.name == "hem")
+    template = float(rest_loop_length(garment.vert_uv, rest_loop_edges(garment, hem)))
+    wide = torch.as_tensor(_ring(1.2 * template / (2 * math.pi), n=600)[0])  # a hem 20 % longer
+    target = ScanTarget(wide, {"hem": wide})
+    off = FitObjective(garment, target, fit_config(), dtype=torch.float64)
+    assert "opening_length" not in off.rest_terms(off.template_uv)
+    cfg = fit_config(weights=replace(LossWeights(), opening_length=1000.0))
+    on = FitObjective(garment, target, cfg, dtype=torch.float64)
+    assert on.hem_names == ["hem"]
+    traced = float(on.hem_least[0]) / (1 - cfg.opening_length_tolerance)
+    assert traced == pytest.approx(1.2 * template, rel=0.01)
+    uv = on.template_uv.clone().requires_grad_()
+    term = on.rest_terms(uv)["opening_length"]
+    assert float(term) > 0
+    term.backward()
+    wider = uv.detach() - 0.01 * uv.grad
+    assert float(rest_loop_length(wider, on.hem_edges[0])) > template
+    # the report's record of it (`report.json`'s ``hem_lengths``), with the term on or off
+    for objective in (on, off):
+        lengths = fit_report.hem_lengths(objective, objective.template_uv, wider)
+        assert list(lengths) == ["hem"]
+        assert lengths["hem"]["scan"] == pytest.approx(traced, rel=1e-12)
+        assert lengths["hem"]["initial"] == pytest.approx(template, rel=1e-12)
+        assert lengths["hem"]["final"] > template
