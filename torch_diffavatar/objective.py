@@ -6,7 +6,8 @@ the loss weights (buffers, so ``.to()`` and ``state_dict()`` carry them) and, ca
 start `ClothState`, drapes the garment with `torch_diffavatar.sim.differentiable.drape` and returns the loss
 as `ObjectiveOutput`:
 
-    loss = ρ·boundary + σ·interior + α·seam_length + β·curvature  (+ rest area / shape, skin, body prior)
+    loss = ρ·boundary + σ·interior + α·seam_length + β·curvature
+           (+ rest area / shape, pattern change, hem length, skin, body prior)
 
 A whole fit is then a plain ``torch.optim`` loop (``scripts/fit_loop.py``); `torch_diffavatar.fit.Fitter`
 drives the same objective with guards, a proximal rest step, logging and checkpoints.
@@ -278,7 +279,8 @@ class FitObjective(nn.Module):
     without ``fixed_body_verts``) and the target has some, else None; ``scan_boundary_<k>`` (n, 3) [m]
     per scan opening (its name, which may hold dots: ``boundary_names[k]``); ``weight_<term>`` () per
     loss term (`TERM_NAMES`, from ``config.weights``: the buffers are the weights used);
-    ``initial_phenotypes`` (1, P) [-] (the prior's centre) or None. Non-persistent: the template's
+    ``initial_phenotypes`` (1, P) [-] (the prior's centre) or None; ``hem_least`` (K,) [m], the shortest
+    hems the scan allows (`_register_hem_lengths`). Non-persistent: the template's
     ``template_uv`` (V, 2) [m] and its rest areas and edge inverses, ``fixed_body_verts`` (Vb, 3) [m] or
     None, ``body_faces`` (Fb, 3) int64 or None.
 
