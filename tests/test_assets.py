@@ -108,3 +108,41 @@ def test_bad_rest_coordinates_are_rejected(dress):
     bad[0, 0] = float("nan")
     with pytest.raises(ValueError, match="NaN"):
         fitted_pattern(pattern, garment, bad)
+
+
+def test_an_exported_outline_that_crosses_itself_is_a_warning(dress, tmp_path):
+    """`write_assets` says when a refitted panel outline crosses itself (`mesh_pattern` would refuse the
+    exported pattern), in ``report.json``'s warnings; a sound export adds none."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from torch_diffavatar.assets import crossed_outline_warnings
+
+    pattern, garment = dress
+    assert crossed_outline_warnings(pattern) == []
+    name, panel = next(iter(pattern.panels.items()))
+    verts = np.array(panel.vertices, copy=True)
+    verts[[0, 1]] = verts[[1, 0]]  # two neighbouring corners swapped: a bow tie
+    crossed = replace(pattern, panels={**pattern.panels, name: replace(panel, vertices=verts)})
+    (message,) = crossed_outline_warnings(crossed)
+    assert name in message and "crosses itself" in message
+    uv = garment.vert_uv.clone()
+    corner = garment.edge_vertices[(name, 0)]
+    uv[corner[0]], uv[corner[-1]] = garment.vert_uv[corner[-1]], garment.vert_uv[corner[0]]
+    body_verts = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    body_faces = torch.tensor([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    files = write_assets(
+        tmp_path,
+        pattern=pattern,
+        garment=garment,
+        rest_uv=uv,
+        draped_x=garment.sim_positions(),
+        body_verts=body_verts,
+        body_faces=body_faces,
+        body_params={},
+        material=ClothMaterial(),
+        report={"warnings": ["kept"]},
+    )
+    warnings = json.loads(open(files["report_json"]).read())["warnings"]
+    assert warnings[0] == "kept" and len(warnings) == 2 and "crosses itself" in warnings[1]

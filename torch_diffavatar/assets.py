@@ -46,6 +46,7 @@ from torch_diffavatar.pattern.spec import (
     _bezier_eval,
     _bezier_points,
     absolute_to_relative,
+    outline_self_intersects,
     sample_edge,
 )
 from torch_diffavatar.sim.material import ClothMaterial
@@ -185,6 +186,19 @@ def fitted_pattern(pattern: Pattern, garment: GarmentMesh, rest_uv: torch.Tensor
             edges.append(edge)
         panels[name] = replace(panel, vertices=verts, edges=edges)
     return replace(pattern, panels=panels, source=None)
+
+
+def crossed_outline_warnings(pattern: Pattern) -> list[str]:
+    """A warning (a list of one, else empty) when a panel outline of the exported ``pattern`` crosses
+    itself: the refitted curves can overshoot where the rest mesh itself is fine (seen once, on a fitted
+    dress's back bodice), and `mesh_pattern` refuses such a pattern."""
+    crossed = [name for name, panel in pattern.panels.items() if outline_self_intersects(panel.outline())]
+    if not crossed:
+        return []
+    return [
+        f"the exported pattern's outline of {', '.join(crossed)} crosses itself (a refitted curve "
+        "overshoots): pattern.json cannot be meshed or cut as it is; rest.obj holds the fitted panels"
+    ]
 
 
 def pattern_deviation(pattern: Pattern, garment: GarmentMesh, rest_uv: torch.Tensor) -> float:
@@ -333,6 +347,7 @@ def write_assets(
     written += ["report_json", "manifest_json"]
     report = dict(report)
     report["pattern_export_max_deviation_m"] = pattern_deviation(fitted, garment, uv)
+    report["warnings"] = list(report.get("warnings", [])) + crossed_outline_warnings(fitted)
     report["files"] = {k: str(paths[k]) for k in written}
     write_json(paths["report_json"], report)
     write_json(

@@ -335,6 +335,7 @@ def write_fit_assets(out: Path, setup: dict, fitter, result, report: dict) -> di
         before=before,
     )
     (out / INCOMPLETE).unlink(missing_ok=True)  # every file is whole now
-    for message in report["warnings"]:
+    written = json.loads(Path(files["report_json"]).read_text())  # with the export's warnings
+    for message in written["warnings"]:
         print(f"diffavatar fit: warning: {message}", file=sys.stderr)
-    return json.loads(Path(files["report_json"]).read_text())
+    return written
