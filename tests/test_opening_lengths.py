@@ -10,7 +10,6 @@ import pytest
 import torch
 
 from torch_diffavatar.opening_lengths import (
-    is_hem,
     opening_length_loss,
     rest_loop_edges,
     rest_loop_length,
@@ -85,8 +84,8 @@ def test_rest_loop_length_is_the_patterns_hem(template):
     pattern = load_template(template)
     garment = mesh_pattern(pattern, spacing=0.03)
     measured = measure_pattern(pattern).lengths
-    hems = [lp for lp in garment.boundary_loops if is_hem(lp.name)]
-    assert hems and all(not is_hem(lp.name) for lp in garment.boundary_loops if lp not in hems)
+    hems = [lp for lp in garment.boundary_loops if lp.name.startswith("hem")]
+    assert hems
     for loop in hems:
         length = rest_loop_length(garment.vert_uv, rest_loop_edges(garment, loop))
         assert float(length) == pytest.approx(measured[f"{loop.name}_circumference"], rel=1e-9)
@@ -143,19 +142,34 @@ def test_objective_holds_a_hem_no_narrower_than_the_scan_shows():
     assert "opening_length" not in off.rest_terms(off.template_uv)
     cfg = fit_config(weights=replace(LossWeights(), opening_length=1000.0))
     on = FitObjective(garment, target, cfg, dtype=torch.float64)
-    assert on.hem_names == ["hem"]
-    traced = float(on.hem_least[0]) / (1 - cfg.opening_length_tolerance)
+    assert on.opening_names == ["hem"]
+    only_waist = replace(cfg, opening_length_names=("waist",))  # the openings held are the config's
+    assert FitObjective(garment, target, only_waist, dtype=torch.float64).opening_names == []
+    traced = float(on.opening_least[0]) / (1 - cfg.opening_length_tolerance)
     assert traced == pytest.approx(1.2 * template, rel=0.01)
     uv = on.template_uv.clone().requires_grad_()
     term = on.rest_terms(uv)["opening_length"]
     assert float(term.detach()) > 0
     term.backward()
     wider = uv.detach() - 0.01 * uv.grad
-    assert float(rest_loop_length(wider, on.hem_edges[0])) > template
-    # the report's record of it (`report.json`'s ``hem_lengths``), with the term on or off
+    assert float(rest_loop_length(wider, on.opening_edges[0])) > template
+    # the report's record of it (`report.json`'s ``opening_lengths``), with the term on or off
     for objective in (on, off):
-        lengths = fit_report.hem_lengths(objective, objective.template_uv, wider)
+        lengths = fit_report.opening_lengths(objective, objective.template_uv, wider)
         assert list(lengths) == ["hem"]
         assert lengths["hem"]["scan"] == pytest.approx(traced, rel=1e-12)
         assert lengths["hem"]["initial"] == pytest.approx(template, rel=1e-12)
         assert lengths["hem"]["final"] > template
+
+
+def test_the_openings_held_are_a_list_of_names():
+    from torch_diffavatar.errors import InputError
+    from torch_diffavatar.fit_config import config_from_dict
+
+    assert config_from_dict({"opening_length_names": ["hem", "waist"]}).opening_length_names == (
+        "hem",
+        "waist",
+    )
+    for bad in ("waist", [1], [""]):
+        with pytest.raises(InputError, match="opening_length_names"):
+            config_from_dict({"opening_length_names": bad})

@@ -131,19 +131,20 @@ def fit_report(first: dict, final: dict, objective: FitObjective, run: dict) -> 
         "vertices": garment.sim_vert_count,
         "faces": garment.tri_count,
         "matched_boundaries": [lp.name for lp in objective.loops],
-        "hem_lengths": hem_lengths(objective, first["rest_uv"], final["rest_uv"]),
+        "opening_lengths": opening_lengths(objective, first["rest_uv"], final["rest_uv"]),
         "first_drape_candidates": list(run["first_drape_candidates"]),
         "warnings": result_warnings(final["x"], garment.sim_faces, ratio, config.spacing),
     }
 
 
-def hem_lengths(objective: FitObjective, first_uv: torch.Tensor, final_uv: torch.Tensor) -> dict:
-    """Each hem's length [m] as the scan's points trace it (``scan``: a lower bound, `opening_lengths`), and
-    as the pattern's rest edges give it at the first (``initial``) and at the resulting rest coordinates
-    ``first_uv``, ``final_uv`` (V, 2) [m] (``final``): hem name -> those three."""
+def opening_lengths(objective: FitObjective, first_uv: torch.Tensor, final_uv: torch.Tensor) -> dict:
+    """Each held opening's length [m] (``config.opening_length_names``: the hems, a trouser waist) as the
+    scan's points trace it (``scan``: a lower bound, `torch_diffavatar.opening_lengths`), and as the
+    pattern's rest edges give it at the first (``initial``) and at the resulting rest coordinates
+    ``first_uv``, ``final_uv`` (V, 2) [m] (``final``): opening name -> those three."""
     out = {}
-    hems = zip(objective.hem_names, objective.hem_traced, objective.hem_edges, strict=True)
-    for name, traced, edges in hems:
+    held = zip(objective.opening_names, objective.opening_traced, objective.opening_edges, strict=True)
+    for name, traced, edges in held:
         out[name] = {
             "scan": traced,
             "initial": float(rest_loop_length(first_uv.detach(), edges)),

@@ -38,7 +38,7 @@ from torch_diffavatar.losses import (
     skin_loss,
     template_edge_inverse,
 )
-from torch_diffavatar.opening_lengths import is_hem, opening_length_loss, rest_loop_edges, scan_loop_length
+from torch_diffavatar.opening_lengths import opening_length_loss, rest_loop_edges, scan_loop_length
 from torch_diffavatar.pattern.garment_mesh import BoundaryLoop, GarmentMesh
 from torch_diffavatar.sim.material import ClothMaterial
 from torch_diffavatar.sim.model import ClothModel, ClothModelBuilder
@@ -279,8 +279,8 @@ class FitObjective(nn.Module):
     without ``fixed_body_verts``) and the target has some, else None; ``scan_boundary_<k>`` (n, 3) [m]
     per scan opening (its name, which may hold dots: ``boundary_names[k]``); ``weight_<term>`` () per
     loss term (`TERM_NAMES`, from ``config.weights``: the buffers are the weights used);
-    ``initial_phenotypes`` (1, P) [-] (the prior's centre) or None; ``hem_least`` (K,) [m], the shortest
-    hems the scan allows (`_register_hem_lengths`). Non-persistent: the template's
+    ``initial_phenotypes`` (1, P) [-] (the prior's centre) or None; ``opening_least`` (K,) [m], the
+    shortest openings the scan allows (`_register_opening_lengths`). Non-persistent: the template's
     ``template_uv`` (V, 2) [m] and its rest areas and edge inverses, ``fixed_body_verts`` (Vb, 3) [m] or
     None, ``body_faces`` (Fb, 3) int64 or None.
 
@@ -333,7 +333,7 @@ class FitObjective(nn.Module):
         self.register_buffer("initial_phenotypes", initial_phenotypes)
         self.seam_segments = seam_segments(garment)
         self.loops = [lp for lp in garment.boundary_loops if lp.name in self.boundary_names]
-        self._register_hem_lengths(target, dtype)
+        self._register_opening_lengths(target, dtype)
         self._model: ClothModel = ClothModelBuilder(self.material).add_garment(garment).finalize(dtype=dtype)
 
     @classmethod
@@ -393,22 +393,23 @@ class FitObjective(nn.Module):
         for k, points in enumerate(target.boundaries.values()):
             self.register_buffer(f"scan_boundary_{k}", points.to(dtype))
 
-    def _register_hem_lengths(self, target: ScanTarget, dtype: torch.dtype) -> None:
-        """The K matched hems with a length the scan's points trace (`scan_loop_length`): ``hem_names``,
-        ``hem_traced`` (K floats [m]), ``hem_edges`` (their rest edges, `rest_loop_edges`) and the buffer
-        ``hem_least`` (K,) [m], the traced lengths less ``config.opening_length_tolerance``."""
+    def _register_opening_lengths(self, target: ScanTarget, dtype: torch.dtype) -> None:
+        """The K matched openings of ``config.opening_length_names`` with a length the scan's points trace
+        (`scan_loop_length`): ``opening_names``, ``opening_traced`` (K floats [m]), ``opening_edges`` (their
+        rest edges, `rest_loop_edges`) and the buffer ``opening_least`` (K,) [m], the traced lengths less
+        ``config.opening_length_tolerance``."""
         cfg = self.config
-        self.hem_names, self.hem_traced, self.hem_edges = [], [], []
+        self.opening_names, self.opening_traced, self.opening_edges = [], [], []
         for loop in self.loops:
-            if not is_hem(loop.name):
+            if loop.name not in cfg.opening_length_names:
                 continue
             length, _ = scan_loop_length(target.boundaries[loop.name], bin_length=cfg.opening_length_bin)
             if math.isfinite(length):
-                self.hem_names.append(loop.name)
-                self.hem_traced.append(length)
-                self.hem_edges.append(rest_loop_edges(self.garment, loop))
-        least = [length * (1.0 - cfg.opening_length_tolerance) for length in self.hem_traced]
-        self.register_buffer("hem_least", torch.tensor(least, dtype=dtype).reshape(-1))
+                self.opening_names.append(loop.name)
+                self.opening_traced.append(length)
+                self.opening_edges.append(rest_loop_edges(self.garment, loop))
+        least = [length * (1.0 - cfg.opening_length_tolerance) for length in self.opening_traced]
+        self.register_buffer("opening_least", torch.tensor(least, dtype=dtype).reshape(-1))
 
     # -- the pieces ----------------------------------------------------------------------------------------
 
@@ -468,8 +469,8 @@ class FitObjective(nn.Module):
             terms["pattern_change"] = pattern_change_loss(
                 rest_uv, self.template_uv, self.garment.vert_panel, modes=self.design_modes
             )
-        if self.weight_opening_length > 0 and self.hem_edges:
-            terms["opening_length"] = opening_length_loss(rest_uv, self.hem_edges, self.hem_least)
+        if self.weight_opening_length > 0 and self.opening_edges:
+            terms["opening_length"] = opening_length_loss(rest_uv, self.opening_edges, self.opening_least)
         return terms
 
     def rest_loss(self, rest_uv: torch.Tensor) -> torch.Tensor:

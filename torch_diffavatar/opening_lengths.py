@@ -26,13 +26,6 @@ import torch
 
 from torch_diffavatar.pattern.garment_mesh import BoundaryLoop, GarmentMesh
 
-HEM_PREFIX = "hem"  # the hanging openings: a hem, a trouser leg's "hem_left" / "hem_right"
-
-
-def is_hem(name: str) -> bool:
-    """Whether an opening name (`GarmentMesh.boundary_loops`) is a hem whose length the fit reads."""
-    return name == HEM_PREFIX or name.startswith(HEM_PREFIX + "_")
-
 
 def scan_loop_length(
     points, *, bin_length: float = 0.02, min_bins: int = 12, points_per_bin: int = 10
