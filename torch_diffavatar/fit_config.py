@@ -55,9 +55,10 @@ class LossWeights:
         pattern_change: [1/m], times `pattern_change_loss` (the robust mean distance of the pattern from
             the template outside each panel's design changes, `design_modes`: moves, scales, shears and
             flares are free): the fit reshapes a panel only where the scan's evidence outweighs it. 0: off.
-        opening_length: [-], times `opening_lengths.opening_length_loss` (the hems' squared relative
-            shortfall of their rest length below the length the scan's hem points trace, less
-            ``FitConfig.opening_length_tolerance``): a hem is never narrower than the scan shows. 0: off.
+        opening_length: [-], times `opening_lengths.opening_length_loss` (the squared relative shortfall
+            of the rest length of each opening of ``FitConfig.opening_length_names`` (the hems) below the
+            length the scan's points of it trace, less ``FitConfig.opening_length_tolerance``): a hem is
+            never narrower than the scan shows. 0: off.
     """
 
     boundary: float = 1.0e4

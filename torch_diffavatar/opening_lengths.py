@@ -1,10 +1,11 @@
-"""How long a garment's hem is: read off a scan's opening points, and off a pattern's rest shape.
+"""How long a hem (or a waistband) is: read off a scan's opening points and off a pattern's rest shape.
 
 Cloth barely stretches along a free edge (about 1 % where another simulator's soft cloth hangs, 0.1-0.5 %
 in ours), so a draped hem is as long as its pattern's hem edges whatever physics draped it. A fit that
 cannot reproduce a scan's folds can still match the hem's position with a narrower hem, and did: on
-Newton-made scans the fits narrowed the true hems by 9-18 cm (issue #30). The length is evidence that
-does not depend on the physics, so the fit holds the pattern's hem to it (`opening_length_loss`).
+Newton-made scans the fits narrowed the true hems by up to 24 cm (issue #30). The length is evidence that
+does not depend on the physics, so the fit holds the pattern's hem to it (`opening_length_loss`; which
+openings: `FitConfig.opening_length_names`, the hems, and a trouser's waistband, which lies on the body).
 
 `scan_loop_length` traces the opening's points around their centre: the median point of each angular bin
 (``bin_length`` along the loop), joined in angle order. Holes and unseen sides are crossed by a chord and
