@@ -114,3 +114,16 @@ def test_newton_scan_without_newton_says_how_to_install(monkeypatch, tmp_path, c
 def test_waist_drop_needs_newton(tmp_path, capsys):
     code = main(["make-scan", "skirt", "--out", str(tmp_path / "s"), "--waist-drop", "0.05"])
     assert code != 0 and "waist_drop" in capsys.readouterr().err
+
+
+def test_lowered_cloth_stays_above_the_floor():
+    """`lower_onto_body` moves the cloth down by the drop but never below the floor (the body's lowest point
+    plus the thickness), cloth that starts under it included: Newton's floor met trouser legs 8 cm under
+    it and blew up at the first frame."""
+    from helpers_fit import TETRA_F, TETRA_V
+
+    body = TETRA_V * 0.2 + torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)  # a small body, floor y = 1
+    x = torch.tensor([[2.0, 1.5, 0.0], [2.0, 1.03, 0.0], [2.0, 0.9, 0.0]], dtype=torch.float64)
+    out = sn.lower_onto_body(x, 0.05, body, TETRA_F, 0.002)
+    assert out[:, [0, 2]].tolist() == x[:, [0, 2]].tolist()  # far from the body: only lowered
+    assert out[:, 1].tolist() == pytest.approx([1.45, 1.002, 1.002])
