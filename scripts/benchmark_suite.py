@@ -5,7 +5,8 @@ For each garment: `synthetic_scans.make_draped_scan` (its template with the hem 
 widened ``--hem-widen``, bending stiffness 2e-5 N·m, on a random moderate Anny body, seeded), then the fit
 (`fit_scan.fit_scan` with ``configs/<garment>.yaml``) and `evaluation.evaluate_assets`; for the
 ``--ablation-garments`` also the fit without the cage, without the seam-length term, without the
-curvature term, and without the cage's seam ties with and without the seam-length term. Writes
+curvature term, without the cage's seam ties with and without the seam-length term, and without the
+hem-length term. Writes
 ``docs/RESULTS.md`` (tables like the paper's Tables 1 and 2, with the command and date) and pictures in
 ``docs/results/`` (first, fitted and true drapes; pattern overlays of template, result and truth); a
 hand-written part of RESULTS.md after the line `DISCUSSION_MARKER` is kept across reruns.
