@@ -46,7 +46,6 @@ from torch_diffavatar.pattern.spec import (
     _bezier_eval,
     _bezier_points,
     absolute_to_relative,
-    outline_self_intersects,
     sample_edge,
 )
 from torch_diffavatar.sim.material import ClothMaterial
@@ -191,8 +190,8 @@ def fitted_pattern(pattern: Pattern, garment: GarmentMesh, rest_uv: torch.Tensor
 def crossed_outline_warnings(pattern: Pattern) -> list[str]:
     """A warning (a list of one, else empty) when a panel outline of the exported ``pattern`` crosses
     itself: the refitted curves can overshoot where the rest mesh itself is fine (seen once, on a fitted
-    dress's back bodice), and `mesh_pattern` refuses such a pattern."""
-    crossed = [name for name, panel in pattern.panels.items() if outline_self_intersects(panel.outline())]
+    dress's back bodice), and `mesh_pattern` refuses such a pattern (`Pattern.validate`)."""
+    crossed = pattern.crossed_panels()
     if not crossed:
         return []
     return [

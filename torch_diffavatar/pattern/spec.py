@@ -185,13 +185,17 @@ class Pattern:
                 return s
         return None
 
+    def crossed_panels(self) -> list[str]:
+        """The names of the panels whose outline crosses itself (`outline_self_intersects`), in order."""
+        return [name for name, p in self.panels.items() if outline_self_intersects(p.outline())]
+
     def validate(self) -> None:
         """Check what meshing needs beyond what loading checks: no self-intersecting panel outline.
 
         Raises:
             PatternError: naming the file and the first offending panel(s).
         """
-        bad = [name for name, p in self.panels.items() if outline_self_intersects(p.outline())]
+        bad = self.crossed_panels()
         if bad:
             where = f"{self.source}: " if self.source else ""
             raise PatternError(
