@@ -187,3 +187,21 @@ def test_a_race_killed_for_real_resumes_to_the_uninterrupted_result(skirt_proble
     _, expected = straight
     assert torch.equal(result.rest_uv, expected.rest_uv) and torch.equal(result.x, expected.x)
     assert _timeless(result.history) == _timeless(expected.history)
+
+
+def test_the_race_on_two_workers_gives_the_uninterrupted_result(skirt_problem, straight, tmp_path):
+    """``race_workers=2``: the second candidate runs in a forked worker while the driver runs the first;
+    the fit ends exactly where one after another ends, and the workers' iterations count on the bar."""
+    straight_fitter, expected = straight
+    torch.set_num_threads(1)  # a fork is refused while torch runs more threads (`fit_workers.can_fork`)
+    fitter = _fitter(skirt_problem, tmp_path)
+    fitter.progress = True
+    result = fitter.run(race_workers=2)
+    assert torch.equal(result.rest_uv, expected.rest_uv) and torch.equal(result.x, expected.x)
+    for name, value in fitter.params.state_dict().items():
+        assert torch.equal(value, straight_fitter.params.state_dict()[name]), name
+    assert _timeless(result.history) == _timeless(expected.history)
+    report, want = dict(result.report), dict(expected.report)
+    report.pop("seconds"), want.pop("seconds")
+    assert report == want
+    assert "race" not in safe_load(tmp_path / CHECKPOINT)

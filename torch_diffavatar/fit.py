@@ -480,11 +480,12 @@ class Fitter:
         """The first warm start of the lowest loss (`_first_states`)."""
         return self._first_states()[0][1]
 
-    def run(self, iterations: int | None = None, *, resume: bool = False) -> FitResult:
+    def run(self, iterations: int | None = None, *, resume: bool = False, race_workers: int = 1) -> FitResult:
         """Run the loop up to ``iterations`` completed iterations (default ``config.iterations``).
 
         With ``resume``, continue from ``out_dir/checkpoint.pt`` when it exists, to the result of an
         uninterrupted run (one stopped during the race of first drapes too: `fit_race.opening`).
+        ``race_workers``: candidates of the race fitted at a time, in forked processes (`fit_race.race`).
         """
         total = self.config.iterations if iterations is None else iterations
         t0 = time.perf_counter()
@@ -493,7 +494,7 @@ class Fitter:
         bar = progress_bar(*bar_span(self, total)) if self.progress else None
         try:
             if raced:
-                start = race(self, start, bar)
+                start = race(self, start, bar, race_workers)
                 if writer is not None:  # the winner's iterations, which the race did not log
                     log_scalars(writer, self.history)
             ev = self._first_evaluation(start, writer, raced=raced)

@@ -12,12 +12,14 @@ bit for bit (`opening`).
 from __future__ import annotations
 
 import copy
+import functools
 
 import torch
 
 from torch_diffavatar.errors import InputError, SimulationError
 from torch_diffavatar.fit_checkpoint import CHECKPOINT, safe_load
 from torch_diffavatar.fit_start import Start
+from torch_diffavatar.fit_workers import ForkedCall, WorkerLost, WorkersBar, can_fork, wait_all
 from torch_diffavatar.objective import unbounded_stretch
 from torch_diffavatar.sim.state import ClothState
 
@@ -118,11 +120,15 @@ def bar_span(fitter, total: int) -> tuple[int, int]:
     return total + (len(race["starts"]) - 1) * laps, done
 
 
-def race(fitter, start: ClothState, bar=None) -> ClothState:
+def race(fitter, start: ClothState, bar=None, workers: int = 1) -> ClothState:
     """Run the race ``fitter.race`` (`race_state`, or a checkpoint's) to its end, then take on the whole
     state of the candidate whose lowest loss is the lowest; returns its drape start. ``start``: the drape
     start of the candidate that runs, when the fitter holds its state (a resumed race). Each start's lowest
     loss goes to its candidate entry (``race_loss``; None when its first drape failed).
+
+    ``workers`` > 1 runs up to that many candidates at a time: the driver runs one while forked copies of
+    it run the next ones (`fit_workers`; where `fit_workers.can_fork`), with the same results as one after
+    another, since each candidate starts from the same state and the fit is deterministic.
 
     ``fitter``: the `torch_diffavatar.fit.Fitter` that runs the iterations (its ``state_dict`` /
     ``load_state_dict`` snapshot and restore everything a candidate changes).
@@ -133,9 +139,17 @@ def race(fitter, start: ClothState, bar=None) -> ClothState:
     state = fitter.race
     try:
         while state["index"] < len(state["starts"]):
-            _run_candidate(fitter, state, start, bar)
-            state["index"] += 1
-            state["started"] = False
+            calls = _forked_candidates(fitter, state, workers)
+            try:
+                own_bar = bar if bar is None or not calls else WorkersBar(bar, calls)
+                end = _run_candidate(fitter, state, start, own_bar)
+                state["index"] += 1
+                state["started"] = False
+                if calls:
+                    _gather(fitter, state, calls, own_bar, end)
+            finally:
+                for call in calls:
+                    call.close()
         if state["best"] is None:
             raise SimulationError("the first drape of every candidate failed (blow-up or non-finite values)")
         start = fitter.load_state_dict(state["best"]["state"])
@@ -147,10 +161,52 @@ def race(fitter, start: ClothState, bar=None) -> ClothState:
     return start
 
 
-def _run_candidate(fitter, state: dict, start: ClothState, bar) -> None:
+def _forked_candidates(fitter, state: dict, workers: int) -> list[ForkedCall]:
+    """Workers (`fit_workers.ForkedCall`) for the ``workers`` - 1 candidates after the one that runs next,
+    where forking is safe (none otherwise)."""
+    following = range(state["index"] + 1, min(state["index"] + workers, len(state["starts"])))
+    if not following or not can_fork():
+        return []
+    return [ForkedCall(functools.partial(_candidate_alone, fitter, state, i)) for i in following]
+
+
+def _candidate_alone(fitter, state: dict, index: int, bar) -> dict:
+    """In a worker: candidate ``index`` of the race ``state`` fitted on ``fitter`` (the worker's copy) as
+    `_run_candidate` fits it, no checkpoint written; returns its race loss, its whole state where it
+    finished (None when its first drape failed) and its iterations' time."""
+    fitter.out_dir = None  # the driver alone writes the fit's files
+    own = dict(state, index=index, started=False, best=None, seconds=0.0)
+    own["candidates"] = copy.deepcopy(state["candidates"])
+    _run_candidate(fitter, own, None, bar)
+    candidate = own["candidates"][own["starts"][index]["candidate"]]
+    return {"race_loss": candidate["race_loss"], "best": own["best"], "seconds": own["seconds"]}
+
+
+def _gather(fitter, state: dict, calls: list[ForkedCall], bar, start: ClothState | None) -> None:
+    """Record the results of ``calls`` (the workers' candidates, which follow ``state["index"]`` in
+    order) as `_run_candidate` records its own, then checkpoint. A worker lost (killed, out of memory)
+    leaves its candidate and those after it to run again."""
+    wait_all(calls, bar if isinstance(bar, WorkersBar) else None)
+    for call in calls:
+        try:
+            result = call.result()
+        except WorkerLost:
+            break
+        entry = state["starts"][state["index"]]
+        state["candidates"][entry["candidate"]]["race_loss"] = result["race_loss"]
+        best = result["best"]
+        if best is not None and (state["best"] is None or best["loss"] < state["best"]["loss"]):
+            state["best"] = best
+        state["index"] += 1
+    if start is not None:  # the driver's candidate ran: its state is the fitter's
+        fitter.save_checkpoint(start)
+
+
+def _run_candidate(fitter, state: dict, start: ClothState | None, bar) -> ClothState | None:
     """Fit the candidate ``state["index"]`` of the race ``state`` to ``state["laps"]`` iterations: from
     ``initial`` and its own drape start, or on from ``start`` when the fitter already holds its state; then
-    record its race loss and, when the lowest so far, its whole state."""
+    record its race loss and, when the lowest so far, its whole state. Returns its last drape start (None
+    when its first drape failed)."""
     entry, laps = state["starts"][state["index"]], state["laps"]
     candidate = state["candidates"][entry["candidate"]]
     if state["started"]:
@@ -166,7 +222,7 @@ def _run_candidate(fitter, state: dict, start: ClothState, bar) -> None:
         ev = fitter._checked_evaluate(start)
         if ev is None:
             candidate["race_loss"] = None
-            return
+            return None
         state["started"] = True
         fitter.first = fitter._summary(ev)
         fitter._note_best(ev, start)
@@ -176,3 +232,4 @@ def _run_candidate(fitter, state: dict, start: ClothState, bar) -> None:
     state["seconds"] = state.get("seconds", 0.0) + fitter.seconds  # its iterations' time, all runs'
     if state["best"] is None or loss < state["best"]["loss"]:
         state["best"] = {"loss": loss, "state": copy.deepcopy(fitter.state_dict(start))}
+    return start

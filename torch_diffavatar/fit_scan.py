@@ -216,12 +216,14 @@ def fit_scan(
     pattern=None,
     garment_type=None,
     body_params=None,
+    race_workers=1,
 ) -> dict:
     """Run the whole job (see the module docstring); returns the report (also ``out_dir/report.json``).
 
     ``pattern``: start from this `Pattern` instead of ``config.template``; ``garment_type`` and
     ``body_params`` (start from this body instead of fitting one): see `fit_setup.prepare`. ``force``:
-    replace another fit in ``out_dir`` (else that is an error, `prepare_out_folder`)."""
+    replace another fit in ``out_dir`` (else that is an error, `prepare_out_folder`). ``race_workers``:
+    candidates of the race of first drapes fitted at a time (`Fitter.run`)."""
     from torch_diffavatar.body.anny_model import load_anny
     from torch_diffavatar.body.model import BodyModel
     from torch_diffavatar.fit import Fitter
@@ -262,7 +264,7 @@ def fit_scan(
         progress=progress,
     )
     try:
-        result = fitter.run(resume=resume)
+        result = fitter.run(resume=resume, race_workers=race_workers)
     except SimulationError as exc:
         if fitter.first is not None:  # failed after the fit had started: the message says where
             raise

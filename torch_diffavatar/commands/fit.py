@@ -24,6 +24,7 @@ from torch_diffavatar.commands.out_paths import check_out_folder
 from torch_diffavatar.errors import InputError
 from torch_diffavatar.fit_scan import fit_scan
 from torch_diffavatar.fit_setup import SEGMENT_TYPES, TYPE_CONFIGS, infer_garment_type
+from torch_diffavatar.fit_workers import usable_cores
 
 
 def register(subparsers) -> None:
@@ -70,6 +71,13 @@ def register(subparsers) -> None:
         action="store_true",
         help="segment an unlabelled scan by geometry alone, not by its colours too",
     )
+    p.add_argument(
+        "--race-workers",
+        type=int,
+        default=None,
+        help="candidates of the race of first drapes (the tops' configs) fitted at a time, each in its own "
+        "process on one core; the same result for any number (default: the cores this process may use)",
+    )
     p.add_argument("--resume", action="store_true", help="continue from --out's checkpoint")
     p.add_argument("--force", action="store_true", help="replace another fit in --out (its files only)")
     add_frame_args(p)
@@ -83,6 +91,9 @@ def fit_command(args) -> dict:
 
     if args.iters is not None and args.iters < 0:
         raise InputError(f"--iters must be >= 0, got {args.iters}")
+    race_workers = args.race_workers
+    if race_workers is not None and race_workers < 1:
+        raise InputError(f"--race-workers must be >= 1, got {race_workers}")
     if args.spacing is not None and not args.spacing > 0:
         raise InputError(f"--spacing must be a positive length in metres, got {args.spacing}")
     template, garment_type, pattern = args.garment, args.garment_type, None
@@ -121,6 +132,7 @@ def fit_command(args) -> dict:
             pattern=pattern,
             garment_type=garment_type,
             body_params=body_params,
+            race_workers=usable_cores() if race_workers is None else race_workers,
         )
     if not args.json:
         for key in (

@@ -1,0 +1,156 @@
+"""Calls run in forked worker processes, for the race of first drapes (`fit_race`): each worker is a copy of
+the driver at the fork, the fitter and its body model included, so nothing is rebuilt or sent to it; only
+its result comes back, through a pipe, as a ``torch.save`` of plain data read with ``weights_only``.
+
+A fork is safe only while torch's intra-op pool has one thread (an OpenMP pool does not survive a fork: the
+worker would hang in its first parallel loop), so `can_fork` says no otherwise and the race runs its
+candidates one after another. A worker dies with its driver (Linux: ``PR_SET_PDEATHSIG``), so a killed fit
+leaves none running.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import io
+import multiprocessing as mp
+import multiprocessing.connection
+import os
+import signal
+import sys
+import traceback
+
+import torch
+
+from torch_diffavatar.errors import InputError, SimulationError
+from torch_diffavatar.fit_checkpoint import safe_load
+
+_PR_SET_PDEATHSIG = 1  # linux/prctl.h
+_ERRORS = {"SimulationError": SimulationError, "InputError": InputError}
+
+
+class WorkerLost(RuntimeError):
+    """A worker process ended without sending its result (killed, out of memory)."""
+
+
+def usable_cores() -> int:
+    """The CPU cores this process may run on (its affinity mask where the OS has one)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # macOS, Windows
+        return os.cpu_count() or 1
+
+
+def can_fork() -> bool:
+    """Whether `ForkedCall` may fork here: a ``fork`` start method exists and torch runs one intra-op
+    thread."""
+    return "fork" in mp.get_all_start_methods() and torch.get_num_threads() == 1
+
+
+class ForkedCall:
+    """``fn(counter)`` run in a forked worker process.
+
+    ``counter``: a `ProgressCounter` that ``fn`` may update as a progress bar; it counts in ``progress`` (a
+    shared integer). ``fn``'s return value must be plain data that ``torch.save`` writes and a
+    ``weights_only`` load reads (tensors, containers, numbers, strings).
+    """
+
+    def __init__(self, fn):
+        ctx = mp.get_context("fork")
+        self.progress = ctx.Value("i", 0)
+        self.connection, send = ctx.Pipe(duplex=False)
+        for stream in (sys.stdout, sys.stderr):  # a worker flushes its copy of the buffers when it ends
+            stream.flush()
+        self._process = ctx.Process(target=_work, args=(fn, send, self.progress), daemon=True)
+        self._process.start()
+        send.close()
+
+    def result(self):
+        """``fn``'s return value, once the worker has sent it (waits for it).
+
+        Raises:
+            SimulationError, InputError: ``fn`` raised one (its message).
+            RuntimeError: ``fn`` raised another exception (its type, message and the worker's traceback).
+            WorkerLost: the worker ended without a result.
+        """
+        try:
+            data = self.connection.recv_bytes()
+        except EOFError:
+            self._process.join()
+            code = self._process.exitcode
+            raise WorkerLost(f"a race worker ended with exit code {code} and no result") from None
+        self._process.join()
+        payload = safe_load(io.BytesIO(data))
+        if "error" in payload:
+            kind, message = payload["error"]
+            raise _ERRORS.get(kind, RuntimeError)(message if kind in _ERRORS else f"{kind}: {message}")
+        return payload["value"]
+
+    def close(self) -> None:
+        """Stop the worker if it still runs; release the pipe."""
+        if self._process.is_alive():
+            self._process.kill()
+        self._process.join()
+        self.connection.close()
+
+
+class ProgressCounter:
+    """A progress bar's stand-in in a worker (``update`` / ``set_postfix``, as `fit_logging.update_bar`
+    calls them): it counts the updates in the shared ``value``."""
+
+    def __init__(self, value):
+        self.value = value
+
+    def update(self, n: int = 1) -> None:
+        with self.value.get_lock():
+            self.value.value += n
+
+    def set_postfix(self, **_) -> None:
+        pass
+
+
+class WorkersBar:
+    """The driver's progress bar that also counts its workers' updates (their `ProgressCounter`\\ s), as
+    they are seen at each of its own updates or `catch_up`."""
+
+    def __init__(self, bar, calls: list[ForkedCall]):
+        self.bar, self.calls, self.seen = bar, calls, 0
+
+    def catch_up(self) -> None:
+        done = sum(c.progress.value for c in self.calls)
+        if done > self.seen:
+            self.bar.update(done - self.seen)
+            self.seen = done
+
+    def update(self, n: int = 1) -> None:
+        self.bar.update(n)
+        self.catch_up()
+
+    def set_postfix(self, **kw) -> None:
+        self.bar.set_postfix(**kw)
+
+
+def wait_all(calls: list[ForkedCall], bar: WorkersBar | None, poll_s: float = 0.5) -> None:
+    """Wait until every call's worker has sent its result or ended, updating ``bar`` meanwhile."""
+    pending = [c.connection for c in calls]
+    while pending:
+        ready = multiprocessing.connection.wait(pending, timeout=poll_s)
+        pending = [c for c in pending if c not in ready]
+        if bar is not None:
+            bar.catch_up()
+
+
+def _work(fn, send, progress) -> None:
+    """The worker's body: ``fn(ProgressCounter)``'s value or its error, ``torch.save``\\ d into ``send``."""
+    try:  # die with the driver: a killed fit leaves no worker behind
+        ctypes.CDLL(None).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+    except (AttributeError, OSError):
+        pass
+    try:
+        payload = {"value": fn(ProgressCounter(progress))}
+    except Exception as exc:  # sent to the driver, which raises it
+        message = str(exc) if type(exc).__name__ in _ERRORS else f"{exc}\n{traceback.format_exc()}"
+        payload = {"error": (type(exc).__name__, message)}
+    buffer = io.BytesIO()
+    torch.save(payload, buffer)
+    send.send_bytes(buffer.getvalue())
+    send.close()
