@@ -11,8 +11,11 @@ import torch
 
 from torch_diffavatar.opening_lengths import (
     opening_length_loss,
+    opening_split_loss,
     rest_loop_edges,
     rest_loop_length,
+    rest_loop_panels,
+    rest_loop_shares,
     scan_loop_length,
 )
 
@@ -173,3 +176,56 @@ def test_the_openings_held_are_a_list_of_names():
     for bad in ("waist", [1], [""]):
         with pytest.raises(InputError, match="opening_length_names"):
             config_from_dict({"opening_length_names": bad})
+
+
+def test_opening_split_loss_holds_the_templates_split_and_its_gradient_checks():
+    """The dress's hem lies on its front and back skirt panels. Widening both alike keeps the split (0);
+    moving hem from the back panel to the front costs, and the gradient moves it back; gradcheck."""
+    from torch_diffavatar.pattern import load_template, mesh_pattern
+
+    garment = mesh_pattern(load_template("dress"), spacing=0.05)
+    hem = next(lp for lp in garment.boundary_loops if lp.name == "hem")
+    edges = [rest_loop_edges(garment, hem)]
+    panels = [rest_loop_panels(garment, edges[0])]
+    names = {garment.panel_names[int(garment.vert_panel[v])] for v in edges[0][:, 0]}
+    assert names == {"skirt_front", "skirt_back"} and sorted(set(panels[0].tolist())) == [0, 1]
+    uv = garment.vert_uv.double()
+    shares = [rest_loop_shares(uv, edges[0], panels[0])]
+    assert float(shares[0].sum()) == pytest.approx(1.0, rel=1e-12)
+    assert float(opening_split_loss(uv * 1.1, edges, panels, shares)) == pytest.approx(0.0, abs=1e-20)
+    front = garment.panel_names.index("skirt_front")
+    on_front = (garment.vert_panel == front)[:, None]
+    moved = torch.where(
+        on_front, uv * torch.tensor([1.05, 1.0], dtype=uv.dtype), uv * torch.tensor([0.95, 1.0])
+    )
+    loss = opening_split_loss(moved, edges, panels, shares)
+    assert float(loss) > 1e-4
+    x = moved.clone().requires_grad_()
+    assert torch.autograd.gradcheck(lambda u: opening_split_loss(u, edges, panels, shares), (x,))
+    opening_split_loss(x, edges, panels, shares).backward()
+    step = x.detach() - 0.1 * x.grad
+    assert float(opening_split_loss(step, edges, panels, shares)) < float(loss)
+    with pytest.raises(ValueError, match="openings"):
+        opening_split_loss(uv, edges, panels, [])
+
+
+def test_objective_holds_the_split_only_with_its_weight():
+    from dataclasses import replace
+
+    from helpers_fit import fit_config
+
+    from torch_diffavatar.fit_config import LossWeights
+    from torch_diffavatar.objective import FitObjective, ScanTarget
+    from torch_diffavatar.pattern import load_template, mesh_pattern
+
+    garment = mesh_pattern(load_template("skirt"), spacing=0.1)
+    ring = torch.as_tensor(_ring(0.25, n=600)[0])
+    target = ScanTarget(ring, {"hem": ring})
+    weights = replace(LossWeights(), opening_length=1000.0)
+    off = FitObjective(garment, target, fit_config(weights=weights), dtype=torch.float64)
+    assert "opening_split" not in off.rest_terms(off.template_uv)
+    on = FitObjective(
+        garment, target, fit_config(weights=replace(weights, opening_split=1e4)), dtype=torch.float64
+    )
+    assert float(on.rest_terms(on.template_uv)["opening_split"]) == pytest.approx(0.0, abs=1e-20)
+    assert len(on.opening_shares) == 1 and len(on.opening_shares[0]) == 2

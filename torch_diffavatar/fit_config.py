@@ -59,6 +59,9 @@ class LossWeights:
             of the rest length of each opening of ``FitConfig.opening_length_names`` (the hems) below the
             length the scan's points of it trace, less ``FitConfig.opening_length_tolerance``): a hem is
             never narrower than the scan shows. 0: off.
+        opening_split: [-], times `opening_lengths.opening_split_loss` (how far each panel's share of
+            those openings' length moved from the template's): the scan shows a hem's length, not where
+            its seams are, so the template's split stands. 0: off.
     """
 
     boundary: float = 1.0e4
@@ -71,6 +74,7 @@ class LossWeights:
     skin: float = 3.0e5
     pattern_change: float = 0.0
     opening_length: float = 0.0
+    opening_split: float = 0.0
 
     def __post_init__(self):
         for f in dataclasses.fields(self):

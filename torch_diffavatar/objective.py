@@ -38,7 +38,14 @@ from torch_diffavatar.losses import (
     skin_loss,
     template_edge_inverse,
 )
-from torch_diffavatar.opening_lengths import opening_length_loss, rest_loop_edges, scan_loop_length
+from torch_diffavatar.opening_lengths import (
+    opening_length_loss,
+    opening_split_loss,
+    rest_loop_edges,
+    rest_loop_panels,
+    rest_loop_shares,
+    scan_loop_length,
+)
 from torch_diffavatar.pattern.garment_mesh import BoundaryLoop, GarmentMesh
 from torch_diffavatar.sim.material import ClothMaterial
 from torch_diffavatar.sim.model import ClothModel, ClothModelBuilder
@@ -397,7 +404,8 @@ class FitObjective(nn.Module):
         """The K matched openings of ``config.opening_length_names`` with a length the scan's points trace
         (`scan_loop_length`): ``opening_names``, ``opening_traced`` (K floats [m]), ``opening_edges`` (their
         rest edges, `rest_loop_edges`) and the buffer ``opening_least`` (K,) [m], the traced lengths less
-        ``config.opening_length_tolerance``."""
+        ``config.opening_length_tolerance``; ``opening_panels`` and ``opening_shares``, the panel of each
+        rest edge and the template's split of each opening between its panels (`rest_loop_shares`)."""
         cfg = self.config
         self.opening_names, self.opening_traced, self.opening_edges = [], [], []
         for loop in self.loops:
@@ -410,6 +418,12 @@ class FitObjective(nn.Module):
                 self.opening_edges.append(rest_loop_edges(self.garment, loop))
         least = [length * (1.0 - cfg.opening_length_tolerance) for length in self.opening_traced]
         self.register_buffer("opening_least", torch.tensor(least, dtype=dtype).reshape(-1))
+        # each opening's panels and the template's split of it between them (`opening_split_loss`)
+        self.opening_panels = [rest_loop_panels(self.garment, e) for e in self.opening_edges]
+        self.opening_shares = [
+            rest_loop_shares(self.template_uv, e, p)
+            for e, p in zip(self.opening_edges, self.opening_panels, strict=True)
+        ]
 
     # -- the pieces ----------------------------------------------------------------------------------------
 
@@ -471,6 +485,10 @@ class FitObjective(nn.Module):
             )
         if self.weight_opening_length > 0 and self.opening_edges:
             terms["opening_length"] = opening_length_loss(rest_uv, self.opening_edges, self.opening_least)
+        if self.weight_opening_split > 0 and self.opening_edges:
+            terms["opening_split"] = opening_split_loss(
+                rest_uv, self.opening_edges, self.opening_panels, self.opening_shares
+            )
         return terms
 
     def rest_loss(self, rest_uv: torch.Tensor) -> torch.Tensor:

@@ -125,3 +125,45 @@ def opening_length_loss(
     lengths = torch.stack([rest_loop_length(rest_uv, e) for e in edges])
     least = least.to(lengths)
     return ((least - lengths).clamp(min=0) / least).square().sum()
+
+
+def rest_loop_panels(garment: GarmentMesh, edges: torch.Tensor) -> torch.Tensor:
+    """(L,) int64 the panel of each of an opening's rest ``edges`` (`rest_loop_edges`), numbered 0, 1, …
+    in the order the panels first appear along the opening."""
+    panel = garment.vert_panel[edges[:, 0].to(garment.vert_panel.device)].cpu()
+    order = list(dict.fromkeys(panel.tolist()))
+    return torch.tensor([order.index(p) for p in panel.tolist()], dtype=torch.int64)
+
+
+def rest_loop_shares(rest_uv: torch.Tensor, edges: torch.Tensor, panels: torch.Tensor) -> torch.Tensor:
+    """(P,) [-] the share of each panel in an opening's rest length: its ``edges``' (L, 2) lengths at
+    ``rest_uv`` (V, 2) [m] summed per panel (``panels`` (L,), `rest_loop_panels`), over the whole."""
+    e = edges.to(rest_uv.device)
+    lengths = (rest_uv[e[:, 1]] - rest_uv[e[:, 0]]).norm(dim=-1)
+    count = int(panels.max()) + 1
+    per_panel = lengths.new_zeros(count).index_add(0, panels.to(rest_uv.device), lengths)
+    return per_panel / per_panel.sum()
+
+
+def opening_split_loss(
+    rest_uv: torch.Tensor,
+    edges: Sequence[torch.Tensor],
+    panels: Sequence[torch.Tensor],
+    shares: Sequence[torch.Tensor],
+) -> torch.Tensor:
+    """() how far the panels' split of each opening moved: Σ_k Σ_p (s_kp − ``shares[k][p]``)² [-], s_kp
+    the share of panel p in opening k's rest length at ``rest_uv`` (V, 2) [m] (`rest_loop_shares` of
+    ``edges[k]`` and ``panels[k]``), ``shares`` the template's. 0 with no openings.
+
+    Why: a scan shows a hem's whole length (`opening_length_loss` holds it) but not where its seams are,
+    so while the length is held the fit may move hem from one panel to another unseen. It did, on the
+    dresses: 4-5 cm from the back skirt panel to the front on a ring-captured dress and on two of Newton's
+    (docs/BENCHMARKS.md, "The hem's split between panels"). Where the scan cannot tell, the template's
+    split stands.
+    """
+    if not len(edges) == len(panels) == len(shares):
+        raise ValueError(f"{len(edges)} openings, {len(panels)} panel lists and {len(shares)} share lists")
+    total = rest_uv.sum() * 0.0
+    for e, p, share in zip(edges, panels, shares, strict=True):
+        total = total + (rest_loop_shares(rest_uv, e, p) - share.to(rest_uv)).square().sum()
+    return total
