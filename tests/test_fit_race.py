@@ -205,3 +205,27 @@ def test_the_race_on_two_workers_gives_the_uninterrupted_result(skirt_problem, s
     report.pop("seconds"), want.pop("seconds")
     assert report == want
     assert "race" not in safe_load(tmp_path / CHECKPOINT)
+
+
+def test_a_lost_race_worker_leaves_its_candidate_to_the_driver(
+    skirt_problem, straight, tmp_path, monkeypatch
+):
+    """A worker that ends without its result (killed, out of memory): the driver fits that candidate
+    itself, and the fit still ends where one after another ends."""
+    from torch_diffavatar import fit_race
+    from torch_diffavatar.fit_workers import ForkedCall, WorkerLost
+
+    lost = []
+
+    class Killed(ForkedCall):
+        def result(self):
+            self._process.kill()
+            lost.append(self)
+            raise WorkerLost("killed")
+
+    monkeypatch.setattr(fit_race, "ForkedCall", Killed)
+    torch.set_num_threads(1)
+    _, expected = straight
+    result = _fitter(skirt_problem, tmp_path).run(race_workers=2)
+    assert len(lost) == 1  # the second candidate's worker; the driver then fitted it alone (no later one)
+    assert torch.equal(result.rest_uv, expected.rest_uv) and torch.equal(result.x, expected.x)
