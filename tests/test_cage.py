@@ -270,14 +270,36 @@ def test_mirror_tying_maps_right_panels_onto_mirrored_left_ones():
     assert grad.abs().sum() > 0
 
 
-def test_mirror_tying_leaves_unpaired_panels_free_and_skips_non_mirrors():
+def test_mirror_tying_keeps_a_symmetric_panel_symmetric():
+    """The dress's skirt panels have no side partner but are their own mirror images: each handle moves
+    as its partner's mirror image, one on the axis along it, so the panel stays symmetric."""
     _, garment = template_mesh("dress")
     cage = ControlCage(garment, tie_mirrored=True)
-    skirt = torch.isin(cage.handle_panel, torch.tensor([0, 1]))  # skirt_front, skirt_back: no side
-    assert (cage.handle_mirror[skirt] == -1).all() and (cage.handle_mirror[~skirt] >= 0).all()
+    S = torch.tensor([-1.0, 1.0], dtype=torch.float64)
     g = torch.Generator().manual_seed(4)
     raw = cage.handle_rest + 0.02 * torch.randn(cage.handle_count, 2, generator=g, dtype=torch.float64)
-    torch.testing.assert_close(cage.tied_handles(raw)[skirt], raw[skirt], rtol=0, atol=1e-12)
+    tied = cage.tied_handles(raw)
+    for name in ("skirt_front", "skirt_back"):
+        h = torch.nonzero(cage.handle_panel == garment.panel_names.index(name)).flatten()
+        m = cage.handle_mirror[h]
+        assert (m >= 0).all() and torch.isin(m, h).all()  # partners in the same panel
+        rest, moved = cage.handle_rest, tied
+        t_rest = rest[h].mean(0) - (rest[h] * S).mean(0)
+        torch.testing.assert_close(rest[m] * S + t_rest, rest[h], rtol=0, atol=1e-9)
+        t = moved[h].mean(0) - (moved[h] * S).mean(0)
+        torch.testing.assert_close(moved[m] * S + t, moved[h], rtol=0, atol=1e-9)
+        assert float((moved[h] - raw[h]).abs().max()) > 1e-3  # the raw step was lopsided; the tie is not
+
+
+def test_mirror_tying_leaves_lopsided_unpaired_panels_free_and_skips_non_mirrors():
+    p = tube()
+    p.panels["front"].vertices = p.panels["front"].vertices + np.array([[0, 0], [0, 0], [0.05, 0], [0, 0]])
+    cage = ControlCage(mesh_pattern(p, spacing=0.1), tie_mirrored=True)
+    front = cage.handle_panel == p.panel_names.index("front")
+    assert (cage.handle_mirror[front] == -1).all() and (cage.handle_mirror[~front] >= 0).all()
+    g = torch.Generator().manual_seed(4)
+    raw = cage.handle_rest + 0.02 * torch.randn(cage.handle_count, 2, generator=g, dtype=torch.float64)
+    torch.testing.assert_close(cage.tied_handles(raw)[front], raw[front], rtol=0, atol=1e-12)
     # a "left"/"right" pair that is not a mirror image is not tied, with a warning
     p = tube()
     p.panels = {"left_a": p.panels["front"], "right_a": p.panels["back"]}

@@ -260,7 +260,11 @@ class ControlCage(nn.Module):
       the reflection across the vertical line ``x = t_x / 2`` of the panel frame, then a shift along it),
       ``m = handle_mirror`` and ``t`` the constant offset of the templates (``t = 0`` for the bundled
       ones: the reflection across the frame's y axis). Equivalently the two share one displacement,
-      ``d_right = S · d_left``; the projection sets it to the mean of the two raw displacements.
+      ``d_right = S · d_left``; the projection sets it to the mean of the two raw displacements. A panel
+      that is its own mirror image (no side partner; its handles symmetric across a vertical line, as a
+      skirt's front and back panels are) stays so, each handle moving as its partner's mirror image: the
+      fits of dresses had made their skirt panels lopsided by 1-5 cm, which no scan of a symmetric garment
+      asks for (docs/BENCHMARKS.md, "Lopsided skirt panels").
     * ``tie_seams``: for every seam (see `stitched_edges`) the chords between the end vertices of its two
       edges (the handle pairs at the ends, when those are handles) change length together to first
       order: ``û_A · Δ(p_A,end − p_A,start) = û_B · Δ(p_B,end − p_B,start)`` with ``û`` the template chord
@@ -352,6 +356,15 @@ class ControlCage(nn.Module):
                     row[0, 2 * ib], row[0, 2 * ia] = 1.0, -MIRROR[0]  # d_b,x + d_a,x = 0
                     row[1, 2 * ib + 1], row[1, 2 * ia + 1] = 1.0, -MIRROR[1]  # d_b,y − d_a,y = 0
                     constraints.append(row)
+            for a, b in self._self_mirror_pairs(uv[hv_all]):
+                mirror[b] = a
+                for ia, ib in zip(a.tolist(), b.tolist()):
+                    row = np.zeros((1 if ia == ib else 2, 2 * h0))
+                    row[0, 2 * ib] += 1.0  # d_b,x + d_a,x = 0 (on the axis, ia == ib: it stays there)
+                    row[0, 2 * ia] += 1.0
+                    if ia != ib:
+                        row[1, 2 * ib + 1], row[1, 2 * ia + 1] = 1.0, -1.0  # d_b,y − d_a,y = 0
+                    constraints.append(row)
         self.register_buffer("handle_mirror", mirror)
         if tie_seams:
             constraints.extend(self._seam_constraints(garment, uv, h0))
@@ -402,6 +415,27 @@ class ControlCage(nn.Module):
                 )
                 continue
             out.append((ha[best], hb))
+        return out
+
+    def _self_mirror_pairs(
+        self, rest: torch.Tensor, tol: float = 1e-6
+    ) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """Handle-index pairs (a (k,), b (k,)) of each panel that is its own mirror image (no left/right
+        partner, and its handles symmetric across the vertical line through their mean within ``tol`` [m],
+        as a skirt's front or back panel is): ``rest[b] ≈ S rest[a] + t``, a handle on the line its own
+        partner. Other panels give none."""
+        S = rest.new_tensor(MIRROR)
+        out = []
+        for pid, name in enumerate(self.panel_names):
+            if _swap_side(name) is not None:
+                continue
+            h = self._panel_handles(pid)
+            p = rest[h]
+            t = p.mean(0) - (p * S).mean(0)
+            dist = torch.cdist(p, p * S + t)  # (k, k): handle j against the mirror image of handle i
+            best = dist.argmin(1)
+            if bool((dist.min(1).values <= tol).all()) and len(set(best.tolist())) == len(h):
+                out.append((h[best], h))
         return out
 
     def close_handle_pairs(self, rest: torch.Tensor, distance: float) -> list[tuple[int, int]]:
