@@ -142,3 +142,18 @@ def test_no_worker_outlives_a_killed_driver():
     else:
         os.kill(worker, signal.SIGKILL)
         pytest.fail("the worker outlived its driver")
+
+
+def _interrupted(bar):
+    os.kill(os.getpid(), signal.SIGINT)  # as Ctrl-C in a terminal reaches every process of the fit
+    time.sleep(0.1)
+    return 7
+
+
+def test_ctrl_c_is_left_to_the_driver():
+    """A worker ignores SIGINT (no second traceback on the terminal; the driver stops its workers)."""
+    call = ForkedCall(_interrupted)
+    try:
+        assert call.result() == 7
+    finally:
+        call.close()

@@ -264,7 +264,7 @@ class ControlCage(nn.Module):
       that is its own mirror image (no side partner; its handles symmetric across a vertical line, as a
       skirt's front and back panels are) stays so, each handle moving as its partner's mirror image: the
       fits of dresses had made their skirt panels lopsided by 1-5 cm, which no scan of a symmetric garment
-      asks for (docs/BENCHMARKS.md, "Lopsided skirt panels").
+      asks for (docs/BENCHMARKS.md, "The hem's split and lopsided skirt panels").
     * ``tie_seams``: for every seam (see `stitched_edges`) the chords between the end vertices of its two
       edges (the handle pairs at the ends, when those are handles) change length together to first
       order: ``û_A · Δ(p_A,end − p_A,start) = û_B · Δ(p_B,end − p_B,start)`` with ``û`` the template chord

@@ -141,6 +141,7 @@ def wait_all(calls: list[ForkedCall], bar: WorkersBar | None, poll_s: float = 0.
 
 def _work(fn, send, progress) -> None:
     """The worker's body: ``fn(ProgressCounter)``'s value or its error, ``torch.save``\\ d into ``send``."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the driver's to handle (it stops the workers)
     try:  # die with the driver: a killed fit leaves no worker behind
         ctypes.CDLL(None).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
     except (AttributeError, OSError):

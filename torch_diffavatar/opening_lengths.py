@@ -157,9 +157,9 @@ def opening_split_loss(
 
     Why: a scan shows a hem's whole length (`opening_length_loss` holds it) but not where its seams are,
     so while the length is held the fit may move hem from one panel to another unseen. It did, on the
-    dresses: 4-5 cm from the back skirt panel to the front on a ring-captured dress and on two of Newton's
-    (docs/BENCHMARKS.md, "The hem's split between panels"). Where the scan cannot tell, the template's
-    split stands.
+    dresses: 4-5 cm from the back skirt panel to the front on a ring-captured dress and on Newton's
+    (docs/BENCHMARKS.md, "The hem's split and lopsided skirt panels"). Where the scan cannot tell, the
+    template's split stands.
     """
     if not len(edges) == len(panels) == len(shares):
         raise ValueError(f"{len(edges)} openings, {len(panels)} panel lists and {len(shares)} share lists")
