@@ -6,7 +6,7 @@ widened ``--hem-widen``, bending stiffness 2e-5 N·m, on a random moderate Anny 
 (`fit_scan.fit_scan` with ``configs/<garment>.yaml``) and `evaluation.evaluate_assets`; for the
 ``--ablation-garments`` also the fit without the cage, without the seam-length term, without the
 curvature term, without the cage's seam ties with and without the seam-length term, without the
-hem-length term, and without the mirror ties. Writes
+hem-length term, and without the symmetric-panel tie. Writes
 ``docs/RESULTS.md`` (tables like the paper's Tables 1 and 2, with the command and date) and pictures in
 ``docs/results/`` (first, fitted and true drapes; pattern overlays of template, result and truth); a
 hand-written part of RESULTS.md after the line `DISCUSSION_MARKER` is kept across reruns.
@@ -56,9 +56,9 @@ ABLATIONS = {
     # issue #30: the hem held no narrower than the scan's hem traces (docs/BENCHMARKS.md, "The hem's length
     # from the scan")
     "w/o hem length": {"weights": {"opening_length": 0.0}},
-    # issue #30: mirrored panels move as mirror images, and a skirt panel that is its own mirror image stays
-    # so (docs/BENCHMARKS.md, "The hem's split and lopsided skirt panels")
-    "w/o mirror ties": {"tie_mirrored": False},
+    # issue #30: a skirt panel that is its own mirror image stays so (the dress config's `tie_symmetric`;
+    # docs/BENCHMARKS.md, "The hem's split and lopsided skirt panels")
+    "w/o symmetric panels": {"tie_symmetric": False},
 }
 
 

@@ -270,11 +270,22 @@ def test_mirror_tying_maps_right_panels_onto_mirrored_left_ones():
     assert grad.abs().sum() > 0
 
 
-def test_mirror_tying_keeps_a_symmetric_panel_symmetric():
-    """The dress's skirt panels have no side partner but are their own mirror images: each handle moves
-    as its partner's mirror image, one on the axis along it, so the panel stays symmetric."""
+def test_mirror_tying_leaves_unpaired_panels_free():
     _, garment = template_mesh("dress")
     cage = ControlCage(garment, tie_mirrored=True)
+    skirt = torch.isin(cage.handle_panel, torch.tensor([0, 1]))  # skirt_front, skirt_back: no side
+    assert (cage.handle_mirror[skirt] == -1).all() and (cage.handle_mirror[~skirt] >= 0).all()
+    g = torch.Generator().manual_seed(4)
+    raw = cage.handle_rest + 0.02 * torch.randn(cage.handle_count, 2, generator=g, dtype=torch.float64)
+    torch.testing.assert_close(cage.tied_handles(raw)[skirt], raw[skirt], rtol=0, atol=1e-12)
+
+
+def test_symmetric_tying_keeps_a_symmetric_panel_symmetric():
+    """``tie_symmetric``: the dress's skirt panels have no side partner but are their own mirror images:
+    each handle moves as its partner's mirror image, one on the axis along it, so the panel stays
+    symmetric."""
+    _, garment = template_mesh("dress")
+    cage = ControlCage(garment, tie_mirrored=True, tie_symmetric=True)
     S = torch.tensor([-1.0, 1.0], dtype=torch.float64)
     g = torch.Generator().manual_seed(4)
     raw = cage.handle_rest + 0.02 * torch.randn(cage.handle_count, 2, generator=g, dtype=torch.float64)
@@ -291,10 +302,10 @@ def test_mirror_tying_keeps_a_symmetric_panel_symmetric():
         assert float((moved[h] - raw[h]).abs().max()) > 1e-3  # the raw step was lopsided; the tie is not
 
 
-def test_mirror_tying_leaves_lopsided_unpaired_panels_free_and_skips_non_mirrors():
+def test_symmetric_tying_leaves_lopsided_panels_free_and_mirror_tying_skips_non_mirrors():
     p = tube()
     p.panels["front"].vertices = p.panels["front"].vertices + np.array([[0, 0], [0, 0], [0.05, 0], [0, 0]])
-    cage = ControlCage(mesh_pattern(p, spacing=0.1), tie_mirrored=True)
+    cage = ControlCage(mesh_pattern(p, spacing=0.1), tie_symmetric=True)
     front = cage.handle_panel == p.panel_names.index("front")
     assert (cage.handle_mirror[front] == -1).all() and (cage.handle_mirror[~front] >= 0).all()
     g = torch.Generator().manual_seed(4)

@@ -260,11 +260,12 @@ class ControlCage(nn.Module):
       the reflection across the vertical line ``x = t_x / 2`` of the panel frame, then a shift along it),
       ``m = handle_mirror`` and ``t`` the constant offset of the templates (``t = 0`` for the bundled
       ones: the reflection across the frame's y axis). Equivalently the two share one displacement,
-      ``d_right = S · d_left``; the projection sets it to the mean of the two raw displacements. A panel
-      that is its own mirror image (no side partner; its handles symmetric across a vertical line, as a
-      skirt's front and back panels are) stays so, each handle moving as its partner's mirror image: the
-      fits of dresses had made their skirt panels lopsided by 1-5 cm, which no scan of a symmetric garment
-      asks for (docs/BENCHMARKS.md, "The hem's split and lopsided skirt panels").
+      ``d_right = S · d_left``; the projection sets it to the mean of the two raw displacements.
+    * ``tie_symmetric``: a panel that is its own mirror image (no side partner; its handles symmetric
+      across a vertical line, as a skirt's front and back panels are) stays so, each handle moving as its
+      partner's mirror image (``handle_mirror`` then points within the panel). The dress fits had made
+      their skirt panels lopsided by up to 3.7 cm, which no scan of a symmetric garment asks for
+      (docs/BENCHMARKS.md, "The hem's split and lopsided skirt panels").
     * ``tie_seams``: for every seam (see `stitched_edges`) the chords between the end vertices of its two
       edges (the handle pairs at the ends, when those are handles) change length together to first
       order: ``û_A · Δ(p_A,end − p_A,start) = û_B · Δ(p_B,end − p_B,start)`` with ``û`` the template chord
@@ -298,6 +299,7 @@ class ControlCage(nn.Module):
         *,
         turning_angle_deg: float = 10.0,
         tie_mirrored: bool = False,
+        tie_symmetric: bool = False,
         tie_seams: bool = False,
         tie_close: float = 0.0,
     ):
@@ -356,6 +358,7 @@ class ControlCage(nn.Module):
                     row[0, 2 * ib], row[0, 2 * ia] = 1.0, -MIRROR[0]  # d_b,x + d_a,x = 0
                     row[1, 2 * ib + 1], row[1, 2 * ia + 1] = 1.0, -MIRROR[1]  # d_b,y − d_a,y = 0
                     constraints.append(row)
+        if tie_symmetric:
             for a, b in self._self_mirror_pairs(uv[hv_all]):
                 mirror[b] = a
                 for ia, ib in zip(a.tolist(), b.tolist()):

@@ -211,6 +211,10 @@ class FitConfig:
         cage: parameterise the pattern by a `ControlCage` (the method); False optimises every panel
             vertex's rest coordinate directly (`cage.FreeVertices`, the paper's "w/o cage" ablation).
         tie_mirrored, tie_seams: `ControlCage` tying options (ignored without the cage).
+        tie_symmetric: `ControlCage` ``tie_symmetric``: a panel that is its own mirror image (a skirt's
+            front or back) stays symmetric. On in the dress config, where the fits had made the skirt
+            panels lopsided; off for the skirt, whose fits it did not help (docs/BENCHMARKS.md, "The hem's
+            split and lopsided skirt panels").
         tie_close: consecutive cage handles of a panel closer than this move together
             (`ControlCage` ``tie_close``) [m]; 0 leaves them free.
         image_every: iterations between TensorBoard pictures (0: only first and last).
@@ -266,6 +270,7 @@ class FitConfig:
     keep_best: bool = True
     cage: bool = True
     tie_mirrored: bool = True
+    tie_symmetric: bool = False
     tie_seams: bool = True
     tie_close: float = 0.01
     image_every: int = 5

@@ -215,6 +215,7 @@ class FitParameters(nn.Module):
             cage = ControlCage(
                 garment,
                 tie_mirrored=config.tie_mirrored,
+                tie_symmetric=config.tie_symmetric,
                 tie_seams=config.tie_seams,
                 tie_close=config.tie_close,
             )
