@@ -348,26 +348,7 @@ class ControlCage(nn.Module):
         self.register_buffer("weight_values", torch.cat(vals).to(dtype))
         self.handles = nn.Parameter(uv[hv_all].to(dtype))
 
-        mirror = torch.full((h0,), -1, dtype=torch.int64)
-        constraints: list[np.ndarray] = []
-        if tie_mirrored:
-            for a, b in self._mirror_pairs(uv[hv_all]):
-                mirror[a], mirror[b] = b, a
-                for ia, ib in zip(a.tolist(), b.tolist()):
-                    row = np.zeros((2, 2 * h0))
-                    row[0, 2 * ib], row[0, 2 * ia] = 1.0, -MIRROR[0]  # d_b,x + d_a,x = 0
-                    row[1, 2 * ib + 1], row[1, 2 * ia + 1] = 1.0, -MIRROR[1]  # d_b,y − d_a,y = 0
-                    constraints.append(row)
-        if tie_symmetric:
-            for a, b in self._self_mirror_pairs(uv[hv_all]):
-                mirror[b] = a
-                for ia, ib in zip(a.tolist(), b.tolist()):
-                    row = np.zeros((1 if ia == ib else 2, 2 * h0))
-                    row[0, 2 * ib] += 1.0  # d_b,x + d_a,x = 0 (on the axis, ia == ib: it stays there)
-                    row[0, 2 * ia] += 1.0
-                    if ia != ib:
-                        row[1, 2 * ib + 1], row[1, 2 * ia + 1] = 1.0, -1.0  # d_b,y − d_a,y = 0
-                    constraints.append(row)
+        mirror, constraints = self._mirror_constraints(uv[hv_all], tie_mirrored, tie_symmetric)
         self.register_buffer("handle_mirror", mirror)
         if tie_seams:
             constraints.extend(self._seam_constraints(garment, uv, h0))
@@ -385,6 +366,35 @@ class ControlCage(nn.Module):
 
     def _panel_handles(self, pid: int) -> torch.Tensor:
         return torch.nonzero(self.handle_panel == pid).flatten()
+
+    def _mirror_constraints(
+        self, rest: torch.Tensor, tie_mirrored: bool, tie_symmetric: bool
+    ) -> tuple[torch.Tensor, list[np.ndarray]]:
+        """(``handle_mirror`` (H,), constraint rows on vec(ζ − ζ₀)) of the mirror ties of mirrored panel pairs
+        (``tie_mirrored``) and of panels that are their own mirror images (``tie_symmetric``), from the
+        template handles ``rest`` (H, 2)."""
+        h0 = len(rest)
+        mirror = torch.full((h0,), -1, dtype=torch.int64)
+        constraints: list[np.ndarray] = []
+        if tie_mirrored:
+            for a, b in self._mirror_pairs(rest):
+                mirror[a], mirror[b] = b, a
+                for ia, ib in zip(a.tolist(), b.tolist()):
+                    row = np.zeros((2, 2 * h0))
+                    row[0, 2 * ib], row[0, 2 * ia] = 1.0, -MIRROR[0]  # d_b,x + d_a,x = 0
+                    row[1, 2 * ib + 1], row[1, 2 * ia + 1] = 1.0, -MIRROR[1]  # d_b,y − d_a,y = 0
+                    constraints.append(row)
+        if tie_symmetric:
+            for a, b in self._self_mirror_pairs(rest):
+                mirror[b] = a
+                for ia, ib in zip(a.tolist(), b.tolist()):
+                    row = np.zeros((1 if ia == ib else 2, 2 * h0))
+                    row[0, 2 * ib] += 1.0  # d_b,x + d_a,x = 0 (on the axis, ia == ib: it stays there)
+                    row[0, 2 * ia] += 1.0
+                    if ia != ib:
+                        row[1, 2 * ib + 1], row[1, 2 * ia + 1] = 1.0, -1.0  # d_b,y − d_a,y = 0
+                    constraints.append(row)
+        return mirror, constraints
 
     def _mirror_pairs(self, rest: torch.Tensor, tol: float = 1e-6) -> list[tuple[torch.Tensor, torch.Tensor]]:
         """Handle-index pairs (a (k,), b (k,)) of mirrored panels: ``rest[b] ≈ S rest[a] + t``."""
