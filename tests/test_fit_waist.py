@@ -58,9 +58,11 @@ def test_the_waist_shift_finds_a_lower_waist(low_skirt):
 
 def test_a_free_waist_keeps_the_free_pattern_near_the_truth(low_skirt):
     """Pattern and waist both free, the pattern after the waist (``pattern_delay``): the waist takes the
-    drop and the pattern stays near the truth (measured 6.7 mm worst-panel mean); with only the pattern free
-    it lengthens to reach the lower hem (17.8 mm). Without the delay the pattern moved first and stayed
-    (17.9 mm with the waist free)."""
+    drop and the pattern stays near the truth (measured 2.9 mm worst-panel mean at 4332916, 6.7 mm when
+    written); with only the pattern free it lengthens to reach the lower hem (17.6 mm). Without the delay
+    the pattern moved first and stayed (17.9 mm with the waist free). With the skirt panels tied symmetric
+    (``tie_symmetric``) this fit ends at 16.5 mm, its hem 8.5 cm narrower, at a lower loss: why the skirt
+    config leaves that tie off (docs/BENCHMARKS.md, "The hem's split and lopsided skirt panels")."""
     shift, with_waist = _fit(low_skirt, lr_cage=0.004, lr_waist_shift=0.01, pattern_delay=6)
     _, pattern_only = _fit(low_skirt, lr_cage=0.004, pattern_delay=6)
     assert shift < -0.03, shift
