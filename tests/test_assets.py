@@ -112,7 +112,8 @@ def test_bad_rest_coordinates_are_rejected(dress):
 
 def test_an_exported_outline_that_crosses_itself_is_a_warning(dress, tmp_path):
     """`write_assets` says when a refitted panel outline crosses itself (`mesh_pattern` would refuse the
-    exported pattern), in ``report.json``'s warnings; a sound export adds none."""
+    exported pattern), in ``report.json``'s warnings, and whether the fit's rest outline crosses too or
+    only the refitted curves; a sound export adds none."""
     from dataclasses import replace
 
     import numpy as np
@@ -127,6 +128,8 @@ def test_an_exported_outline_that_crosses_itself_is_a_warning(dress, tmp_path):
     crossed = replace(pattern, panels={**pattern.panels, name: replace(panel, vertices=verts)})
     (message,) = crossed_outline_warnings(crossed)
     assert name in message and "crosses itself" in message
+    (refit,) = crossed_outline_warnings(crossed, garment, garment.vert_uv.numpy())  # the rest shape is fine
+    assert name in refit and "a refitted curve overshoots" in refit
     uv = garment.vert_uv.clone()
     corner = garment.edge_vertices[(name, 0)]
     uv[corner[0]], uv[corner[-1]] = garment.vert_uv[corner[-1]], garment.vert_uv[corner[0]]
@@ -145,4 +148,7 @@ def test_an_exported_outline_that_crosses_itself_is_a_warning(dress, tmp_path):
         report={"warnings": ["kept"]},
     )
     warnings = json.loads(open(files["report_json"]).read())["warnings"]
-    assert warnings[0] == "kept" and len(warnings) == 2 and "crosses itself" in warnings[1]
+    assert warnings[0] == "kept" and len(warnings) == 2
+    assert (
+        f"the fitted outline of {name} crosses itself" in warnings[1] and "passed each other" in warnings[1]
+    )

@@ -46,6 +46,7 @@ from torch_diffavatar.pattern.spec import (
     _bezier_eval,
     _bezier_points,
     absolute_to_relative,
+    outline_self_intersects,
     sample_edge,
 )
 from torch_diffavatar.sim.material import ClothMaterial
@@ -187,17 +188,35 @@ def fitted_pattern(pattern: Pattern, garment: GarmentMesh, rest_uv: torch.Tensor
     return replace(pattern, panels=panels, source=None)
 
 
-def crossed_outline_warnings(pattern: Pattern) -> list[str]:
-    """A warning (a list of one, else empty) when a panel outline of the exported ``pattern`` crosses
-    itself: the refitted curves can overshoot where the rest mesh itself is fine (seen once, on a fitted
-    dress's back bodice), and `mesh_pattern` refuses such a pattern (`Pattern.validate`)."""
+def crossed_outline_warnings(
+    pattern: Pattern, garment: GarmentMesh | None = None, rest_uv: np.ndarray | None = None
+) -> list[str]:
+    """Warnings (empty when none) about panel outlines of the exported ``pattern`` that cross themselves,
+    which `mesh_pattern` refuses (`Pattern.validate`). Given the ``garment`` and its fitted ``rest_uv``
+    (V, 2) [m], they say whether the fit's rest outline of the panel crosses itself too (two corners
+    passed each other: on the suite's Newton dress, the legs of a back bodice dart) or only the refitted
+    curves overshoot where the rest mesh is fine."""
     crossed = pattern.crossed_panels()
     if not crossed:
         return []
-    return [
-        f"the exported pattern's outline of {', '.join(crossed)} crosses itself (a refitted curve "
-        "overshoots): pattern.json cannot be meshed or cut as it is; rest.obj holds the fitted panels"
-    ]
+    in_rest = []
+    if garment is not None and rest_uv is not None:
+        outlines = {n: rest_uv[b.cpu().numpy()] for n, b in zip(garment.panel_names, garment.panel_boundary)}
+        in_rest = [n for n in crossed if n in outlines and outline_self_intersects(outlines[n])]
+    refit = [n for n in crossed if n not in in_rest]
+    warnings = []
+    if refit:
+        warnings.append(
+            f"the exported pattern's outline of {', '.join(refit)} crosses itself (a refitted curve "
+            "overshoots): pattern.json cannot be meshed or cut as it is; rest.obj holds the fitted panels"
+        )
+    if in_rest:
+        warnings.append(
+            f"the fitted outline of {', '.join(in_rest)} crosses itself (two of its corners, such as a "
+            "dart's legs, passed each other in the fit): neither pattern.json nor rest.obj's panels can be "
+            "cut as they are"
+        )
+    return warnings
 
 
 def pattern_deviation(pattern: Pattern, garment: GarmentMesh, rest_uv: torch.Tensor) -> float:
@@ -346,7 +365,8 @@ def write_assets(
     written += ["report_json", "manifest_json"]
     report = dict(report)
     report["pattern_export_max_deviation_m"] = pattern_deviation(fitted, garment, uv)
-    report["warnings"] = list(report.get("warnings", [])) + crossed_outline_warnings(fitted)
+    crossed = crossed_outline_warnings(fitted, garment, uv.numpy())
+    report["warnings"] = list(report.get("warnings", [])) + crossed
     report["files"] = {k: str(paths[k]) for k in written}
     write_json(paths["report_json"], report)
     write_json(
