@@ -434,7 +434,8 @@ def _write_results(path: Path, runs: list, args) -> None:
     lines = [
         "# Results: synthetic scans with ground truth",
         "",
-        "On the 2-core development machine (one thread). Each run makes a scan per garment, fits it "
+        "On the 2-core development machine (one thread per process; the tops' race of first drapes on "
+        "both cores, as `diffavatar fit` runs it). Each run makes a scan per garment, fits it "
         "from the plain template with `configs/<garment>.yaml`, and measures the fit with "
         "`diffavatar eval`. The same seed gives the same body and true pattern to every generator: "
         "only who drapes the truth differs.",
