@@ -199,6 +199,7 @@ def _gather(fitter, state: dict, calls: list[ForkedCall], bar, start: ClothState
             state["best"] = best
         state["index"] += 1
     if start is not None:  # the driver's candidate ran: its state is the fitter's
+        fitter.seconds = 0.0  # already in state["seconds"]: a resumed run must not count it twice
         fitter.save_checkpoint(start)
 
 

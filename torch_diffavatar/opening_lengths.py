@@ -159,7 +159,8 @@ def opening_split_loss(
     so while the length is held the fit may move hem from one panel to another unseen. It did, on the
     dresses: 4-5 cm from the back skirt panel to the front on a ring-captured dress and on Newton's
     (docs/BENCHMARKS.md, "The hem's split and lopsided skirt panels"). Where the scan cannot tell, the
-    template's split stands.
+    template's split stands. The tops' configs hold it; the dress's symmetric skirt panels
+    (``tie_symmetric``) took the drift there.
     """
     if not len(edges) == len(panels) == len(shares):
         raise ValueError(f"{len(edges)} openings, {len(panels)} panel lists and {len(shares)} share lists")
