@@ -229,3 +229,20 @@ def test_a_lost_race_worker_leaves_its_candidate_to_the_driver(
     result = _fitter(skirt_problem, tmp_path).run(race_workers=2)
     assert len(lost) == 1  # the second candidate's worker; the driver then fitted it alone (no later one)
     assert torch.equal(result.rest_uv, expected.rest_uv) and torch.equal(result.x, expected.x)
+
+
+def test_a_race_on_workers_stopped_after_its_round_resumes_to_the_uninterrupted_result(
+    skirt_problem, straight, tmp_path
+):
+    """With two workers the round's checkpoint (the third save: after the driver's two iterations) holds
+    both candidates' results; a run stopped there resumes to the same fit."""
+    torch.set_num_threads(1)
+    with pytest.raises(Killed):
+        _killed_after(_fitter(skirt_problem, tmp_path), 3).run(race_workers=2)
+    race = safe_load(tmp_path / CHECKPOINT)["race"]
+    assert race["index"] == 2 and not race["started"]
+    assert all(math.isfinite(c["race_loss"]) for c in race["candidates"])
+    result = _fitter(skirt_problem, tmp_path).run(resume=True, race_workers=2)
+    _, expected = straight
+    assert torch.equal(result.rest_uv, expected.rest_uv) and torch.equal(result.x, expected.x)
+    assert _timeless(result.history) == _timeless(expected.history)
