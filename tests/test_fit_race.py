@@ -189,11 +189,23 @@ def test_a_race_killed_for_real_resumes_to_the_uninterrupted_result(skirt_proble
     assert _timeless(result.history) == _timeless(expected.history)
 
 
-def test_the_race_on_two_workers_gives_the_uninterrupted_result(skirt_problem, straight, tmp_path):
-    """``race_workers=2``: the second candidate runs in a forked worker while the driver runs the first;
-    the fit ends exactly where one after another ends, and the workers' iterations count on the bar."""
+@pytest.fixture
+def one_thread():
+    """torch on one intra-op thread, as `diffavatar fit` runs it: a fork is refused with more
+    (`fit_workers.can_fork`)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def test_the_race_on_two_workers_gives_the_uninterrupted_result(
+    skirt_problem, straight, tmp_path, one_thread
+):
+    """``race_workers=2``: the second candidate runs in a forked worker while the driver runs the first
+    (its progress bar on, the workers' iterations counted on it); the fit ends exactly where one after
+    another ends."""
     straight_fitter, expected = straight
-    torch.set_num_threads(1)  # a fork is refused while torch runs more threads (`fit_workers.can_fork`)
     fitter = _fitter(skirt_problem, tmp_path)
     fitter.progress = True
     result = fitter.run(race_workers=2)
@@ -208,7 +220,7 @@ def test_the_race_on_two_workers_gives_the_uninterrupted_result(skirt_problem, s
 
 
 def test_a_lost_race_worker_leaves_its_candidate_to_the_driver(
-    skirt_problem, straight, tmp_path, monkeypatch
+    skirt_problem, straight, tmp_path, monkeypatch, one_thread
 ):
     """A worker that ends without its result (killed, out of memory): the driver fits that candidate
     itself, and the fit still ends where one after another ends."""
@@ -217,14 +229,13 @@ def test_a_lost_race_worker_leaves_its_candidate_to_the_driver(
 
     lost = []
 
-    class Killed(ForkedCall):
+    class LostCall(ForkedCall):
         def result(self):
             self._process.kill()
             lost.append(self)
             raise WorkerLost("killed")
 
-    monkeypatch.setattr(fit_race, "ForkedCall", Killed)
-    torch.set_num_threads(1)
+    monkeypatch.setattr(fit_race, "ForkedCall", LostCall)
     _, expected = straight
     result = _fitter(skirt_problem, tmp_path).run(race_workers=2)
     assert len(lost) == 1  # the second candidate's worker; the driver then fitted it alone (no later one)
@@ -232,11 +243,10 @@ def test_a_lost_race_worker_leaves_its_candidate_to_the_driver(
 
 
 def test_a_race_on_workers_stopped_after_its_round_resumes_to_the_uninterrupted_result(
-    skirt_problem, straight, tmp_path
+    skirt_problem, straight, tmp_path, one_thread
 ):
     """With two workers the round's checkpoint (the third save: after the driver's two iterations) holds
     both candidates' results; a run stopped there resumes to the same fit."""
-    torch.set_num_threads(1)
     with pytest.raises(Killed):
         _killed_after(_fitter(skirt_problem, tmp_path), 3).run(race_workers=2)
     race = safe_load(tmp_path / CHECKPOINT)["race"]
