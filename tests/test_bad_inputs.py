@@ -279,6 +279,22 @@ def test_a_non_finite_result_is_one_line_and_no_file(tmp_path, capsys, monkeypat
     assert list(out.iterdir()) == []
 
 
+def test_ctrl_c_is_one_line_and_says_how_to_continue(tmp_path, capsys, monkeypatch):
+    """Ctrl-C during a fit: no traceback, one line that says how to go on, exit status 130 (SIGINT's)."""
+    import torch_diffavatar.commands.fit as commands
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(commands, "fit_scan", interrupted)
+    code = cli.main(["fit", str(DEMO_SCAN), "--garment", "skirt", "--out", str(tmp_path / "fit")])
+    err = capsys.readouterr().err
+    assert code == 130 and "Traceback" not in err
+    assert err.strip().splitlines() == [
+        "diffavatar fit: interrupted; --resume continues from the last checkpoint"
+    ]
+
+
 def test_a_doubtful_shape_warns_and_a_person_passes(person):
     from torch_diffavatar.scan_intake import check_person_shape
 

@@ -82,6 +82,13 @@ def _one_line(text: str) -> str:
     return " ".join(part.strip() for part in text.splitlines() if part.strip())
 
 
+# how a command's interrupted work continues (its checkpoints)
+RESUME_HINTS = {
+    "fit": "--resume continues from the last checkpoint",
+    "fit-batch": "the same command again continues where it stopped",
+}
+
+
 def _error(command: str, message: str) -> int:
     """Print ``message`` as the command's one error line on stderr; returns the exit status, 2."""
     print(f"diffavatar {command}: error: {_one_line(message)}", file=sys.stderr)
@@ -97,6 +104,10 @@ def main(argv: list[str] | None = None) -> int:
         return _error(args.command, str(exc))
     except OSError as exc:  # a path or the disk (not found, a file where a folder goes, full, read-only)
         return _error(args.command, _os_error_line(exc))
+    except KeyboardInterrupt:  # Ctrl-C: one line, and the shell's status for SIGINT (128 + 2)
+        hint = f"; {RESUME_HINTS[args.command]}" if args.command in RESUME_HINTS else ""
+        print(f"diffavatar {args.command}: interrupted{hint}", file=sys.stderr)
+        return 130
     if isinstance(result, dict):
         if getattr(args, "json", False):
             try:
