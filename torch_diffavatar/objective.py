@@ -26,6 +26,7 @@ from torch_diffavatar.fit_config import FitConfig, LossWeights, adjoint_options,
 from torch_diffavatar.losses import (
     boundary_loss,
     curvature_loss,
+    dart_triangles,
     design_modes,
     folded_collar_loop,
     interior_loss,
@@ -53,6 +54,10 @@ from torch_diffavatar.sim.state import ClothState
 
 # the loss terms, in the order of `LossWeights`; each has a weight buffer ``weight_<term>``
 TERM_NAMES = tuple(f.name for f in fields(LossWeights))
+# the fraction of a dart's template opening below which the rest-area term holds it: a dart may narrow, not
+# close past zero (fitted dresses had crossed their bodice darts' legs: docs/BENCHMARKS.md, "Darts that
+# cross")
+DART_KEEP = 0.2
 
 
 @dataclass
@@ -379,6 +384,9 @@ class FitObjective(nn.Module):
         self.register_buffer("template_area", signed_rest_areas(template_uv, tri), persistent=False)
         self.register_buffer("template_inverse", template_edge_inverse(template_uv, tri), persistent=False)
         self.register_buffer("design_modes", design_modes(template_uv, garment.vert_panel), persistent=False)
+        # triangles across the darts, held above `DART_KEEP` of their opening by the rest-area term
+        self.register_buffer("dart_tri", dart_triangles(garment), persistent=False)
+        self.register_buffer("dart_area", signed_rest_areas(template_uv, self.dart_tri), persistent=False)
 
     def _register_target(self, target: ScanTarget, fit_body: bool, dtype: torch.dtype) -> None:
         gen = torch.Generator().manual_seed(self.config.seed)
@@ -465,8 +473,9 @@ class FitObjective(nn.Module):
         return [folded_collar_loop(x, lp) if lp.name == "neck" else lp for lp in self.loops]
 
     def rest_terms(self, rest_uv: torch.Tensor) -> dict[str, torch.Tensor]:
-        """The loss terms of the rest pattern alone, unweighted: seam length, curvature, and rest area and
-        rest shape when their weights are positive. ``rest_uv``: (V, 2) [m]."""
+        """The loss terms of the rest pattern alone, unweighted: seam length, curvature, and rest area (the
+        mesh's triangles, and those across its darts: `dart_triangles`) and rest shape when their weights
+        are positive. ``rest_uv``: (V, 2) [m]."""
         terms = {
             "seam_length": seam_length_loss(rest_uv, self.garment, segments=self.seam_segments),
             "curvature": curvature_loss(rest_uv, self.template_uv, self.garment),
@@ -476,6 +485,14 @@ class FitObjective(nn.Module):
             terms["rest_area"] = rest_area_loss(
                 rest_uv, self.template_uv, tri, template_area=self.template_area
             )
+            if len(self.dart_tri):
+                terms["rest_area"] = terms["rest_area"] + rest_area_loss(
+                    rest_uv,
+                    self.template_uv,
+                    self.dart_tri,
+                    threshold=DART_KEEP,
+                    template_area=self.dart_area,
+                )
         if self.weight_rest_shape > 0:
             terms["rest_shape"] = rest_distortion_loss(
                 rest_uv, self.template_uv, tri, template_inverse=self.template_inverse
