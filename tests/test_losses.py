@@ -619,3 +619,42 @@ def test_boundary_loss_on_a_partial_scan_pulls_only_the_seen_half():
         boundary_loss(ring, loop, front_scan, seen=torch.ones(32, dtype=torch.float64)),
         boundary_loss(ring, loop, front_scan),
     )
+
+
+def test_dart_triangles_span_each_dart_and_nothing_else():
+    """The dress's eight bodice darts give triangles (leg, tip, leg) of sewn pairs; the skirt has none, and
+    a tube (two panels sewn along their sides) none."""
+    from torch_diffavatar.losses import dart_triangles
+
+    pattern, garment = template_mesh("dress")
+    tri = dart_triangles(garment)
+    assert len(tri) > 0
+    assert len(set(tri[:, 1].tolist())) == len(pattern.darts)  # one tip per dart
+    pairs = {tuple(p) for p in garment.stitch_pairs.tolist()}
+    assert all((a, b) in pairs or (b, a) in pairs for a, _, b in tri.tolist())
+    panel = garment.vert_panel
+    assert bool((panel[tri[:, 0]] == panel[tri[:, 1]]).all() and (panel[tri[:, 1]] == panel[tri[:, 2]]).all())
+    assert len(dart_triangles(template_mesh("skirt")[1])) == 0
+    assert len(dart_triangles(mesh_pattern(tube(), spacing=0.05))) == 0
+
+
+def test_a_dart_closed_past_zero_costs_rest_area():
+    """The objective's rest-area term is 0 at the template and grows once a dart's legs pass each other
+    (its base corners swapped), which the mesh's own triangles alone barely see."""
+    from helpers_fit import fit_config
+
+    from torch_diffavatar.objective import FitObjective, ScanTarget
+
+    _, garment = template_mesh("dress")
+    x = garment.sim_positions()
+    objective = FitObjective(garment, ScanTarget(x, {}), fit_config(), dtype=torch.float64)
+    uv = objective.template_uv.clone()
+    assert float(objective.rest_terms(uv)["rest_area"]) == 0.0
+    a, _, b = objective.dart_tri[0].tolist()
+    crossed = uv.clone()
+    crossed[a], crossed[b] = uv[b], uv[a]  # the dart's legs pass each other at its base
+    dart_only = rest_area_loss(
+        crossed, uv, objective.dart_tri, threshold=0.2, template_area=objective.dart_area
+    )
+    assert float(dart_only) > 1.0  # at least one triangle's ratio at -1: (0.2 + 1)^2
+    assert float(objective.rest_terms(crossed)["rest_area"]) >= float(dart_only)
