@@ -240,6 +240,19 @@ def _swap_side(name: str) -> str | None:
     return "_".join(out) if out != tokens else None
 
 
+def _mirror_match(pa: torch.Tensor, pb: torch.Tensor, tol: float) -> tuple[torch.Tensor | None, float]:
+    """(best, mismatch): for handle positions ``pa``, ``pb`` (k, 2) [m], the handle of ``pa`` whose mirror
+    image ``S pa + t`` (``t`` matching the means) lies on each handle of ``pb``, as (k,) indices into
+    ``pa``, or None unless every one lies within ``tol`` [m] and each is used once; and the largest
+    distance [m]."""
+    mirrored = pa * pa.new_tensor(MIRROR)
+    dist = torch.cdist(pb, mirrored + (pb.mean(0) - mirrored.mean(0)))  # (k, k)
+    nearest = dist.min(1)
+    best = nearest.indices
+    ok = bool((nearest.values <= tol).all()) and len(set(best.tolist())) == len(pb)
+    return (best if ok else None), float(nearest.values.max())
+
+
 class ControlCage(nn.Module):
     """Handles ζ per panel whose mean value coordinates give every rest coordinate (paper §4.2.2).
 
@@ -398,7 +411,6 @@ class ControlCage(nn.Module):
 
     def _mirror_pairs(self, rest: torch.Tensor, tol: float = 1e-6) -> list[tuple[torch.Tensor, torch.Tensor]]:
         """Handle-index pairs (a (k,), b (k,)) of mirrored panels: ``rest[b] ≈ S rest[a] + t``."""
-        S = rest.new_tensor(MIRROR)
         out = []
         for pid, name in enumerate(self.panel_names):
             other = _swap_side(name)
@@ -415,15 +427,11 @@ class ControlCage(nn.Module):
                     stacklevel=3,
                 )
                 continue
-            pa, pb = rest[ha] * S, rest[hb]
-            t = pb.mean(0) - pa.mean(0)
-            dist = torch.cdist(pb, pa + t)  # (k, k)
-            best = dist.argmin(1)
-            ok = bool((dist.min(1).values <= tol).all()) and len(set(best.tolist())) == len(hb)
-            if not ok:
+            best, mismatch = _mirror_match(rest[ha], rest[hb], tol)
+            if best is None:
                 warnings.warn(
                     f"tie_mirrored: panels {name!r} and {other!r} are not mirror images (largest handle "
-                    f"mismatch {float(dist.min(1).values.max()):.3g} m); not tied",
+                    f"mismatch {mismatch:.3g} m); not tied",
                     stacklevel=3,
                 )
                 continue
@@ -437,17 +445,13 @@ class ControlCage(nn.Module):
         partner, and its handles symmetric across the vertical line through their mean within ``tol`` [m],
         as a skirt's front or back panel is): ``rest[b] ≈ S rest[a] + t``, a handle on the line its own
         partner. Other panels give none."""
-        S = rest.new_tensor(MIRROR)
         out = []
         for pid, name in enumerate(self.panel_names):
             if _swap_side(name) is not None:
                 continue
             h = self._panel_handles(pid)
-            p = rest[h]
-            t = p.mean(0) - (p * S).mean(0)
-            dist = torch.cdist(p, p * S + t)  # (k, k): handle j against the mirror image of handle i
-            best = dist.argmin(1)
-            if bool((dist.min(1).values <= tol).all()) and len(set(best.tolist())) == len(h):
+            best, _ = _mirror_match(rest[h], rest[h], tol)
+            if best is not None:
                 out.append((h[best], h))
         return out
 
