@@ -106,8 +106,13 @@ def rest_loop_edges(garment: GarmentMesh, loop: BoundaryLoop) -> torch.Tensor:
 def rest_loop_length(rest_uv: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
     """() the rest length [m] of an opening: the summed lengths of its (L, 2) ``edges`` (`rest_loop_edges`)
     at the panel-vertex rest coordinates ``rest_uv`` (V, 2) [m]."""
+    return _edge_lengths(rest_uv, edges).sum()
+
+
+def _edge_lengths(rest_uv: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
+    """(L,) [m] the lengths of the (L, 2) panel-vertex ``edges`` at ``rest_uv`` (V, 2) [m]."""
     e = edges.to(rest_uv.device)
-    return (rest_uv[e[:, 1]] - rest_uv[e[:, 0]]).norm(dim=-1).sum()
+    return (rest_uv[e[:, 1]] - rest_uv[e[:, 0]]).norm(dim=-1)
 
 
 def opening_length_loss(
@@ -138,8 +143,7 @@ def rest_loop_panels(garment: GarmentMesh, edges: torch.Tensor) -> torch.Tensor:
 def rest_loop_shares(rest_uv: torch.Tensor, edges: torch.Tensor, panels: torch.Tensor) -> torch.Tensor:
     """(P,) [-] the share of each panel in an opening's rest length: its ``edges``' (L, 2) lengths at
     ``rest_uv`` (V, 2) [m] summed per panel (``panels`` (L,), `rest_loop_panels`), over the whole."""
-    e = edges.to(rest_uv.device)
-    lengths = (rest_uv[e[:, 1]] - rest_uv[e[:, 0]]).norm(dim=-1)
+    lengths = _edge_lengths(rest_uv, edges)
     count = int(panels.max()) + 1
     per_panel = lengths.new_zeros(count).index_add(0, panels.to(rest_uv.device), lengths)
     return per_panel / per_panel.sum()
