@@ -195,7 +195,7 @@ def _gather(fitter, state: dict, calls: list[ForkedCall], bar, start: ClothState
         entry = state["starts"][state["index"]]
         state["candidates"][entry["candidate"]]["race_loss"] = result["race_loss"]
         best = result["best"]
-        if best is not None and (state["best"] is None or best["loss"] < state["best"]["loss"]):
+        if best is not None and _beats_best(state, best["loss"]):
             state["best"] = best
         state["index"] += 1
     if start is not None:  # the driver's candidate ran: its state is the fitter's
@@ -231,6 +231,13 @@ def _run_candidate(fitter, state: dict, start: ClothState | None, bar) -> ClothS
     loss = fitter.best["loss"]
     candidate["race_loss"] = loss
     state["seconds"] = state.get("seconds", 0.0) + fitter.seconds  # its iterations' time, all runs'
-    if state["best"] is None or loss < state["best"]["loss"]:
+    if _beats_best(state, loss):
         state["best"] = {"loss": loss, "state": copy.deepcopy(fitter.state_dict(start))}
     return start
+
+
+def _beats_best(state: dict, loss: float) -> bool:
+    """Whether a finished candidate's race ``loss`` replaces the race's best: strictly lower, so that of
+    equal losses the earlier candidate wins, whichever process fitted it (the workers' results are
+    recorded in the race's order)."""
+    return state["best"] is None or loss < state["best"]["loss"]
