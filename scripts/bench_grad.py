@@ -176,6 +176,7 @@ def main() -> int:
     dtype = getattr(torch, args.dtype)
 
     from torch_diffavatar.body.anny_model import default_body_mesh
+    from torch_diffavatar.fit_checkpoint import safe_load
     from torch_diffavatar.pattern.library import load_template
     from torch_diffavatar.pattern.mesher import mesh_pattern
     from torch_diffavatar.sim.adjoint import EquilibriumOptions, TrajectoryOptions
@@ -194,7 +195,7 @@ def main() -> int:
     mat_kw.update({k: getattr(base, k) * args.stiffness_scale for k in ("k_uu", "k_vv", "k_uv")})
     out = {"template": args.template, "spacing_m": args.spacing, "dtype": args.dtype}
     if args.cache and os.path.exists(args.cache):
-        saved = torch.load(args.cache, weights_only=False)
+        saved = safe_load(args.cache)  # tensors and our plain data classes only: a cache runs no code
         garment, x_sewn = saved["garment"], saved["x0"].to(dtype)
     else:
         garment = place_garment(

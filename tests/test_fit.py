@@ -23,6 +23,7 @@ from torch_diffavatar.fit import (
     rest_prox,
     result_warnings,
 )
+from torch_diffavatar.fit_checkpoint import safe_load
 from torch_diffavatar.losses import rest_area_ratio
 from torch_diffavatar.sim.material import ClothMaterial
 
@@ -260,7 +261,7 @@ def test_a_checkpoint_from_before_the_membrane_resumes_exactly(skirt_problem, tm
     straight = _fitter(skirt_problem, config, out_dir=tmp_path / "a", tensorboard=False).run()
     _fitter(skirt_problem, config, out_dir=tmp_path / "b", tensorboard=False).run(iterations=1)
     path = tmp_path / "b" / "checkpoint.pt"
-    state = torch.load(path, weights_only=False)
+    state = safe_load(path)
     for params in (state["params"], state["best"]["params"]):
         del params["log_stretch"], params["raw_waist_shift"]
     del state["first"]["stretch_scale"], state["first"]["waist_shift_m"]

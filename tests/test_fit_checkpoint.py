@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import pytest
 import torch
@@ -52,3 +53,16 @@ def test_a_crafted_file_is_refused_and_runs_nothing(tmp_path):
     (tmp_path / "junk.pt").write_bytes(b"not a torch file")
     with pytest.raises(InputError, match="junk.pt"):
         safe_load(tmp_path / "junk.pt")
+
+
+def test_no_file_of_the_project_loads_with_weights_only_false():
+    """Every ``torch.load`` (package, scripts, tests) runs no code from the file: the scripts' caches too."""
+    root = Path(__file__).resolve().parents[1]
+    unsafe = "weights_only=" + "False"  # spelled apart so that this file does not match itself
+    found = [
+        str(path.relative_to(root))
+        for folder in ("torch_diffavatar", "scripts", "tests")
+        for path in (root / folder).rglob("*.py")
+        if unsafe in path.read_text()
+    ]
+    assert found == []

@@ -14,6 +14,7 @@ from helpers_fit import DT
 from helpers_fit import fit_config as _config
 
 from torch_diffavatar.fit import Fitter
+from torch_diffavatar.fit_checkpoint import safe_load
 from torch_diffavatar.fit_config import LossWeights
 from torch_diffavatar.objective import TERM_NAMES, FitObjective, FitParameters, FitVariables
 
@@ -160,7 +161,7 @@ def test_the_fit_loop_script_reaches_diffavatar_fits_result(skirt_scan, tmp_path
     assert float(out.loss.detach()) == pytest.approx(report["loss_final"], rel=1e-6)
     for name, value in report["loss_terms_final"].items():
         assert float(out.terms[name].detach()) == pytest.approx(value, rel=1e-5, abs=1e-12), name
-    fitted = torch.load(tmp_path / "fit" / CHECKPOINT, weights_only=False)["params"]
+    fitted = safe_load(tmp_path / "fit" / CHECKPOINT)["params"]
     for name, value in params.state_dict().items():  # the cage handles (the pattern), the body, k_b
         torch.testing.assert_close(value, fitted[name], rtol=1e-5, atol=1e-7)
 
