@@ -180,6 +180,26 @@ def test_a_bad_pattern_is_refused(case, words, garment_type, tmp_path, capsys):
     assert not out.exists()
 
 
+# -- other JSON files a command reads: strict, before any work ---------------------------------------------
+
+NESTED_JSON = "[" * 100000 + "]" * 100000  # Python's parser recurses: a RecursionError, not a message
+
+
+@pytest.mark.parametrize(
+    ("text", "words"),
+    [(NESTED_JSON, "JSON nested too deeply"), ('{"betas": [NaN]}', "NaN is not a JSON number")],
+    ids=["nested", "nan"],
+)
+@pytest.mark.parametrize("option", ["fit --body", "make-scan --pose"])
+def test_a_bad_json_file_is_refused(option, text, words, tmp_path, capsys):
+    command, flag = option.split()
+    path = _write(tmp_path / "given.json", text)
+    out = tmp_path / "out"
+    scan = [str(DEMO_SCAN), "--garment"] if command == "fit" else []
+    _refused([command, *scan, "skirt", flag, str(path), "--out", str(out)], capsys, words)
+    assert not out.exists()
+
+
 # -- configs: refused before the scan is read ------------------------------------------------------------
 
 

@@ -89,7 +89,7 @@ def test_body_parameters_are_read_from_a_file_or_a_folder(tmp_path):
     with pytest.raises(InputError, match="no body.json"):
         read_body_params(tmp_path / "nowhere")
     (tmp_path / "bad.json").write_text("{not json")
-    with pytest.raises(InputError, match="not a JSON file"):
+    with pytest.raises(InputError, match="not valid JSON"):
         read_body_params(tmp_path / "bad.json")
     (tmp_path / "other.json").write_text(json.dumps({"phenotypes": [[0.5] * 6]}))
     with pytest.raises(InputError, match="missing pose_bones, pose_axis_angle"):

@@ -11,13 +11,13 @@ from __future__ import annotations
 import csv
 import hashlib
 import io
-import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from torch_diffavatar.atomic_file import atomic_write_text
-from torch_diffavatar.errors import InputError
+from torch_diffavatar.errors import InputError, parse_json, read_json_file
 from torch_diffavatar.fit_scan import INCOMPLETE
+from torch_diffavatar.json_io import dumps_json
 
 MANIFEST_KEYS = ("scan", "garment", "config", "units", "up", "body")
 REQUIRED_KEYS = ("scan", "garment")
@@ -61,10 +61,7 @@ def _rows(path: Path) -> list[tuple[int, dict]]:
         for k, line in enumerate(text.splitlines(), 1):
             if not line.strip():
                 continue
-            try:
-                row = json.loads(line)
-            except json.JSONDecodeError as exc:
-                raise InputError(f"manifest {path}, line {k}: not JSON ({exc})") from exc
+            row = parse_json(line, f"manifest {path}, line {k}")
             if not isinstance(row, dict):
                 raise InputError(f"manifest {path}, line {k}: not a JSON object")
             rows.append((k, row))
@@ -189,7 +186,7 @@ def batch_settings(job: BatchJob, iters: int | None, spacing: float | None) -> d
 
 def record_settings(folder: Path, settings: dict) -> None:
     """Write ``settings`` (`batch_settings`) into the finished ``folder``'s `BATCH_RECORD`."""
-    atomic_write_text(folder / BATCH_RECORD, json.dumps(settings, indent=1) + "\n")
+    atomic_write_text(folder / BATCH_RECORD, dumps_json(settings, indent=1) + "\n")
 
 
 def changed_settings(folder: Path, settings: dict) -> list[str]:
@@ -200,8 +197,8 @@ def changed_settings(folder: Path, settings: dict) -> list[str]:
     if not path.is_file():
         return []
     try:
-        old = json.loads(path.read_text())
-    except json.JSONDecodeError:
+        old = read_json_file(path, f"{path}: missing")
+    except InputError:
         return ["batch.json unreadable"]
 
     def flat(d: dict) -> dict:
@@ -236,7 +233,7 @@ def result_row(job: BatchJob, run: str, seconds: float, report: dict | None, err
 def write_summary(out: Path, rows: list[dict]) -> None:
     """``out/summary.json`` (a list of the rows) and ``out/summary.csv`` (warnings joined by `` | ``), each
     written whole or not at all."""
-    atomic_write_text(out / SUMMARY_JSON, json.dumps(rows, indent=1) + "\n")
+    atomic_write_text(out / SUMMARY_JSON, dumps_json(rows, indent=1) + "\n")
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=SUMMARY_FIELDS, lineterminator="\n")
     writer.writeheader()

@@ -27,13 +27,31 @@ class SimulationError(RuntimeError):
     """The simulation blew up (NaN, runaway speed or stretch) and returned nothing usable."""
 
 
-def read_json_file(path: str | Path, missing: str):
-    """The parsed JSON of the file ``path``; `InputError` with the message ``missing`` when there is no such
-    file, and one naming the file when it is not valid JSON."""
+def _refuse_constant(name: str):
+    raise ValueError(f"{name} is not a JSON number")
+
+
+def parse_json(text: str, where: str):
+    """The parsed JSON ``text`` of a user's file, read strictly: `InputError` (naming ``where``) when it is
+    not JSON, is nested too deeply (Python's parser recurses: 100,000 ``[`` end in a RecursionError), or
+    holds ``NaN`` / ``Infinity``, which no JSON parser but Python's takes for numbers."""
+    try:
+        return json.loads(text, parse_constant=_refuse_constant)
+    except RecursionError as exc:
+        raise InputError(f"{where}: JSON nested too deeply to read") from exc
+    except ValueError as exc:  # JSONDecodeError is one, and so is a refused constant
+        raise InputError(f"{where}: not valid JSON ({exc})") from exc
+
+
+def read_json_file(path: str | Path, missing: str, where: str | None = None):
+    """The parsed JSON of the file ``path`` (`parse_json`, strict); `InputError` with the message ``missing``
+    when there is no such file, and one naming ``where`` (default: the file) when it is not valid JSON."""
     path = Path(path)
     if not path.is_file():
         raise InputError(missing)
+    where = str(path) if where is None else where
     try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{path}: not valid JSON ({exc})") from exc
+        text = path.read_text()
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{where}: not a text JSON file ({exc})") from exc
+    return parse_json(text, where)

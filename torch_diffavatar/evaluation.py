@@ -22,13 +22,12 @@ and back (the command writes it as ``ASSETS_DIR/eval_drapes.png``).
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import torch
 
 from torch_diffavatar.atomic_file import atomic_path
-from torch_diffavatar.errors import InputError
+from torch_diffavatar.errors import InputError, read_json_file
 
 
 def compare_with_truth(assets_dir, truth_pattern, truth_bend_stiffness: float | None = None) -> dict:
@@ -68,7 +67,7 @@ def compare_with_truth(assets_dir, truth_pattern, truth_bend_stiffness: float | 
         material_path = folder / "material.json"
         if not material_path.is_file():
             raise InputError(f"{material_path} is missing: is {folder} the output folder of a fit?")
-        material = material_from_dict(json.loads(material_path.read_text()))
+        material = material_from_dict(read_json_file(material_path, f"{material_path}: missing"))
         out["bending_stiffness_ratio"] = float(material.bend_stiffness) / float(truth_bend_stiffness)
     return out
 
@@ -185,12 +184,12 @@ def evaluate_assets(assets_dir, gt_dir) -> dict:
     for path in (*needed, truth / "material.json", truth / "draped.obj", truth / "body.obj"):
         if not path.is_file():
             raise InputError(f"{path} is missing (ASSETS_DIR: a fit's output; --gt: a make-scan output)")
-    true_material = material_from_dict(json.loads((truth / "material.json").read_text()))
+    true_material = material_from_dict(read_json_file(truth / "material.json", f"{truth}: no material.json"))
     out: dict = {"units": "m"}
     draped = read_obj(folder / "draped.obj")
     # a simulated depth capture's file is in its own units and axes (truth.json "capture"; captured_scans)
     capture = (
-        json.loads((truth / "truth.json").read_text()).get("capture", {})
+        read_json_file(truth / "truth.json", "").get("capture", {})
         if (truth / "truth.json").is_file()
         else {}
     )
@@ -229,7 +228,7 @@ def evaluate_assets(assets_dir, gt_dir) -> dict:
         out["rest_quality"] = {"min": float(q_rest.min()), "mean": float(q_rest.mean())}
     report = folder / "report.json"
     if report.is_file():
-        out["inverted_rest_triangles"] = json.loads(report.read_text()).get("inverted_rest_triangles")
+        out["inverted_rest_triangles"] = read_json_file(report, "").get("inverted_rest_triangles")
     return out
 
 

@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import contextlib
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
 from torch_diffavatar.commands.out_paths import check_out_folder
-from torch_diffavatar.errors import InputError, ScanError
+from torch_diffavatar.errors import InputError, ScanError, read_json_file
 from torch_diffavatar.json_io import dumps_json, write_json
 from torch_diffavatar.mesh_io import write_obj
 from torch_diffavatar.scan import UNITS, UP_AXES
@@ -176,7 +175,7 @@ def segment_command(args) -> dict:
         if params.is_file():
             body = BodyModel(anny_model=anny_model)
             try:
-                body.load_parameters_dict(json.loads(params.read_text()))
+                body.load_parameters_dict(read_json_file(params, f"{params}: missing"))
             except (KeyError, ValueError, TypeError, RuntimeError) as exc:  # the vertices suffice
                 print(f"diffavatar segment: {params} not read ({exc}); no waist height", file=sys.stderr)
                 body = None

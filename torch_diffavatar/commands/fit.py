@@ -14,14 +14,13 @@ second run reuses it and continues from ``DIR/checkpoint.pt``.
 from __future__ import annotations
 
 import contextlib
-import json
 import sys
 from dataclasses import replace
 from pathlib import Path
 
 from torch_diffavatar.commands.body import add_frame_args
 from torch_diffavatar.commands.out_paths import check_out_folder
-from torch_diffavatar.errors import InputError
+from torch_diffavatar.errors import InputError, read_json_file
 from torch_diffavatar.fit_scan import fit_scan
 from torch_diffavatar.fit_setup import SEGMENT_TYPES, TYPE_CONFIGS, infer_garment_type
 from torch_diffavatar.fit_workers import usable_cores
@@ -183,10 +182,7 @@ def read_body_params(path) -> dict:
         path = path / BODY_JSON
     if not path.is_file():
         raise InputError(f"--body {path}: no body.json there (run `diffavatar fit-body` first)")
-    try:
-        params = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"--body {path}: not a JSON file ({exc})") from exc
+    params = read_json_file(path, f"--body {path}: no body.json there", where=f"--body {path}")
     missing = [k for k in BODY_PARAM_KEYS if not isinstance(params, dict) or k not in params]
     if missing:
         raise InputError(f"--body {path}: not Anny body parameters (missing {', '.join(missing)})")
