@@ -125,7 +125,21 @@ def test_a_scan_file_too_large_is_refused_before_reading(tmp_path, capsys, monke
     path = tmp_path / "scan.ply"
     save_ply(path, person, binary=True)
     monkeypatch.setattr(scan, "MAX_SCAN_BYTES", 1000)
-    _refused(["fit-body", str(path), "--out", str(tmp_path / "b")], capsys, "GB read here; subsample")
+    _refused(["fit-body", str(path), "--out", str(tmp_path / "b")], capsys, "GB read whole here")
+
+
+def test_a_ply_promising_more_points_than_it_holds_is_refused(tmp_path, capsys, person):
+    """A header that promises 4 billion points: read as it streams, the file ends; nothing is allocated."""
+    path = tmp_path / "scan.ply"
+    save_ply(path, person[:1000], binary=True)
+    path.write_bytes(path.read_bytes().replace(b"element vertex 1000", b"element vertex 4000000000"))
+    _refused(["fit-body", str(path), "--out", str(tmp_path / "b")], capsys, "the file ends before them")
+
+
+def test_max_points_below_a_person_is_refused(tmp_path, capsys):
+    argv = ["fit-body", str(DEMO_SCAN), "--out", str(tmp_path / "b"), "--max-points", "10"]
+    _refused(argv, capsys, "--max-points must be at least 100, got 10")
+    assert not (tmp_path / "b").exists()
 
 
 def test_far_coordinates_in_float64_are_moved_to_the_origin_and_said(tmp_path, person):

@@ -8,6 +8,7 @@ down or upside down.
 
 from __future__ import annotations
 
+import itertools
 import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -29,10 +30,18 @@ UP_AXES = {
 }
 LABEL_PROPERTIES = ("label", "labels", "garment", "segment", "segmentation", "class")
 SCAN_SUFFIXES = (".ply", ".obj", ".glb", ".gltf", ".off", ".stl", ".xyz")
-# The largest scan file read [bytes]: 100M points of a binary PLY with colours (15 B each) is 1.5 GB, and
-# reading one holds about 4 times its size in memory; the intake keeps 2M points anyway
-# (`scan_intake.MAX_POINTS`)
-MAX_SCAN_BYTES = 4 * 1024**3
+# The largest scan file read whole [bytes]: reading one (trimesh) holds about 4 times its size in memory.
+# A PLY whose vertices come first is not read whole when it has more points than asked for: its vertices
+# stream through in blocks of `READ_BLOCK` rows, and only a random subset stays (`load_scan`'s
+# ``max_points``; a 50M-point scan read whole asked for 6.3 GiB).
+MAX_SCAN_BYTES = 1024**3
+READ_BLOCK = 1_000_000
+_PLY_ORDERS = {"ascii": "ascii", "binary_little_endian": "<", "binary_big_endian": ">"}
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+    "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}  # fmt: skip
 
 
 class ScanWarning(UserWarning):
@@ -52,6 +61,8 @@ class Scan:
         normals: (N, 3) float64 per-point unit normals (a PLY's ``nx ny nz``, e.g. towards the sensor of a
             depth capture), or None.
         warnings: messages from `check_scan_frame` (also issued as `ScanWarning`).
+        file_point_count: the file's point count when only a random subset of it was read (`load_scan`'s
+            ``max_points``), else None.
     """
 
     points: np.ndarray
@@ -61,6 +72,7 @@ class Scan:
     source: str = ""
     warnings: list[str] = field(default_factory=list)
     normals: np.ndarray | None = None
+    file_point_count: int | None = None
 
     @property
     def point_count(self) -> int:
@@ -87,12 +99,10 @@ def _read_geometry(path: Path):
     import trimesh
 
     size = path.stat().st_size
-    if size == 0:
-        raise ScanError(f"{path}: the file is empty")
     if size > MAX_SCAN_BYTES:
         raise ScanError(
-            f"{path}: {size / 1e9:.3g} GB, more than the {MAX_SCAN_BYTES / 1e9:.3g} GB read here; subsample "
-            "the scan first (a fit uses at most 2,000,000 points)"
+            f"{path}: {size / 1e9:.3g} GB, more than the {MAX_SCAN_BYTES / 1e9:.3g} GB read whole here; "
+            "save it as a PLY (read in part, --max-points N) or subsample it first"
         )
     try:
         geom = trimesh.load(str(path), process=False)
@@ -119,10 +129,15 @@ def _colors_of(geom, count: int) -> np.ndarray | None:
     return colors[:, :3].astype(np.uint8)
 
 
-def _labels_of(geom, count: int, label_property: str | None, path: Path) -> np.ndarray | None:
-    raw = (
+def _vertex_table(geom):
+    """A PLY's per-vertex properties as trimesh read them (a structured array or a dict), or None."""
+    return (
         geom.metadata.get("_ply_raw", {}).get("vertex", {}).get("data") if hasattr(geom, "metadata") else None
     )
+
+
+def _labels_of(raw, count: int, label_property: str | None, path: Path) -> np.ndarray | None:
+    """(count,) int64 labels from the vertex table ``raw`` (`_vertex_table`), or None."""
     if raw is None:
         if label_property is not None:
             raise ScanError(f"{path}: no per-vertex property {label_property!r} (only PLY files carry them)")
@@ -140,11 +155,8 @@ def _labels_of(geom, count: int, label_property: str | None, path: Path) -> np.n
     return None
 
 
-def _normals_of(geom, count: int) -> np.ndarray | None:
-    """(count, 3) float64 per-vertex ``nx ny nz`` of a PLY, or None."""
-    raw = (
-        geom.metadata.get("_ply_raw", {}).get("vertex", {}).get("data") if hasattr(geom, "metadata") else None
-    )
+def _normals_of(raw, count: int) -> np.ndarray | None:
+    """(count, 3) float64 per-vertex ``nx ny nz`` of a PLY's vertex table ``raw``, or None."""
     names = (
         () if raw is None else (list(raw.keys()) if isinstance(raw, dict) else list(raw.dtype.names or ()))
     )
@@ -169,6 +181,119 @@ def read_labels(path: str | Path, count: int) -> np.ndarray:
     return values.astype(np.int64)
 
 
+@dataclass(frozen=True)
+class _PlyVertices:
+    """Where a PLY's vertex rows lie: ``count`` rows of ``fields`` ((name, numpy type code) pairs) from byte
+    ``start``, as text (``order`` "ascii") or binary (``order`` "<" or ">")."""
+
+    order: str
+    count: int
+    fields: tuple[tuple[str, str], ...]
+    start: int
+
+    @property
+    def dtype(self) -> np.dtype:
+        order = "<" if self.order == "ascii" else self.order
+        return np.dtype([(name, order + t) for name, t in self.fields])
+
+
+def _ply_vertices(path: Path) -> _PlyVertices | None:
+    """The vertex rows of a PLY whose first element is its vertices, each a fixed set of scalar properties
+    (what `_sample_ply` streams); None for any other file (read whole, `_read_geometry`)."""
+    elements, order = [], None
+    with open(path, "rb") as f:
+        if f.readline().strip() != b"ply":
+            return None
+        for _ in range(10_000):  # a header is a few lines; a file that never ends it is no PLY we stream
+            words = f.readline().decode("ascii", "replace").split()
+            try:
+                if words[:1] == ["format"]:
+                    order = _PLY_ORDERS[words[1]]
+                elif words[:1] == ["element"]:
+                    elements.append((words[1], int(words[2]), []))
+                elif words[:1] == ["property"] and elements:
+                    elements[-1][2].append(tuple(words[1:]))
+                elif words[:1] == ["end_header"]:
+                    break
+            except (IndexError, KeyError, ValueError):
+                return None
+        else:
+            return None
+        start = f.tell()
+    if order is None or not elements or elements[0][0] != "vertex":
+        return None
+    _, count, props = elements[0]
+    if any(len(p) != 2 or p[0] not in _PLY_TYPES for p in props):  # a list property: rows vary in size
+        return None
+    return _PlyVertices(order, count, tuple((name, _PLY_TYPES[t]) for t, name in props), start)
+
+
+def _ply_rows(f, ply: _PlyVertices, count: int, keep: np.ndarray, path: Path) -> np.ndarray:
+    """The rows where the (count,) bool ``keep`` is true among the next ``count`` vertex rows of the PLY
+    open as ``f``: a structured array of ``ply.dtype``."""
+    dtype = ply.dtype
+    if ply.order != "ascii":
+        data = f.read(count * dtype.itemsize)
+        if len(data) < count * dtype.itemsize:
+            raise ScanError(f"{path}: the header promises {ply.count:,} points; the file ends before them")
+        return np.frombuffer(data, dtype)[keep]
+    lines = list(itertools.islice(f, count))
+    if len(lines) < count:
+        raise ScanError(f"{path}: the header promises {ply.count:,} points; the file ends before them")
+    rows = np.empty(int(keep.sum()), dtype)
+    try:  # only the rows kept are parsed
+        table = np.loadtxt([lines[k].decode("ascii") for k in np.flatnonzero(keep)], ndmin=2)
+        for column, name in enumerate(dtype.names):
+            rows[name] = table[:, column]
+    except (ValueError, IndexError, UnicodeDecodeError) as exc:
+        raise ScanError(f"{path}: cannot read its vertex rows ({exc})") from exc
+    return rows
+
+
+def _sample_ply(path: Path, ply: _PlyVertices, max_points: int) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """A seeded random ``max_points`` of the vertex rows ``ply`` (`_ply_vertices`) of the file ``path``,
+    read in one pass in blocks of `READ_BLOCK` rows: (name -> (max_points,) column, (max_points,) int64
+    row numbers), in file order."""
+    rng = np.random.default_rng(0)
+    # each row kept with a probability a little above the share asked (6 sigma), then the surplus dropped
+    share = min(1.0, (max_points + 6 * max_points**0.5 + 10) / ply.count)
+    rows, index = [], []
+    with open(path, "rb") as f:
+        f.seek(ply.start)
+        for first in range(0, ply.count, READ_BLOCK):
+            count = min(READ_BLOCK, ply.count - first)
+            keep = rng.random(count) < share
+            rows.append(_ply_rows(f, ply, count, keep, path))
+            index.append(first + np.flatnonzero(keep))
+    rows, index = np.concatenate(rows), np.concatenate(index)
+    if len(rows) > max_points:
+        chosen = np.sort(rng.choice(len(rows), max_points, replace=False))
+        rows, index = rows[chosen], index[chosen]
+    return {name: rows[name] for name in rows.dtype.names}, index
+
+
+def _read_points(path: Path, max_points: int | None):
+    """The file's points and what comes with them: (points (N, 3) float64 in the file's frame, faces or
+    None, colours (N, 3) uint8 or None, the PLY vertex table or None, and for a sample: (its row numbers,
+    the file's point count), else None).
+    A PLY of more than ``max_points`` points is sampled as it streams (`_sample_ply`), any other file read
+    whole (`_read_geometry`)."""
+    ply = None if max_points is None else _ply_vertices(path)
+    if ply is not None and ply.count > max_points:
+        columns, index = _sample_ply(path, ply, max_points)
+        if not {"x", "y", "z"} <= set(columns):
+            raise ScanError(f"{path}: its vertices have no x, y, z")
+        points = np.stack([columns[a] for a in "xyz"], 1).astype(np.float64)
+        rgb = [columns.get(c) for c in ("red", "green", "blue")]
+        colors = None if any(c is None for c in rgb) else np.stack(rgb, 1).astype(np.uint8)
+        return points, None, colors, columns, (index, ply.count)
+    geom = _read_geometry(path)
+    points = np.asarray(getattr(geom, "vertices", np.zeros((0, 3))), dtype=np.float64)
+    faces = np.asarray(geom.faces, dtype=np.int64) if hasattr(geom, "faces") else None
+    colors = _colors_of(geom, len(points)) if points.ndim == 2 else None
+    return points, None if faces is None or len(faces) == 0 else faces, colors, _vertex_table(geom), None
+
+
 def load_scan(
     path: str | Path,
     *,
@@ -178,6 +303,7 @@ def load_scan(
     label_property: str | None = None,
     require_faces: bool = False,
     check: bool = True,
+    max_points: int | None = None,
 ) -> Scan:
     """Load a scan mesh or point cloud into the world frame.
 
@@ -190,6 +316,8 @@ def load_scan(
             ``LABEL_PROPERTIES`` present is used, if any.
         require_faces: raise if the file has no triangles (a point cloud).
         check: run `check_scan_frame` and issue `ScanWarning`s.
+        max_points: read a seeded random subset of this many points from a PLY that has more (streamed:
+            memory for the subset only; no faces), with ``file_point_count`` set; None: read all.
 
     Returns:
         a `Scan`.
@@ -205,30 +333,30 @@ def load_scan(
     path = Path(path)
     if not path.exists():
         raise ScanError(f"{path}: file not found")
-    geom = _read_geometry(path)
-    points = np.asarray(getattr(geom, "vertices", np.zeros((0, 3))), dtype=np.float64)
+    if path.stat().st_size == 0:
+        raise ScanError(f"{path}: the file is empty")
+    points, faces, colors, raw, sampled = _read_points(path, max_points)
     if points.ndim != 2 or points.shape[0] == 0:
         raise ScanError(f"{path}: the scan has no points")
     if not np.isfinite(points).all():
         bad = int((~np.isfinite(points)).any(1).sum())
         raise ScanError(f"{path}: {bad} of {len(points)} points have NaN or infinite coordinates")
-    faces = np.asarray(geom.faces, dtype=np.int64) if hasattr(geom, "faces") else None
-    if faces is not None and len(faces) == 0:
-        faces = None
     if require_faces and faces is None:
         raise ScanError(f"{path}: the file has no faces (a point cloud), but a triangle mesh is needed here")
     scan = Scan(
         points=points @ UP_AXES[up].T * UNITS[units],
         faces=faces,
-        colors=_colors_of(geom, len(points)),
-        labels=_labels_of(geom, len(points), label_property, path),
+        colors=colors,
+        labels=_labels_of(raw, len(points), label_property, path),
         source=str(path),
+        file_point_count=None if sampled is None else sampled[1],
     )
-    normals = _normals_of(geom, len(points))
+    normals = _normals_of(raw, len(points))
     if normals is not None:
         scan.normals = normals @ UP_AXES[up].T
     if labels is not None:
-        scan.labels = read_labels(labels, len(points))
+        scan.labels = read_labels(labels, scan.file_point_count or len(points))
+        scan.labels = scan.labels if sampled is None else scan.labels[sampled[0]]
     if check:
         scan.warnings = check_scan_frame(scan.points)
         for message in scan.warnings:

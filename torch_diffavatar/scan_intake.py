@@ -460,7 +460,8 @@ def intake_scan(
         cluster_radius: the `largest_cluster` radius [m].
         max_points: a scan with more points is thinned to a seeded random subset this large first (said in
             the report): the clean-up's neighbour searches grow with it (a 50M-point scan asked for
-            6.3 GiB), and a fit uses a few thousand of them.
+            6.3 GiB), and a fit uses a few thousand of them. A PLY is thinned as it is read
+            (`scan.load_scan`), so that the whole file is never in memory.
         load_kw: passed to `scan.load_scan` (``labels``, ``label_property``).
 
     Returns:
@@ -474,16 +475,21 @@ def intake_scan(
         raise ScanError(f"unknown units {units!r}; use one of {sorted(UNITS)}")
     if up is not None and up not in UP_AXES:
         raise ScanError(f"unknown up axis {up!r}; use one of {sorted(UP_AXES)}")
-    scan = load_scan(path, units="m", up=up or "y", check=False, **load_kw)
+    if not MIN_POINTS <= max_points:
+        raise ScanError(f"--max-points must be at least {MIN_POINTS}, got {max_points}")
+    scan = load_scan(path, units="m", up=up or "y", check=False, max_points=max_points, **load_kw)
     report = IntakeReport(units=units or "m", up=up or "y")
     check_point_count(scan.points, path)
-    if scan.point_count > max_points:
+    file_count = scan.file_point_count or scan.point_count
+    if scan.point_count > max_points:  # a file read whole (not a PLY that streams)
         keep = np.zeros(scan.point_count, bool)
         keep[np.random.default_rng(0).choice(scan.point_count, max_points, replace=False)] = True
-        report.messages.append(
-            f"{scan.point_count:,} points: more than the {max_points:,} used; a random {max_points:,} kept"
-        )
         scan = scan.subset(keep)
+    if file_count > scan.point_count:
+        report.messages.append(
+            f"{file_count:,} points: more than the {max_points:,} used (--max-points N); a random "
+            f"{scan.point_count:,} kept"
+        )
     scan = _recentre(scan, report, path)
     if up is None:
         scan = _choose_up(scan, report)

@@ -124,3 +124,37 @@ def test_missing_faces_and_bad_options(tmp_path):
         side = tmp_path / "l.txt"
         side.write_text("1\n0\n")
         load_scan(path, labels=side, check=False)
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_a_big_ply_is_sampled_as_it_streams(tmp_path, monkeypatch, binary):
+    """More points than asked: a seeded random subset read block by block, never the whole file (trimesh
+    is not called), each point with its own colour and labels (the label here is the row number)."""
+    import trimesh
+
+    from torch_diffavatar import scan as scan_module
+
+    pts = _person(n=20000)
+    rows = np.arange(len(pts))
+    colors = np.stack([rows % 251, rows % 241, rows % 239], 1).astype(np.uint8)
+    path = tmp_path / "big.ply"
+    save_ply(path, pts, colors=colors, int_properties={"label": rows}, binary=binary)
+    (tmp_path / "rows.txt").write_text("\n".join(str(r) for r in rows))
+    monkeypatch.setattr(scan_module, "READ_BLOCK", 7000)  # three blocks
+    monkeypatch.setattr(trimesh, "load", lambda *a, **k: pytest.fail("read whole"))
+    scan = load_scan(path, max_points=3000, labels=tmp_path / "rows.txt", check=False)
+    assert scan.point_count == 3000 and scan.file_point_count == len(pts) and scan.faces is None
+    assert np.all(np.diff(scan.labels) > 0)  # distinct rows, in file order
+    np.testing.assert_allclose(scan.points, pts[scan.labels], atol=1e-6)
+    np.testing.assert_array_equal(scan.colors, colors[scan.labels])
+    again = load_scan(path, max_points=3000, check=False)
+    np.testing.assert_array_equal(again.points, scan.points)  # seeded: the same subset every time
+
+
+def test_a_ply_that_ends_before_its_points_is_refused(tmp_path):
+    path = tmp_path / "short.ply"
+    save_ply(path, _person(n=400), binary=True)
+    data = path.read_bytes().replace(b"element vertex 400", b"element vertex 4000000000")
+    path.write_bytes(data)
+    with pytest.raises(ScanError, match="promises 4,000,000,000 points; the file ends before them"):
+        load_scan(path, max_points=200)

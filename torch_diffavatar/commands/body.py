@@ -70,6 +70,13 @@ def _scan_args(parser) -> None:
     parser.add_argument("scan", help="scan mesh or point cloud (PLY, OBJ, GLB)")
     add_frame_args(parser)
     parser.add_argument("--no-clean", action="store_true", help="skip floor, clutter and outlier removal")
+    parser.add_argument(
+        "--max-points",
+        type=int,
+        default=None,
+        help="points of the scan used at most, a seeded random subset of a bigger scan (a PLY is thinned as "
+        "it is read; default 2,000,000)",
+    )
 
 
 def _load_clean_scan(args):
@@ -77,11 +84,17 @@ def _load_clean_scan(args):
     import warnings
 
     from torch_diffavatar.scan import ScanWarning
-    from torch_diffavatar.scan_intake import intake_scan
+    from torch_diffavatar.scan_intake import MAX_POINTS, intake_scan
 
+    kw = dict(
+        units=args.units,
+        up=args.up,
+        clean=not args.no_clean,
+        max_points=MAX_POINTS if args.max_points is None else args.max_points,
+    )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ScanWarning)
-        scan, report = intake_scan(args.scan, units=args.units, up=args.up, clean=not args.no_clean)
+        scan, report = intake_scan(args.scan, **kw)
     for message in report.messages:
         print(f"diffavatar {args.command}: {message}", file=sys.stderr)
     for message in scan.warnings:
