@@ -259,6 +259,27 @@ def test_an_output_under_a_file_is_refused(command, tmp_path, capsys):
     assert blocker.read_text() == "x"
 
 
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["mesh", "skirt", "--out", "OUT.obj"],
+        ["mesh", "skirt", "--svg", "OUT.svg"],
+        ["drape", "skirt", "--out", "OUT.obj"],
+        ["drape", "skirt", "--out", "d.obj", "--png", "OUT.png"],
+        ["make-scan", "skirt", "--out", "OUT"],
+        ["animate", "assets", "--out", "OUT"],
+        ["demo", "--out", "OUT"],
+    ],
+    ids=lambda argv: " ".join(argv[:1] + argv[-2:-1]),
+)
+def test_an_output_of_another_command_under_a_file_is_refused(argv, tmp_path, capsys):
+    """Refused at once, not after the drape: each file or folder option whose folder is under a file."""
+    blocker = _write(tmp_path / "file", "x")
+    argv = [str(blocker / "sub" / a) if a.startswith("OUT") else a for a in argv]
+    _refused(argv, capsys, "is a file, not a folder")
+    assert blocker.read_text() == "x"
+
+
 def test_an_unwritable_output_is_refused(read_only_folder, capsys):
     out = read_only_folder / "b"
     _refused(["fit-body", str(DEMO_SCAN), "--out", str(out)], capsys, "is not writable")

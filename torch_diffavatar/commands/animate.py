@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 
 from torch_diffavatar.animate import animate, template_assets
+from torch_diffavatar.commands.out_paths import check_out_folder
 from torch_diffavatar.errors import InputError
 from torch_diffavatar.sim.solver import XPBDConfig
 
@@ -50,6 +51,7 @@ def run_animate(args) -> dict:
     from torch_diffavatar.motion import load_motion
 
     torch.set_num_threads(1)
+    check_out_folder(args.out)
     assets = load_assets(args.assets)
     motion = load_motion(args.motion, duration=args.duration)
     summary = animate(

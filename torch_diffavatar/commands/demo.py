@@ -16,6 +16,8 @@ import os
 import time
 from pathlib import Path
 
+from torch_diffavatar.commands.out_paths import check_out_folder
+
 DATA_DIR = Path(__file__).resolve().parent.parent / "data"
 DEMO_SCAN = DATA_DIR / "demo_scan.ply"
 DEMO_TRUTH = DATA_DIR / "demo_truth.json"
@@ -43,6 +45,7 @@ def register(subparsers) -> None:
 
 
 def run_demo(args) -> dict:
+    check_out_folder(args.out)
     if args.no_fit:
         return _preview(args)
     import contextlib

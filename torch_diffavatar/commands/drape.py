@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torch_diffavatar.commands.out_paths import check_out_files
 from torch_diffavatar.errors import InputError
 
 
@@ -174,6 +175,7 @@ def run_drape(args) -> dict:
     from torch_diffavatar.sim.placement import body_signed_distance, place_garment
 
     _check_args(args)
+    check_out_files(args, "out", "png")
     pattern = resolve_pattern(args.pattern)
     body_verts, body_faces = load_body(args.body)
     garment = mesh_pattern(pattern, spacing=args.spacing)

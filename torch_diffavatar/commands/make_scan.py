@@ -6,6 +6,7 @@ from pathlib import Path
 
 import torch
 
+from torch_diffavatar.commands.out_paths import check_out_folder
 from torch_diffavatar.errors import InputError, read_json_file
 from torch_diffavatar.synthetic_scans import POSE_SEED_OFFSET, SIMULATORS, make_draped_scan, write_scan
 
@@ -167,6 +168,7 @@ def _parse_pose(text: str, seed: int) -> torch.Tensor | None:
 
 def _make_scan_command(args) -> dict:
     settings = _capture_settings(args)  # bad capture options fail before the drape
+    check_out_folder(args.out)
     scan = make_draped_scan(
         args.template,
         seed=args.seed,

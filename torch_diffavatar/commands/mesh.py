@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from torch_diffavatar.commands.out_paths import check_out_files
 from torch_diffavatar.errors import PatternError
 
 
@@ -31,6 +32,7 @@ def run_mesh(args) -> dict:
         raise PatternError(f"--spacing must be a positive length in metres, got {args.spacing}")
     if not 0 < args.min_angle <= 34:
         raise PatternError(f"--min-angle must be in (0, 34] degrees, got {args.min_angle}")
+    check_out_files(args, "out", "svg", "png")
     pattern = resolve_pattern(args.pattern)
     garment = mesh_pattern(pattern, spacing=args.spacing, min_angle=args.min_angle)
     report = mesh_report(pattern, garment)

@@ -22,3 +22,12 @@ def check_out_folder(path: str | os.PathLike, option: str = "--out") -> None:
         raise InputError(f"{option} {path}: {probe} is a file, not a folder; choose another {option}")
     if not os.access(probe, os.W_OK | os.X_OK):
         raise InputError(f"{option} {path}: {probe} is not writable; choose another {option}")
+
+
+def check_out_files(args, *options: str) -> None:
+    """`check_out_folder` for the folder of each file option of ``args`` that is given (``"out"``,
+    ``"png"``, …): a picture or mesh under a file, or in a read-only folder, refused before any work."""
+    for option in options:
+        value = getattr(args, option, None)
+        if value is not None:
+            check_out_folder(Path(value).resolve().parent, f"--{option}")
