@@ -334,6 +334,40 @@ def test_a_non_finite_result_is_one_line_and_no_file(tmp_path, capsys, monkeypat
     assert list(out.iterdir()) == []
 
 
+@pytest.mark.parametrize(
+    "error",
+    [
+        MemoryError(
+            "Unable to allocate 6.3 GiB for an array with shape (50000000, 17) and data type float64"
+        ),
+        RuntimeError("DefaultCPUAllocator: can't allocate memory: you tried to allocate 137438953472 bytes."),
+    ],
+    ids=["numpy", "torch"],
+)
+def test_running_out_of_memory_is_one_line(error, tmp_path, capsys, monkeypatch):
+    """numpy's MemoryError and torch's allocator RuntimeError: one line with the size, not a traceback."""
+    import torch_diffavatar.commands.fit as commands
+
+    def too_big(*args, **kwargs):
+        raise error
+
+    monkeypatch.setattr(commands, "fit_scan", too_big)
+    argv = ["fit", str(DEMO_SCAN), "--garment", "skirt", "--out", str(tmp_path / "fit")]
+    _refused(argv, capsys, "out of memory (", "GiB asked)", "coarser --spacing")
+
+
+def test_another_runtime_error_keeps_its_traceback(tmp_path, monkeypatch):
+    """Only a failed allocation is the input's fault; any other RuntimeError is a bug and says where."""
+    import torch_diffavatar.commands.fit as commands
+
+    def bug(*args, **kwargs):
+        raise RuntimeError("shape mismatch")
+
+    monkeypatch.setattr(commands, "fit_scan", bug)
+    with pytest.raises(RuntimeError, match="shape mismatch"):
+        cli.main(["fit", str(DEMO_SCAN), "--garment", "skirt", "--out", str(tmp_path / "fit")])
+
+
 def test_ctrl_c_is_one_line_and_says_how_to_continue(tmp_path, capsys, monkeypatch):
     """Ctrl-C during a fit: no traceback, one line that says how to go on, exit status 130 (SIGINT's)."""
     import torch_diffavatar.commands.fit as commands

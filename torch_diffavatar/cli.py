@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import errno
 import importlib
+import re
 import sys
 
 from torch_diffavatar.errors import InputError, NonFiniteError, SimulationError
@@ -95,6 +96,20 @@ def _error(command: str, message: str) -> int:
     return 2
 
 
+# what a failed allocation says: numpy and Python raise MemoryError, torch a RuntimeError with this
+_NO_MEMORY = "can't allocate memory"
+
+
+def _memory_error_line(exc: BaseException) -> str:
+    """One line for a failed allocation: how much was asked, when the error says, and what needs less."""
+    size = re.search(r"allocate (\d+) bytes|allocate ([\d.]+ [KMGT]i?B)", str(exc))
+    asked = "" if size is None else size[2] or f"{int(size[1]) / 2**30:.3g} GiB"
+    return (
+        f"out of memory{f' ({asked} asked)' if asked else ''}: the input is too big for this machine; a "
+        "smaller scan (fit-body, segment: --max-points) or pattern, or a coarser --spacing, needs less"
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(_join_signed_values(sys.argv[1:] if argv is None else list(argv)))
@@ -104,6 +119,12 @@ def main(argv: list[str] | None = None) -> int:
         return _error(args.command, str(exc))
     except OSError as exc:  # a path or the disk (not found, a file where a folder goes, full, read-only)
         return _error(args.command, _os_error_line(exc))
+    except MemoryError as exc:
+        return _error(args.command, _memory_error_line(exc))
+    except RuntimeError as exc:
+        if _NO_MEMORY not in str(exc):  # any other RuntimeError is a bug: its traceback is wanted
+            raise
+        return _error(args.command, _memory_error_line(exc))
     except KeyboardInterrupt:  # Ctrl-C: one line, and the shell's status for SIGINT (128 + 2)
         hint = f"; {RESUME_HINTS[args.command]}" if args.command in RESUME_HINTS else ""
         print(f"diffavatar {args.command}: interrupted{hint}", file=sys.stderr)
