@@ -392,3 +392,13 @@ def test_a_doubtful_shape_warns_and_a_person_passes(person):
     column = np.random.default_rng(0).uniform([-0.6, 0.0, -0.45], [0.6, 1.7, 0.45], (5000, 3))
     (message,) = check_person_shape(column, "scan.ply")
     assert "unusually deep for a person" in message
+
+
+def test_an_upside_down_scan_is_a_warning_of_the_intake(tmp_path, person):
+    """Upside down with no floor to tell (weak evidence): the intake goes on, and its warnings (a fit
+    copies them into report.json) say so and name the fix."""
+    path = tmp_path / "scan.ply"
+    save_ply(path, person[::4] * np.array([1.0, -1.0, -1.0]), binary=True)
+    with pytest.warns(scan.ScanWarning):
+        _, report = intake_scan(path)
+    assert report.up == "y" and any("upside down" in w and "--up -y" in w for w in report.warnings)
