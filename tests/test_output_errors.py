@@ -25,7 +25,7 @@ def test_an_output_under_a_file(tmp_path, capsys):
     code, err = _run(["mesh", "skirt", "--spacing", "0.05", "--out", str(blocker / "g.obj")], capsys)
     assert code == 2
     assert err.count("\n") == 1 and "Traceback" not in err
-    assert "a part of this path is a file, not a folder" in err
+    assert f"{blocker} is a file, not a folder" in err
 
 
 def test_an_output_in_a_read_only_folder(read_only_folder, capsys):

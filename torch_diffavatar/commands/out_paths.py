@@ -29,5 +29,11 @@ def check_out_files(args, *options: str) -> None:
     ``"png"``, …): a picture or mesh under a file, or in a read-only folder, refused before any work."""
     for option in options:
         value = getattr(args, option, None)
-        if value is not None:
-            check_out_folder(Path(value).resolve().parent, f"--{option}")
+        if value is None:
+            continue
+        folder = Path(value).resolve().parent
+        if folder.exists() and not folder.is_dir():
+            raise InputError(
+                f"--{option} {value}: {folder} is a file, not a folder; choose another --{option}"
+            )
+        check_out_folder(folder, f"--{option}")
