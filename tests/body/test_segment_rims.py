@@ -8,7 +8,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from torch_diffavatar.body.segment import _distal_rim, _edge_points, _lower_rim, _neck_opening, _neck_rim
+from torch_diffavatar.body.segment import (
+    _distal_rim,
+    _edge_points,
+    _lower_rim,
+    _neck_opening,
+    _neck_rim,
+    _sector_envelope,
+)
 
 RADIUS, Y0, Y1 = 0.25, 0.5, 1.0  # the skirt: an open cylinder about the y axis [m]
 BAND = 0.015  # `_lower_rim`'s default band [m]
@@ -71,6 +78,26 @@ def test_lower_rim_skips_a_hole_in_the_hem():
     away = np.abs(np.angle(np.exp(1j * (centres - 1.0)))) > np.deg2rad(20.0 + 10.0)
     assert away.sum() >= 28
     assert _sectors_hit(a)[away].all()
+
+
+def test_lower_rim_keeps_a_hem_raised_at_the_front():
+    """A hem lifted gradually, 8 cm at its middle over 90° (2.2 cm from one 10° sector to the next, as a
+    belly lifts a T-shirt's front), is the rim all the way round, not a hole."""
+    g = _skirt(seed=2)
+    angle = _angle(g)
+    lift = 0.08 * np.clip(1.0 - np.abs(angle - 1.0) / np.deg2rad(45.0), 0.0, None)
+    g = g[g[:, 1] >= Y0 + lift]
+    angle = _angle(g)
+    sel = np.flatnonzero(g[:, 1] < 0.7)
+    rim = _lower_rim(g, sel)
+    assert _sectors_hit(angle[rim]).all()
+    raised = np.abs(angle - 1.0) < np.deg2rad(10.0)
+    hem = raised & (g[:, 1] < Y0 + 0.07)  # near the raised hem's top (8 cm) …
+    assert hem.any() and np.isin(np.flatnonzero(hem), rim).all()  # … whose lowest points are in the rim
+    # the rule before (a sector 5 cm above the median sector's is a hole) left the raised front out
+    cand = g[:, 1] < 0.7
+    before = _sector_envelope(-g[cand, 1], angle[cand], SECTORS, BAND, 0.05)
+    assert not _sectors_hit(angle[cand][before])[22:26].all()
 
 
 @pytest.mark.parametrize("side", [".L", ".R"])

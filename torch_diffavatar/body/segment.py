@@ -525,7 +525,8 @@ def _lower_rim(
     side: str = "",
     sectors: int = 36,
     band: float = 0.015,
-    max_rise: float = 0.05,
+    max_rise: float = 0.01,
+    max_slope: float = 0.8,
     link: float | None = None,
 ) -> np.ndarray:
     """The garment points (indices into ``garment_points`` (G, 3)) on the lower rim of a bottom opening.
@@ -534,8 +535,13 @@ def _lower_rim(
     whole lower part of the skirt. The rim is the garment's lower envelope instead: around the vertical
     axis through the candidates (the garment points no higher than ``sel``, on the ``side`` ".L" (+x) or
     ".R" (−x) of the garment's centre for a trouser leg), in each of ``sectors`` angular sectors, the
-    points within ``band`` [m] of the sector's lowest point. A sector whose lowest point lies more than
-    ``max_rise`` [m] above the median sector's is a hole in the scan, not the rim, and is skipped.
+    points within ``band`` [m] of the sector's lowest point. A sector whose lowest point lies higher than
+    any other sector's allows, ``max_rise`` [m] plus ``max_slope`` times the length between them along
+    the rim, is a hole in the scan, not the rim, and is skipped (`_sector_envelope`): a hem rises gradually
+    where a belly lifts it (up to 10 cm in all, 2.7 cm from one 10° sector to the next on a polo; 0.9 of
+    the length along the rim), a hole's upper edge at once (4.2 and 5.3 cm on a long sleeve, 1.5 of it).
+    A rule that skipped every sector more than 5 cm above the median sector's took the raised front of
+    T-shirts' hems for holes and traced their hems up to 14 cm short (docs/BENCHMARKS.md, "Raised hems").
     With ``link`` [m], only the candidates joined to ``sel`` by steps shorter than that through other
     candidates count: a long sleeve hanging beside the hips reaches below the hem, apart from it.
     """
@@ -558,21 +564,38 @@ def _lower_rim(
     p = g[idx]
     axis = p[:, [0, 2]].mean(0)
     angle = np.arctan2(p[:, 2] - axis[1], p[:, 0] - axis[0])
-    keep = _sector_envelope(-p[:, 1], angle, sectors, band, max_rise)  # the lowest: farthest down
+    arc = 2 * np.pi * float(np.median(np.hypot(p[:, 0] - axis[0], p[:, 2] - axis[1]))) / sectors
+    # the lowest: farthest down
+    keep = _sector_envelope(-p[:, 1], angle, sectors, band, max_rise, sector_arc=arc, max_slope=max_slope)
     return idx[keep] if keep.any() else sel
 
 
 def _sector_envelope(
-    t: np.ndarray, angle: np.ndarray, sectors: int, band: float, max_drop: float
+    t: np.ndarray,
+    angle: np.ndarray,
+    sectors: int,
+    band: float,
+    max_drop: float,
+    sector_arc: float | None = None,
+    max_slope: float = 0.0,
 ) -> np.ndarray:
     """(n,) bool: the points within ``band`` of the largest ``t`` (n,) [m] of their angular sector (``angle``
-    (n,) [rad] in [−π, π], ``sectors`` equal sectors), except in sectors whose largest ``t`` falls more than
-    ``max_drop`` [m] short of the median sector's (a hole in the scan, not the rim)."""
+    (n,) [rad] in [−π, π], ``sectors`` equal sectors), except in the sectors that are holes in the scan,
+    not the rim: whose largest ``t`` falls more than ``max_drop`` [m] short of the median sector's, or,
+    with ``sector_arc`` (a sector's length along the rim [m]), short of what any other sector's allows:
+    its largest ``t`` less ``max_drop`` and less ``max_slope`` times the length between them along the rim
+    (a rim may fall away gradually, a hole's edge falls at once)."""
     sector = np.minimum(((angle + np.pi) / (2 * np.pi) * sectors).astype(np.int64), sectors - 1)
     far = np.full(sectors, -np.inf)
     np.maximum.at(far, sector, t)
     seen = np.isfinite(far)
-    ok = seen & (far >= np.median(far[seen]) - max_drop)
+    if sector_arc is None:
+        ok = seen & (far >= np.median(far[seen]) - max_drop)
+    else:
+        steps = np.abs(np.arange(sectors)[:, None] - np.arange(sectors)[None, :])
+        between = np.minimum(steps, sectors - steps) * sector_arc
+        allowed = np.where(seen[None, :], far[None, :] - max_slope * between, -np.inf).max(1) - max_drop
+        ok = seen & (far >= allowed)
     return ok[sector] & (t >= far[sector] - band)
 
 
