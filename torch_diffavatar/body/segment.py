@@ -541,7 +541,8 @@ def _lower_rim(
     where a belly lifts it (up to 10 cm in all, 2.7 cm from one 10° sector to the next on a polo; 0.9 of
     the length along the rim), a hole's upper edge at once (4.2 and 5.3 cm on a long sleeve, 1.5 of it).
     A rule that skipped every sector more than 5 cm above the median sector's took the raised front of
-    T-shirts' hems for holes and traced their hems up to 14 cm short (docs/BENCHMARKS.md, "Raised hems").
+    T-shirts' hems for holes and traced their hems up to 14 cm short (docs/BENCHMARKS.md, "Raised hems,
+    noisy cuffs and a cut-off forearm").
     With ``link`` [m], only the candidates joined to ``sel`` by steps shorter than that through other
     candidates count: a long sleeve hanging beside the hips reaches below the hem, apart from it.
     """
