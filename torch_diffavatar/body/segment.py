@@ -539,7 +539,7 @@ def _lower_rim(
     any other sector's allows, ``max_rise`` [m] plus ``max_slope`` times the length between them along
     the rim, is a hole in the scan, not the rim, and is skipped (`_sector_envelope`): a hem rises gradually
     where a belly lifts it (up to 10 cm in all, 2.7 cm from one 10° sector to the next on a polo; 0.9 of
-    the length along the rim), a hole's upper edge at once (4.2 and 5.3 cm on a long sleeve, 1.5 of it).
+    the length along the rim), a hole's upper edge at once (4.2 and 5.3 cm on a long sleeve, 1.5-1.8 of it).
     A rule that skipped every sector more than 5 cm above the median sector's took the raised front of
     T-shirts' hems for holes and traced their hems up to 14 cm short (docs/BENCHMARKS.md, "Raised hems,
     noisy cuffs and a cut-off forearm").
