@@ -535,14 +535,15 @@ def _lower_rim(
     whole lower part of the skirt. The rim is the garment's lower envelope instead: around the vertical
     axis through the candidates (the garment points no higher than ``sel``, on the ``side`` ".L" (+x) or
     ".R" (−x) of the garment's centre for a trouser leg), in each of ``sectors`` angular sectors, the
-    points within ``band`` [m] of the sector's lowest point. A sector whose lowest point lies higher than
-    any other sector's allows, ``max_rise`` [m] plus ``max_slope`` times the length between them along
-    the rim, is a hole in the scan, not the rim, and is skipped (`_sector_envelope`): a hem rises gradually
-    where a belly lifts it (up to 10 cm in all, 2.7 cm from one 10° sector to the next on a polo; 0.9 of
-    the length along the rim), a hole's upper edge at once (4.2 and 5.3 cm on a long sleeve, 1.5-1.8 of it).
-    A rule that skipped every sector more than 5 cm above the median sector's took the raised front of
-    T-shirts' hems for holes and traced their hems up to 14 cm short (docs/BENCHMARKS.md, "Raised hems,
-    noisy cuffs and a cut-off forearm").
+    points within ``band`` [m] of the sector's lowest point. Holes in the scan are skipped: where the
+    lowest point rises by more than ``max_rise`` [m] plus ``max_slope`` times a sector's length along the
+    rim from one sector to the next, the sectors from there on are a hole while they stay that high
+    (`_cliff_holes`). A hem rises gradually where a belly lifts it (up to 10 cm in all, 2.7 cm from one
+    10° sector to the next on a polo: 0.9 of the length along the rim), a hole's edge at once (4.2-5.3 cm
+    on a long sleeve, 1.5-1.8 of it; 5 cm and more on the suite's skirts, whose holes are plateaus up to
+    five sectors wide). A rule that skipped every sector more than 5 cm above the median sector's took the
+    raised front of T-shirts' hems for holes and traced their hems up to 14 cm short (docs/BENCHMARKS.md,
+    "Raised hems, noisy cuffs and a cut-off forearm").
     With ``link`` [m], only the candidates joined to ``sel`` by steps shorter than that through other
     candidates count: a long sleeve hanging beside the hips reaches below the hem, apart from it.
     """
@@ -583,9 +584,9 @@ def _sector_envelope(
     """(n,) bool: the points within ``band`` of the largest ``t`` (n,) [m] of their angular sector (``angle``
     (n,) [rad] in [−π, π], ``sectors`` equal sectors), except in the sectors that are holes in the scan,
     not the rim: whose largest ``t`` falls more than ``max_drop`` [m] short of the median sector's, or,
-    with ``sector_arc`` (a sector's length along the rim [m]), short of what any other sector's allows:
-    its largest ``t`` less ``max_drop`` and less ``max_slope`` times the length between them along the rim
-    (a rim may fall away gradually, a hole's edge falls at once)."""
+    with ``sector_arc`` (a sector's length along the rim [m]), those behind a cliff (`_cliff_holes`) of
+    ``max_drop`` plus ``max_slope`` times ``sector_arc`` (a rim may fall away gradually, a hole's edge
+    falls at once)."""
     sector = np.minimum(((angle + np.pi) / (2 * np.pi) * sectors).astype(np.int64), sectors - 1)
     far = np.full(sectors, -np.inf)
     np.maximum.at(far, sector, t)
@@ -593,11 +594,27 @@ def _sector_envelope(
     if sector_arc is None:
         ok = seen & (far >= np.median(far[seen]) - max_drop)
     else:
-        steps = np.abs(np.arange(sectors)[:, None] - np.arange(sectors)[None, :])
-        between = np.minimum(steps, sectors - steps) * sector_arc
-        allowed = np.where(seen[None, :], far[None, :] - max_slope * between, -np.inf).max(1) - max_drop
-        ok = seen & (far >= allowed)
+        ok = seen & ~_cliff_holes(far, max_drop + max_slope * sector_arc)
     return ok[sector] & (t >= far[sector] - band)
+
+
+def _cliff_holes(far: np.ndarray, cliff: float) -> np.ndarray:
+    """(sectors,) bool: the sectors of a hole in a rim, from each sector's largest ``t`` ``far`` (sectors,)
+    [m] (−inf: no points there, skipped). A hole's edge is a cliff: where ``far`` falls by more than
+    ``cliff`` [m] from one seen sector to the next, the sectors from there on are the hole while they stay
+    that far short of the sector before the cliff (walking both ways round, so that a hole's two edges
+    find it). A rim that falls away gradually has no cliff and no hole."""
+    seen = np.flatnonzero(np.isfinite(far))
+    hole = np.zeros(len(far), dtype=bool)
+    n = len(seen)
+    for order in (seen, seen[::-1]):
+        for i in range(n):
+            level = far[order[i]]
+            j = 1
+            while j < n and far[order[(i + j) % n]] < level - cliff:
+                hole[order[(i + j) % n]] = True
+                j += 1
+    return hole
 
 
 def _distal_rim(
