@@ -104,22 +104,42 @@ def test_lower_rim_keeps_a_hem_raised_at_the_front():
     assert not _sectors_hit(angle[cand][before])[22:26].all()
 
 
+@pytest.mark.parametrize("yaw_deg", [0.0, 90.0, -135.0])
 @pytest.mark.parametrize("side", [".L", ".R"])
-def test_lower_rim_of_one_trouser_side(side):
+def test_lower_rim_of_one_trouser_side(side, yaw_deg):
+    """One side of the body's own left-right axis (``lateral``; +x when facing +Z): a captured person
+    turned 90° had each trouser leg's hem made of half of both legs."""
+    yaw = np.deg2rad(yaw_deg)
+    lateral = np.array([np.cos(yaw), 0.0, -np.sin(yaw)])  # +x turned by the yaw about +y
     g = _skirt(seed=2)
     sel = np.flatnonzero(g[:, 1] < 0.7)
-    rim = _lower_rim(g, sel, side=side)
+    rim = _lower_rim(g, sel, side=side, lateral=None if yaw_deg == 0.0 else lateral)
     p = g[rim]
-    centre_x = np.median(g[:, 0])
+    across = g @ lateral
+    centre = np.median(across)
     assert len(rim) > 50
     if side == ".L":
-        assert bool((p[:, 0] > centre_x).all())
+        assert bool((p @ lateral > centre).all())
     else:
-        assert bool((p[:, 0] < centre_x).all())
+        assert bool((p @ lateral < centre).all())
     assert float(p[:, 1].max()) <= TOP
     # the whole half of the hem: its points below 1 cm on that side are all kept
-    half = (g[:, 1] < Y0 + 0.01) & ((g[:, 0] > centre_x) if side == ".L" else (g[:, 0] < centre_x))
+    half = (g[:, 1] < Y0 + 0.01) & ((across > centre) if side == ".L" else (across < centre))
     assert np.isin(np.flatnonzero(half), rim).mean() > 0.99
+
+
+def test_lower_rim_leaves_out_what_is_excluded():
+    """Points ``exclude``d (a long sleeve's cuff by the hem: on the arm) are never the hem's."""
+    g = _skirt(seed=3)
+    sel = np.flatnonzero(g[:, 1] < 0.7)
+    cuff = np.random.default_rng(4).normal([0.31, Y0 - 0.02, -0.02], 0.02, (300, 3))  # by the hem
+    g = np.concatenate([g, cuff])
+    exclude = np.zeros(len(g), dtype=bool)
+    exclude[-len(cuff) :] = True
+    assert (_lower_rim(g, sel) >= len(g) - len(cuff)).any()  # the cuff hangs lowest in its sectors
+    rim = _lower_rim(g, sel, exclude=exclude)
+    assert not (rim >= len(g) - len(cuff)).any()
+    assert _sectors_hit(_angle(g[rim])).all()
 
 
 def test_edge_points_of_a_disc_are_its_rim():

@@ -528,13 +528,16 @@ def _lower_rim(
     max_rise: float = 0.01,
     max_slope: float = 0.8,
     link: float | None = None,
+    lateral: np.ndarray | None = None,
+    exclude: np.ndarray | None = None,
 ) -> np.ndarray:
     """The garment points (indices into ``garment_points`` (G, 3)) on the lower rim of a bottom opening.
 
     A loose hem hangs away from the body, so the points found near the body's loop (``sel``) cover the
     whole lower part of the skirt. The rim is the garment's lower envelope instead: around the vertical
-    axis through the candidates (the garment points no higher than ``sel``, on the ``side`` ".L" (+x) or
-    ".R" (−x) of the garment's centre for a trouser leg), in each of ``sectors`` angular sectors, the
+    axis through the candidates (the garment points no higher than ``sel``, not ``exclude``d ((G,) bool),
+    on the ``side`` ".L" or ".R" of the garment's centre for a trouser leg: along ``lateral`` (3,), the
+    body's left, +x by default), in each of ``sectors`` angular sectors, the
     points within ``band`` [m] of the sector's lowest point. Holes in the scan are skipped: where the
     lowest point rises by more than ``max_rise`` [m] plus ``max_slope`` times a sector's length along the
     rim from one sector to the next, the sectors from there on are a hole while they stay that high
@@ -549,9 +552,12 @@ def _lower_rim(
     """
     g = garment_points
     cand = g[:, 1] <= g[sel, 1].max()
+    if exclude is not None:
+        cand &= ~exclude
     if side:
-        centre_x = np.median(g[:, 0])
-        cand &= (g[:, 0] > centre_x) if side == ".L" else (g[:, 0] < centre_x)
+        across = g[:, 0] if lateral is None else g @ lateral
+        centre = np.median(across)
+        cand &= (across > centre) if side == ".L" else (across < centre)
     if link is not None and cand.any():
         idx = np.flatnonzero(cand)
         comp = _linked_pieces(g[idx], link)
@@ -1083,7 +1089,26 @@ class _RimFinder:
         from its band ``sel`` (indices into the garment points, all on the main piece)."""
         in_main = np.flatnonzero(self.main)  # sel is within main
         pos = np.searchsorted(in_main, sel)
-        return in_main[_lower_rim(self.garment_points[self.main], pos, side=side, link=self.rules.link)]
+        parts = self.vertex_parts
+        # A captured person faces any way: the legs lie left and right of the body's own left-right axis,
+        # not of x (on scans turned 90° the trouser legs' hems each took half of both legs, 97-110 cm
+        # traced against 69). Anny's left is +x.
+        left = self.body_vertices[parts == PART_NAMES.index("thigh.L")].mean(0)
+        lateral = left - self.body_vertices[parts == PART_NAMES.index("thigh.R")].mean(0)
+        lateral[1] = 0.0
+        # a long sleeve whose cuff hangs by the hem is no hem (a captured long sleeve's hem took both
+        # cuffs: 236 cm traced against 115)
+        arms = [PART_NAMES.index(p + s) for p in _ARM_PARTS for s in (".L", ".R")]
+        on_arm = np.isin(parts[self.garment_near[self.main]], arms)
+        rim = _lower_rim(
+            self.garment_points[self.main],
+            pos,
+            side=side,
+            link=self.rules.link,
+            lateral=lateral / np.linalg.norm(lateral),
+            exclude=on_arm,
+        )
+        return in_main[rim]
 
     def rim(self, i: int, name: str, verts: list[int], sel: np.ndarray, *, sleeved: bool) -> np.ndarray:
         """The points of opening ``i`` (``name``, body loop ``verts``) other than a hem: its rim points,
