@@ -574,7 +574,7 @@ def _lower_rim(
     angle = np.arctan2(p[:, 2] - axis[1], p[:, 0] - axis[0])
     arc = 2 * np.pi * float(np.median(np.hypot(p[:, 0] - axis[0], p[:, 2] - axis[1]))) / sectors
     # the lowest: farthest down
-    keep = _sector_envelope(-p[:, 1], angle, sectors, band, max_rise, sector_arc=arc, max_slope=max_slope)
+    keep = _sector_envelope(-p[:, 1], angle, sectors, band, max_rise + max_slope * arc, cliffs=True)
     return idx[keep] if keep.any() else sel
 
 
@@ -584,23 +584,21 @@ def _sector_envelope(
     sectors: int,
     band: float,
     max_drop: float,
-    sector_arc: float | None = None,
-    max_slope: float = 0.0,
+    cliffs: bool = False,
 ) -> np.ndarray:
     """(n,) bool: the points within ``band`` of the largest ``t`` (n,) [m] of their angular sector (``angle``
     (n,) [rad] in [−π, π], ``sectors`` equal sectors), except in the sectors that are holes in the scan,
     not the rim: whose largest ``t`` falls more than ``max_drop`` [m] short of the median sector's, or,
-    with ``sector_arc`` (a sector's length along the rim [m]), those behind a cliff (`_cliff_holes`) of
-    ``max_drop`` plus ``max_slope`` times ``sector_arc`` (a rim may fall away gradually, a hole's edge
-    falls at once)."""
+    with ``cliffs``, those behind a cliff of ``max_drop`` (`_cliff_holes`: a rim may fall away gradually,
+    a hole's edge falls at once)."""
     sector = np.minimum(((angle + np.pi) / (2 * np.pi) * sectors).astype(np.int64), sectors - 1)
     far = np.full(sectors, -np.inf)
     np.maximum.at(far, sector, t)
     seen = np.isfinite(far)
-    if sector_arc is None:
-        ok = seen & (far >= np.median(far[seen]) - max_drop)
+    if cliffs:
+        ok = seen & ~_cliff_holes(far, max_drop)
     else:
-        ok = seen & ~_cliff_holes(far, max_drop + max_slope * sector_arc)
+        ok = seen & (far >= np.median(far[seen]) - max_drop)
     return ok[sector] & (t >= far[sector] - band)
 
 
