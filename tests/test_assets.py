@@ -46,6 +46,30 @@ def test_fitted_pattern_follows_the_rest_coordinates(dress):
     assert pattern_deviation(pattern, garment, uv) > 0.02
 
 
+@pytest.mark.parametrize("depth", [0.5, 1.4])
+def test_an_arc_takes_the_depth_the_fit_gave_it(depth):
+    """A neckline made shallower (or deeper) with its corners kept: the exported arc follows the rest
+    vertices and keeps their length; scaling the template's radius with the unchanged chord did not (the
+    suite's T-shirt: its neck exported 1.4 cm shorter than the fit's rest shape)."""
+    pattern = load_template("tshirt")
+    garment = mesh_pattern(pattern, spacing=0.02)
+    ev = garment.edge_vertices[("right_ftorso", 1)]  # the front neckline, a circle edge
+    assert pattern.panels["right_ftorso"].edges[1].kind == "circle"
+    uv = garment.vert_uv.clone()
+    a, b = uv[ev[0]], uv[ev[-1]]
+    n = torch.stack([-(b - a)[1], (b - a)[0]]) / torch.linalg.norm(b - a)
+    inner = uv[ev[1:-1]]
+    off = ((inner - a) @ n)[:, None] * n  # each vertex's offset from the chord
+    uv[ev[1:-1]] = inner - off + depth * off
+    fitted = fitted_pattern(pattern, garment, uv)
+    panel = fitted.panels["right_ftorso"]
+    polyline = float(torch.linalg.norm(uv[ev[1:]] - uv[ev[:-1]], dim=1).sum())
+    assert panel.edge_length(1) == pytest.approx(polyline, rel=0.01)
+    assert pattern_deviation(fitted, garment, uv) < 3e-3  # [m]: a squashed circle is nearly one
+    assert pattern_deviation(pattern, garment, uv) > 1e-2
+    assert pattern.panels["right_ftorso"].edge_length(1) != pytest.approx(polyline, rel=0.05)
+
+
 def test_write_assets_and_read_back(dress, tmp_path):
     pattern, garment = dress
     uv = _deformed_uv(garment)

@@ -2,9 +2,10 @@
 
 `fitted_pattern` turns optimised rest coordinates back into a GarmentCode pattern: every panel corner
 takes the rest position of its panel vertex, Bézier control points are refitted by least squares to the
-optimised edge vertices (at the template's curve parameters), and arcs keep their shape relative to the
-chord (radius scaled by the chord's change). `pattern_deviation` measures how far the exported curves
-lie from the optimised mesh boundary. `write_assets` writes the whole set of files into a folder.
+optimised edge vertices (at the template's curve parameters), and arcs are refitted to them too (the
+circle through the two corners nearest the edge's vertices). `pattern_deviation` measures how far the
+exported curves lie from the optimised mesh boundary. `write_assets` writes the whole set of files into
+a folder.
 
 Files written by `write_assets` (names in `ASSET_FILES`):
 
@@ -34,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from scipy.optimize import minimize_scalar
 
 from torch_diffavatar.assets_newton import newton_material_dict
 from torch_diffavatar.json_io import write_json
@@ -135,6 +137,53 @@ def _refit_bezier(edge: Edge, s: np.ndarray, points: np.ndarray, start: np.ndarr
     return replace(edge, control=tuple((float(u), float(v)) for u, v in rel))
 
 
+def _arc_sagitta(edge: Edge, start: np.ndarray, end: np.ndarray) -> float:
+    """Signed sagitta [m] of a circle edge: how far its arc's midpoint lies from the chord's, > 0 on the
+    left of start -> end."""
+    chord = end - start
+    mid = sample_edge(start, end, edge, np.array([0.5]))[0] - (start + end) / 2.0
+    return float(chord[0] * mid[1] - chord[1] * mid[0]) / max(float(np.linalg.norm(chord)), 1e-300)
+
+
+def _arc_with_sagitta(edge: Edge, start: np.ndarray, end: np.ndarray, sagitta: float) -> Edge:
+    """The circle edge from ``start`` to ``end`` whose arc's midpoint lies ``sagitta`` [m] off the chord
+    (> 0 on its left): radius (c²/4 + h²) / 2h, the larger arc beyond a half circle."""
+    chord = float(np.linalg.norm(end - start))
+    h = max(abs(sagitta), 1e-6 * chord)
+    shaped = replace(edge, radius=(chord * chord / 4.0 + h * h) / (2.0 * h), large_arc=h > chord / 2.0)
+    for right in (False, True):
+        cand = replace(shaped, right=right)
+        if _arc_sagitta(cand, start, end) * sagitta >= 0:
+            return cand
+    return shaped
+
+
+def _refit_circle(edge: Edge, points: np.ndarray, start: np.ndarray, end: np.ndarray) -> Edge:
+    """The circle edge through ``start`` and ``end`` nearest (least squares) to the edge's interior vertices
+    ``points`` (n, 2): an arc keeps its corners' chord but takes the depth the fit gave it (a neckline the
+    fit made shallower), which scaling the template's radius with its chord does not. ``edge`` unchanged
+    without interior points, or when it already fits them best."""
+    chord = float(np.linalg.norm(end - start))
+    if len(points) == 0 or chord < 1e-12:
+        return edge
+
+    dense = np.linspace(0.0, 1.0, 257)
+
+    def residual(cand: Edge) -> float:  # to the arc itself: the circle's other arc passes the points too
+        arc = sample_edge(start, end, cand, dense)
+        return float(((points[:, None, :] - arc[None]) ** 2).sum(-1).min(1).sum())
+
+    grid = np.linspace(-chord, chord, 401)
+    costs = [residual(_arc_with_sagitta(edge, start, end, h)) for h in grid]
+    k = int(np.argmin(costs))
+    lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
+    best = minimize_scalar(
+        lambda h: residual(_arc_with_sagitta(edge, start, end, h)), bounds=(lo, hi), method="bounded"
+    )
+    cand = _arc_with_sagitta(edge, start, end, float(best.x))
+    return cand if residual(cand) < residual(edge) else edge
+
+
 def _bernstein(n: int, j: int, s: np.ndarray) -> np.ndarray:
     from math import comb
 
@@ -152,7 +201,8 @@ def fitted_pattern(pattern: Pattern, garment: GarmentMesh, rest_uv: torch.Tensor
     Returns:
         a new `Pattern` (stitches, placement and labels unchanged): corners moved to the rest positions
         of their panel vertices; quadratic/cubic control points refitted (least squares, template curve
-        parameters); arc radii scaled by the change of their chord length.
+        parameters); arcs refitted (`_refit_circle`: the circle through the new corners nearest the
+        edge's vertices).
 
     Raises:
         ValueError: ``rest_uv`` has the wrong shape or non-finite values, or the garment's edges do not
@@ -183,6 +233,7 @@ def fitted_pattern(pattern: Pattern, garment: GarmentMesh, rest_uv: torch.Tensor
                 new = float(np.linalg.norm(new_end - new_start))
                 if old > 1e-12:
                     edge = replace(edge, radius=float(edge.radius) * new / old)
+                edge = _refit_circle(edge, uv[ev[1:-1]], new_start, new_end)
             edges.append(edge)
         panels[name] = replace(panel, vertices=verts, edges=edges)
     return replace(pattern, panels=panels, source=None)
