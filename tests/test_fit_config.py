@@ -40,6 +40,8 @@ def test_numbers_that_yaml_reads_as_strings_parse(tmp_path):
         ("weights: {boundary: true}", "weights.boundary must be a number"),
         ("weights: {boundary: .nan}", "LossWeights.boundary must be a finite number"),
         ("template: 3", "template must be a string"),
+        ("boundary_gap_bin: -0.03", "boundary_gap_bin must be >= 0"),
+        ("boundary_gap_bin: .inf", "boundary_gap_bin must be >= 0"),
     ],
 )
 def test_values_of_the_wrong_type_or_range_are_refused(tmp_path, line, message):

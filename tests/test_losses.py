@@ -621,6 +621,38 @@ def test_boundary_loss_on_a_partial_scan_pulls_only_the_seen_half():
     )
 
 
+def test_a_cuff_whose_scan_shows_a_third_of_it_is_not_pulled_onto_that_third():
+    """A hole under the arm leaves a cuff's scan points on a 120° arc. Every garment point pulled to its
+    nearest scan point shrinks the whole cuff onto the arc; with ``gap_bin`` only the covered sectors pull,
+    so the true cuff costs a tenth as much and shrinking it pays a tenth as much."""
+    from torch_diffavatar.losses import covered_loop_points
+
+    angle = torch.linspace(0, 2 * math.pi, 25, dtype=torch.float64)[:-1]
+
+    def ring(radius):
+        return torch.stack([torch.zeros_like(angle), radius * torch.cos(angle), radius * torch.sin(angle)], 1)
+
+    dense = torch.linspace(0, 2 * math.pi / 3, 40, dtype=torch.float64)
+    arc = {
+        "cuff_left": torch.stack(
+            [torch.zeros_like(dense), 0.07 * torch.cos(dense), 0.07 * torch.sin(dense)], 1
+        )
+    }
+    cov = covered_loop_points(ring(0.07), arc["cuff_left"], 0.03)
+    # the arc's 9 vertices (0-120°), and no more than its end sectors (24° each) beyond them, are covered
+    assert bool(cov[:9].all()) and int(cov.sum()) <= 11 and not bool(cov[11:22].any())
+    loop = [BoundaryLoop("cuff_left", torch.arange(24))]
+    radius = torch.tensor(0.07, dtype=torch.float64, requires_grad=True)
+    loss, grad = {}, {}
+    for gap_bin in (0.0, 0.03):
+        loss[gap_bin] = boundary_loss(ring(radius), loop, arc, samples_per_edge=2, gap_bin=gap_bin)
+        (grad[gap_bin],) = torch.autograd.grad(loss[gap_bin], radius)
+    assert float(grad[0.0]) > 0  # a smaller cuff lies nearer the arc: without gaps the loss pulls it in
+    assert float(loss[0.03]) < 0.1 * float(loss[0.0]) and abs(float(grad[0.03])) < 0.1 * float(grad[0.0])
+    with pytest.raises(ValueError, match="gap_bin"):
+        boundary_loss(ring(0.07), loop, arc, gap_bin=-1.0)
+
+
 def test_dart_triangles_span_each_dart_and_nothing_else():
     """The dress's eight bodice darts give triangles (leg, tip, leg) of sewn pairs; the skirt has none, and
     a tube (two panels sewn along their sides) none."""

@@ -176,6 +176,10 @@ class FitConfig:
             robust_scale: the kernels' scale [m].
         boundary_trim: fraction of the largest point distances left out of each direction of each
             opening's Chamfer (`boundary_loss` ``trim``): scan openings pick up the rims of nearby holes [-].
+        boundary_gap_bin: > 0: each opening's garment → scan distances only from the loop's sectors (about
+            this long [m]) that the scan's opening covers (`losses.covered_loop_points`): a hole under the
+            arm takes a cuff's underside, and the whole cuff was pulled onto the rest (a fit from the true
+            T-shirt narrowed its cuffs by 4 cm). 0: off, every loop point.
         boundary_samples: points per loop edge of the boundary loss (`boundary_loss` samples_per_edge).
         opening_length_names: the openings (`GarmentMesh.boundary_loops` names) that
             ``weights.opening_length`` holds no shorter than the scan's points of them trace: the hems
@@ -257,6 +261,7 @@ class FitConfig:
     interior_robust: str = "l2"
     robust_scale: float = 0.01
     boundary_trim: float = 0.0
+    boundary_gap_bin: float = 0.0
     boundary_samples: int = 2
     opening_length_names: tuple[str, ...] = ("hem", "hem_left", "hem_right")
     opening_length_bin: float = 0.02
@@ -326,6 +331,8 @@ class FitConfig:
                 raise ValueError(f"FitConfig.{name} must be one of {ROBUST_KERNELS}, got {kernel!r}")
         if not 0.0 <= self.boundary_trim < 1.0:
             raise ValueError(f"FitConfig.boundary_trim must be in [0, 1), got {self.boundary_trim}")
+        if not (math.isfinite(self.boundary_gap_bin) and self.boundary_gap_bin >= 0):
+            raise ValueError(f"FitConfig.boundary_gap_bin must be >= 0 [m], got {self.boundary_gap_bin}")
         self._check_opening_lengths()
         if not self.robust_scale > 0:
             raise ValueError(f"FitConfig.robust_scale must be a positive length [m], got {self.robust_scale}")

@@ -641,6 +641,7 @@ class FitObjective(nn.Module):
                 robust=cfg.boundary_robust,
                 scale=cfg.robust_scale,
                 trim=cfg.boundary_trim,
+                gap_bin=cfg.boundary_gap_bin,
                 seen=seen,
             )
         return terms
