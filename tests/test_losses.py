@@ -651,6 +651,7 @@ def test_a_cuff_whose_scan_shows_a_third_of_it_is_not_pulled_onto_that_third():
     assert float(loss[0.03]) < 0.1 * float(loss[0.0]) and abs(float(grad[0.03])) < 0.1 * float(grad[0.0])
     with pytest.raises(ValueError, match="gap_bin"):
         boundary_loss(ring(0.07), loop, arc, gap_bin=-1.0)
+    assert bool(covered_loop_points(ring(0.07)[:2], arc["cuff_left"], 0.03).all())  # no plane: all pull
 
 
 def test_dart_triangles_span_each_dart_and_nothing_else():

@@ -144,10 +144,13 @@ def covered_loop_points(loop_x: torch.Tensor, scan_points: torch.Tensor, bin_len
 
     The loop is cut into angular sectors about its centre, in its least-squares plane, about
     ``bin_length`` [m] long at its mean radius; a sector is covered when a scan point falls in it. A scan
-    opening is often a partial arc (a hole under the arm takes a cuff's
-    underside, hands hide a hem's sides): pulled onto such an arc, the whole loop would shrink onto it (a
-    fit from the true T-shirt narrowed its cuffs by 4 cm). Not differentiated, like a nearest neighbour.
+    opening is often a partial arc (a hole under the arm takes a cuff's underside, hands hide a hem's
+    sides): pulled onto such an arc, the whole loop would shrink onto it (a fit from the true T-shirt
+    narrowed its cuffs by 4 cm). Not differentiated, like a nearest neighbour. A loop of fewer than three
+    points has no plane: all of it is covered.
     """
+    if len(loop_x) < 3:
+        return torch.ones(len(loop_x), dtype=torch.bool, device=loop_x.device)
     with torch.no_grad():
         x = loop_x.detach()
         centre = x.mean(0)
