@@ -210,6 +210,17 @@ def test_boundary_loss_gradcheck():
         return boundary_loss(x.index_copy(0, hem, hem_x), loops, scan, samples_per_edge=2)
 
     assert torch.autograd.gradcheck(f, (x[hem].clone().requires_grad_(),))
+    # the hem's scan seen over half of it: only the covered loop points pull garment -> scan
+    from torch_diffavatar.losses import covered_loop_points
+
+    half = scan[loops[1].name][: len(hem) // 2]
+    partial = {**scan, loops[1].name: half}
+    assert not bool(covered_loop_points(x[hem], half, 0.05).all())
+
+    def f_gap(hem_x):
+        return boundary_loss(x.index_copy(0, hem, hem_x), loops, partial, samples_per_edge=2, gap_bin=0.05)
+
+    assert torch.autograd.gradcheck(f_gap, (x[hem].clone().requires_grad_(),))
 
 
 def _brute_chamfer(x, y):
