@@ -24,6 +24,7 @@ from torch_diffavatar.fit import (
     result_warnings,
 )
 from torch_diffavatar.fit_checkpoint import safe_load
+from torch_diffavatar.fit_start import resew
 from torch_diffavatar.losses import rest_area_ratio
 from torch_diffavatar.sim.material import ClothMaterial
 
@@ -462,6 +463,55 @@ def test_first_bend_scales_are_checked():
     for bad in ([], [0.0], [1, -2], ["a"], [float("inf")]):
         with pytest.raises(InputError, match="first_bend_scales"):
             config_from_dict({"first_bend_scales": bad})
+
+
+def test_resew_at_is_checked():
+    assert config_from_dict({"resew_at": [8, 3, 3]}).resew_at == (3, 8)
+    assert config_from_dict({"resew_at": 5}).resew_at == (5,)
+    assert config_from_dict({}).resew_at == ()
+    for bad in ([0], [2, -1], ["3"], [1.5], [True]):
+        with pytest.raises(InputError, match="resew_at"):
+            config_from_dict({"resew_at": bad})
+
+
+@pytest.mark.parametrize("warm_offset", [1e3, -1e3])
+def test_a_resewing_continues_from_a_fresh_drape_only_when_its_loss_is_lower(skirt_problem, warm_offset):
+    """`fit_start.resew` sews the garment afresh at the present parameters, once per first bending scale;
+    the fit goes on from the lowest-loss fresh drape when it beats the warm drape, else from the warm one.
+    The warm loss is shifted by +-1000 so that each branch is taken whatever the drapes are."""
+    garment, _, target = skirt_problem
+    config = _config(iterations=0, first_max_steps=80, first_bend_scales=[1, 10])
+    fitter = Fitter(garment, target, config, progress=False, dtype=DT, tensorboard=False)
+    start = fitter._first_state()
+    with torch.no_grad():  # a step's worth of change, so that the fresh sewing is not the first one again
+        fitter.params.cage.handles.mul_(1.02)
+    ev = fitter.evaluate(start)
+    ev.loss = ev.loss + warm_offset
+    new, new_start = resew(fitter, ev, start)
+    (record,) = fitter.resewings
+    fresh = [c["loss"] for c in record["fresh"]]
+    assert [c["bend_scale"] for c in record["fresh"]] == [1.0, 10.0] and len(fresh) == 2
+    assert record["warm_loss"] == pytest.approx(float(ev.loss.detach())) and record["iteration"] == 0
+    if warm_offset > 0:
+        assert record["taken"] and new is not ev and not torch.equal(new_start.x, start.x)
+        assert float(new.loss) == pytest.approx(min(fresh), rel=1e-9)  # the very drape that was ranked
+    else:
+        assert not record["taken"] and new is ev and new_start is start
+
+
+def test_resewings_are_reported_and_survive_a_resume(skirt_problem, tmp_path):
+    """``resew_at`` sews afresh after those iterations; the records ride in the checkpoint, so a fit stopped
+    after its resewing reports the same resewings as one that was not stopped."""
+    garment, _, target = skirt_problem
+    config = _config(iterations=3, first_max_steps=80, resew_at=[1, 2])
+    whole = Fitter(garment, target, config, progress=False, dtype=DT, tensorboard=False).run().report
+    assert [r["iteration"] for r in whole["resewings"]] == [1, 2]
+    stopped = Fitter(garment, target, config, progress=False, dtype=DT, out_dir=tmp_path, tensorboard=False)
+    stopped.run(iterations=2)
+    resumed = Fitter(garment, target, config, progress=False, dtype=DT, out_dir=tmp_path, tensorboard=False)
+    report = resumed.run(resume=True).report
+    assert report["resewings"] == whole["resewings"]
+    assert report["loss_final"] == pytest.approx(whole["loss_final"], rel=1e-6)
 
 
 def test_the_race_continues_the_candidate_with_the_lowest_loss(skirt_problem, tmp_path):

@@ -72,7 +72,7 @@ from torch_diffavatar.fit_logging import (
 )
 from torch_diffavatar.fit_race import bar_span, opening, race
 from torch_diffavatar.fit_report import fit_report, result_warnings, summarize
-from torch_diffavatar.fit_start import Start, first_states
+from torch_diffavatar.fit_start import Start, first_states, resew
 from torch_diffavatar.losses import rest_area_ratio
 from torch_diffavatar.objective import FitObjective, FitParameters, FitVariables, ObjectiveOutput, ScanTarget
 from torch_diffavatar.pattern.garment_mesh import GarmentMesh
@@ -538,6 +538,8 @@ class Fitter:
             ev, start, rejected = self.step(ev, start)
             self.rejected_steps += rejected
             self.iteration += 1
+            if self.iteration in self.config.resew_at:
+                ev, start = resew(self, ev, start)
             self._note_best(ev, start)
             scalars = self._scalars(ev)
             scalars["steps/rejected"] = rejected
@@ -572,6 +574,7 @@ class Fitter:
         run = dict(iterations=self.iteration, result_iteration=self.result_iteration, seconds=self.seconds)
         run.update({k: getattr(self, k) for k in ("rejected_steps", "rejection_reasons", "nan_gradients")})
         run.update(adjoint_failures=self.adjoint_failures, first_drape_candidates=self.first_candidates)
+        run.update(resewings=self.resewings)
         return fit_report(self.first, final, self.objective, run)
 
     def state_dict(self, start: ClothState) -> dict:

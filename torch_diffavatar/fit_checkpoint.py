@@ -36,6 +36,7 @@ PROGRESS = {
     "first": (None, None),
     "best": (None, None),
     "first_candidates": (list, []),
+    "resewings": (list, []),
     "seconds": (float, 0.0),
 }
 

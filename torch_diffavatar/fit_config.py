@@ -167,6 +167,16 @@ class FitConfig:
             pick the wrong one (measured: the T-shirt's 10× sewing starts at a higher loss than the 1×
             one, and its fit ends lower, 13.2 against 15.8). The cost is one fit of this length per extra
             sewing. 0: the first drape's loss decides.
+        resew_at: after each of these iterations (1-based counts of iterations done) the garment is
+            sewn and draped afresh at the present parameters, once per ``first_bend_scales``
+            (`fit_start.first_states`), and the fit goes on from the lowest-loss of those drapes and its
+            own warm-started one [-]. Where cloth comes to rest depends on its path: a drape carried along
+            from the template's keeps what the template's folds and friction gave it, and the pattern bends
+            to undo that (measured: a fitted T-shirt's front neckline 2 cm lower in its own drape than in a
+            fresh sewing of the same pattern). Off in the shipped configs: ``[3]`` on ten tops brought 6 of
+            8 outlines closer but 3 of 8 drapes farther from the truth, at 23-45 s per fit
+            (docs/BENCHMARKS.md, "What shrinks the tops' necks, and fresh sewings during the fit"). Empty:
+            never.
         max_scan_points: scan garment points used by the interior loss, and skin points used by the skin
             loss (a fixed random subset of each) [-].
         interior_to_surface: the interior loss's scan → garment direction measures the distance to the
@@ -255,6 +265,7 @@ class FitConfig:
     first_bend_scales: tuple[float, ...] = (1.0,)
     first_stretch_scales: tuple[float, ...] = (1.0,)
     first_race_iterations: int = 0
+    resew_at: tuple[int, ...] = ()
     max_scan_points: int = 4000
     interior_to_surface: bool = True
     boundary_robust: str = "l2"
@@ -315,6 +326,10 @@ class FitConfig:
         self._check_counts()
         for name in ("first_bend_scales", "first_stretch_scales"):
             self._positive_list(name)
+        resew = (self.resew_at,) if isinstance(self.resew_at, int) else self.resew_at
+        if not all(isinstance(i, int) and not isinstance(i, bool) and i >= 1 for i in resew):
+            raise ValueError(f"FitConfig.resew_at must list iteration counts >= 1, got {self.resew_at!r}")
+        object.__setattr__(self, "resew_at", tuple(sorted(set(resew))))  # YAML gives a list
         if len(self.first_stretch_scales) > 1 and self.first_race_iterations == 0:
             raise ValueError(
                 "FitConfig.first_stretch_scales: several membranes need a race (first_race_iterations > 0): "

@@ -78,7 +78,8 @@ def fit_report(first: dict, final: dict, objective: FitObjective, run: dict) -> 
         first, final: `summarize` of the first and of the resulting evaluation.
         objective: the fit's objective (garment, template, config, matched openings).
         run: the driver's counts: ``iterations``, ``result_iteration``, ``seconds``, ``rejected_steps``,
-            ``rejection_reasons``, ``nan_gradients``, ``adjoint_failures``, ``first_drape_candidates``.
+            ``rejection_reasons``, ``nan_gradients``, ``adjoint_failures``, ``first_drape_candidates``,
+            ``resewings`` (`fit_start.resew`).
     """
     garment, config = objective.garment, objective.config
     with torch.no_grad():
@@ -133,6 +134,7 @@ def fit_report(first: dict, final: dict, objective: FitObjective, run: dict) -> 
         "matched_boundaries": [lp.name for lp in objective.loops],
         "opening_lengths": opening_lengths(objective, first["rest_uv"], final["rest_uv"]),
         "first_drape_candidates": list(run["first_drape_candidates"]),
+        "resewings": list(run.get("resewings", [])),
         "warnings": result_warnings(final["x"], garment.sim_faces, ratio, config.spacing),
     }
 

@@ -4,7 +4,8 @@ Cloth that hangs loose on a body rests in more than one fold state, and which on
 on its path: the template is sewn and draped once per ``FitConfig.first_bend_scales`` (the bending
 stiffness scaled), each settled at the fit's own stiffness (`first_states`); the first drape's loss, or a
 race of ``first_race_iterations`` fit iterations from each (`fit_race.race`), picks the one the fit
-continues.
+continues. During the fit, the garment can be sewn afresh at the parameters it has reached (`resew`,
+``FitConfig.resew_at``).
 """
 
 from __future__ import annotations
@@ -136,3 +137,35 @@ def first_drape(
 
     kw = dict(start_state=start_state, sewing_fallback=sewing_fallback)
     return first_states(objective, variables, evaluate, [], **kw)[0][1]
+
+
+def resew(fitter, ev: ObjectiveOutput, start: ClothState) -> tuple[ObjectiveOutput, ClothState]:
+    """The evaluation and drape start ``fitter`` goes on from after an iteration in ``resew_at``: the
+    garment sewn and draped afresh at the present parameters (`first_states`, once per
+    ``first_bend_scales``), the lowest-loss of those drapes when its loss is below ``ev``'s, else ``ev``
+    and ``start`` as they are. A drape carried along from the template's keeps the folds and the friction
+    hold that the template's shape gave it; the scan's garment was put on as it is. Appends the losses
+    to ``fitter.resewings`` (the report's).
+
+    Args:
+        fitter: the `fit.Fitter` (its ``params``, ``objective``, ``evaluate``, ``sewing_fallback``).
+        ev, start: the iteration's accepted evaluation and its drape start.
+    """
+    with torch.no_grad():
+        variables = fitter.params()
+    entries: list[dict] = []
+    record = {"iteration": fitter.iteration, "warm_loss": float(ev.loss.detach()), "fresh": entries}
+    try:
+        starts = first_states(
+            fitter.objective, variables, fitter.evaluate, entries, sewing_fallback=fitter.sewing_fallback
+        )
+    except SimulationError:  # every sewing failed: the warm drape goes on
+        starts = []
+    if len(starts) == 1 and math.isnan(starts[0][0]):  # one sewing is not evaluated by `first_states`
+        loss = float(fitter.evaluate(starts[0][1]).loss.detach())
+        starts[0][2].update({"loss": loss} if math.isfinite(loss) else {"error": f"loss {loss}"})
+        starts = [(loss, starts[0][1], starts[0][2])] if math.isfinite(loss) else []
+    new = fitter._checked_evaluate(starts[0][1]) if starts and starts[0][0] < record["warm_loss"] else None
+    record["taken"] = new is not None
+    fitter.resewings.append(record)
+    return (new, starts[0][1]) if new is not None else (ev, start)
