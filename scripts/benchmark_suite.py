@@ -59,6 +59,10 @@ ABLATIONS = {
     # issue #30: a skirt panel that is its own mirror image stays so (the dress config's `tie_symmetric`;
     # docs/BENCHMARKS.md, "The hem's split and lopsided skirt panels")
     "w/o symmetric panels": {"tie_symmetric": False},
+    # issues #29/#30: an opening's garment -> scan half only where the scan shows that opening, and each
+    # panel's share of the hem held (docs/BENCHMARKS.md, "Openings the scan shows in part")
+    "w/o gap rule": {"boundary_gap_bin": 0.0},
+    "w/o hem split": {"weights": {"opening_split": 0.0}},
 }
 
 
