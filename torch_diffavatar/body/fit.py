@@ -53,6 +53,9 @@ from torch_diffavatar.chamfer import nearest_indices
 from torch_diffavatar.errors import ScanError
 from torch_diffavatar.geometry import closest_point_on_mesh
 
+SOLE_DEPTH = 0.01  # [m] a foot's vertices this close to its lowest in the rest pose: the sole, heel to toe
+FLOOR_WEIGHT = 0.01
+
 
 @dataclass
 class BodyFitConfig:
@@ -66,8 +69,11 @@ class BodyFitConfig:
         yaw_from_scan: turn the ``yaw_candidates`` by the scan's own facing direction
             (`body.facing.facing_yaws`: hips axis and feet) when it lies farther than
             ``facing_tolerance_deg`` [deg] from 0, for a person facing any way (a capture turned 59° ended
-            at 3.3 cm Chamfer from the 0° start, issue #29). Within the tolerance the world convention
-            stands (the estimate is ~2° on +Z scans, and the placement stage corrects that itself).
+            at 3.3 cm Chamfer from the 0° start, issue #29). A direction within the tolerance is taken as
+            0 (the estimate is ~2° on +Z scans, and the placement stage corrects that itself). Without
+            feet (trousers over them) the scan gives two opposite directions and both are tried; before,
+            one near 0 made the other be dropped, and trousers captures facing 165-199° were fitted
+            backwards.
         upright_coarse: keep the pelvis upright (yaw only) in the coarse stages.
         yaw_iters, placement_iters, pose_iters: Adam steps of the coarse stages (``yaw_iters``: of each
             yaw's trial, which runs only when there are several yaws to choose from).
@@ -103,6 +109,13 @@ class BodyFitConfig:
             (not observed). A scan that shows its feet (`body.facing.shows_feet`) keeps the first start
             alone: the head start won on 1 of 15 complete scans only (a worse body there), and skipping
             it saves about a third of the body fit's time (issue #32).
+        floor_weight: weight of the floor term, when `fit_body` is given the floor's height: the soles
+            (`SOLE_DEPTH`), heel to toe, held on it as they lie in the rest pose, mean of (Δ / 1 cm)² [-].
+            Trousers or a long hem that reach the floor hide the feet, and a body under clothing is held
+            only inside it: on capture-simulated trousers whose hems cover the feet, the fitted soles
+            ended 2.5-3 cm above the floor and the bodies 2.1-3.0 cm short; held by their lowest vertices
+            only, the feet stood on tiptoe (docs/BENCHMARKS.md, "The body fit on captures: the floor
+            under trousers").
         seed: seed of the scan subsampling.
     """
 
@@ -136,6 +149,7 @@ class BodyFitConfig:
     penetration_margin: float = 0.01
     skin_parts: tuple[str, ...] = ("head", "hand.L", "hand.R", "foot.L", "foot.R")
     head_start: bool = True
+    floor_weight: float = FLOOR_WEIGHT
     seed: int = 0
 
 
@@ -205,8 +219,8 @@ class _Objective:
     docstring.
     """
 
-    def __init__(self, body: BodyModel, scan: torch.Tensor, cfg: BodyFitConfig):
-        self.body, self.cfg = body, cfg
+    def __init__(self, body: BodyModel, scan: torch.Tensor, cfg: BodyFitConfig, floor_y: float | None = None):
+        self.body, self.cfg, self.floor_y = body, cfg, floor_y
         self.final = False
         with torch.no_grad():
             rest = body()
@@ -219,6 +233,7 @@ class _Objective:
             raise ValueError(f"unknown skin_parts {unknown}; known body parts: {PART_NAMES}")
         skin_ids = body.vertex_parts.new_tensor([PART_NAMES.index(n) for n in cfg.skin_parts])
         self.vert_skin = torch.isin(body.vertex_parts, skin_ids)  # (V,) bool: never under clothing
+        self.sole_ids, self.sole_lift = _sole_vertices(body)
         self.scan_tree = cKDTree(scan.numpy())
         k = min(cfg.offset_knn, scan.shape[0])
         _, nbr = self.scan_tree.query(scan.numpy(), k=k)
@@ -316,12 +331,34 @@ class _Objective:
             + cfg.penetration_weight
             * self_penetration_penalty(out.vertices, self.pairs, cfg.penetration_margin).sum()
         )
+        if self.floor_y is not None:  # a standing person's soles are on the floor, seen or not
+            soles = out.vertices[0, self.sole_ids, 1] - self.sole_lift.to(out.vertices)
+            loss = loss + cfg.floor_weight * (((soles - self.floor_y) / 0.01) ** 2).mean()
         return loss
 
     def __call__(self) -> torch.Tensor:
         """The loss with correspondences re-computed at the current body."""
         out = self.body()
         return self.energy(out, self.match(out.vertices[0].detach(), out.faces))
+
+
+@torch.no_grad()
+def _sole_vertices(body: BodyModel) -> tuple[torch.Tensor, torch.Tensor]:
+    """(k,) ids of the vertices of each foot within `SOLE_DEPTH` of that foot's lowest, in the rest pose
+    at the default shape (the soles, heel to toe), and (k,) their heights above it there [m]."""
+    state = {k: v.clone() for k, v in body.state_dict().items()}
+    body.set_phenotypes(torch.full_like(body.phenotypes, 0.5))
+    body.pose.zero_()
+    body.global_orient.zero_()
+    verts = body().vertices[0]
+    body.load_state_dict(state)
+    ids, lift = [], []
+    for name in ("foot.L", "foot.R"):
+        foot = body.part_indices(name)
+        y = verts[foot, 1] - verts[foot, 1].min()
+        ids.append(foot[y <= SOLE_DEPTH])
+        lift.append(y[y <= SOLE_DEPTH])
+    return torch.cat(ids), torch.cat(lift)
 
 
 def _set_trainable(body: BodyModel, params: list[torch.Tensor]) -> None:
@@ -401,12 +438,13 @@ def _scan_extent(scan: torch.Tensor) -> tuple[float, float]:
 
 
 def _yaw_starts(scan: torch.Tensor, cfg: BodyFitConfig) -> list[float]:
-    """The yaws [deg] the placement stage starts from: ``cfg.yaw_candidates``, turned by the scan's
+    """The yaws [deg] the placement stage starts from: ``cfg.yaw_candidates``, turned by each of the scan's
     facing directions (`facing_yaws`: one, or two opposite ones when the scan shows no feet) when
-    ``cfg.yaw_from_scan`` and none of them lies within ``cfg.facing_tolerance_deg`` of +Z."""
+    ``cfg.yaw_from_scan``; a direction within ``cfg.facing_tolerance_deg`` of +Z turns them by 0."""
     facing = facing_yaws(scan.numpy()) if cfg.yaw_from_scan else []
-    if not facing or min(abs(f) for f in facing) <= cfg.facing_tolerance_deg:
+    if not facing:
         return list(cfg.yaw_candidates)
+    facing = [0.0 if abs(f) <= cfg.facing_tolerance_deg else f for f in facing]  # +Z needs no turn
     return [f + yaw for f in facing for yaw in cfg.yaw_candidates]
 
 
@@ -468,6 +506,7 @@ def fit_body(
     *,
     anny_model=None,
     config: BodyFitConfig | None = None,
+    floor_y: float | None = None,
 ) -> BodyFitResult:
     """Fit Anny's shape, pose and placement to a full (possibly clothed) scan.
 
@@ -477,6 +516,8 @@ def fit_body(
         body: an optional float32 `BodyModel` (batch 1) to fit in place; else one is made from ``anny_model``.
         anny_model: a loaded Anny model to build the body from (saves the load time).
         config: a `BodyFitConfig`.
+        floor_y: the height [m] of the floor the person stands on (the intake's floor plane is y = 0), or
+            None when the scan had none: the soles are then held on it (``config.floor_weight``).
 
     Returns:
         a `BodyFitResult` with the fitted body and its residual.
@@ -499,7 +540,7 @@ def fit_body(
         scan = scan_all[keep]
     else:
         scan = scan_all
-    objective = _Objective(body, scan, cfg)
+    objective = _Objective(body, scan, cfg, floor_y)
     placement = [
         {"params": [body.global_orient], "lr": cfg.lr_rotation},
         {"params": [body.translation], "lr": cfg.lr_translation},

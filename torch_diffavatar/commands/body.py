@@ -114,6 +114,11 @@ def _single_thread():
     torch.set_num_threads(1)  # measured ~10x faster than 2 threads for Anny on small CPUs
 
 
+def _floor_y(args) -> float | None:
+    """The floor's height [m] after the intake (`_load_clean_scan`): 0 when it found and removed one."""
+    return 0.0 if args.intake.get("floor") else None
+
+
 def fit_body_command(args) -> dict:
     _single_thread()
     from torch_diffavatar.body.fit import fit_body
@@ -122,7 +127,7 @@ def fit_body_command(args) -> dict:
     out = Path(args.out)
     check_out_folder(out)
     scan = _load_clean_scan(args)
-    result = fit_body(scan.points)
+    result = fit_body(scan.points, floor_y=_floor_y(args))
     body = result.body
     verts = body().vertices[0].detach().cpu().numpy()
     phenotypes = dict(zip(body.phenotype_labels, body.phenotypes[0].detach().tolist()))
@@ -196,7 +201,7 @@ def segment_command(args) -> dict:
     if not args.body:
         from torch_diffavatar.body.fit import fit_body
 
-        body = fit_body(scan.points, anny_model=anny_model).body
+        body = fit_body(scan.points, anny_model=anny_model, floor_y=_floor_y(args)).body
     waist = None
     if body is not None:
         with torch.no_grad():

@@ -1,0 +1,114 @@
+#!/usr/bin/env python
+"""Issue #29's body-fit criterion on capture-simulated scans: `diffavatar fit-body` with no flags on a ring
+of 4 depth cameras, the floor in view, a random yaw, centimetres, Y down and colour; the fitted body's height
+and mean surface distance against the truth.
+
+    PYTHONPATH=. python scripts/capture_body_seeds.py --work /tmp/cbs --garments tshirt pants \
+        --seeds 350 351 352 353 354 355 356 357 358 359
+
+Per garment and seed: `diffavatar make-scan G --out WORK/G_S/scan --seed S --capture ring --yaw random
+--scan-units cm --scan-up -y`, then `diffavatar fit-body WORK/G_S/scan/scan.ply --out WORK/G_S/body --json`
+(the intake infers the units and the up axis). Height error: the fit's ``height_m`` against truth.json's;
+surface: the symmetric mean surface distance between the fitted and the true ``body.obj``
+(`evaluation.mesh_distance_m`); vertex: their mean vertex distance (the same Anny topology and frame).
+Targets (#29): height within 1.5 cm and surface distance ≤ 1 cm. Prints a Markdown table and writes
+``WORK/summary.json``; a scan whose folders exist is not made or fitted again.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+HEIGHT_TARGET_M = 0.015
+SURFACE_TARGET_M = 0.01
+
+
+def _run(args: list[str], log: Path) -> str:
+    """Run ``python -m torch_diffavatar.cli ARGS``; its stdout (stderr appended to ``log``)."""
+    with open(log, "a") as err:
+        command = [sys.executable, "-m", "torch_diffavatar.cli", *args]
+        done = subprocess.run(command, stdout=subprocess.PIPE, stderr=err, text=True)
+    if done.returncode != 0:
+        name = " ".join(args[:2])
+        raise SystemExit(f"capture_body_seeds: {name} failed (exit {done.returncode}); see {log}")
+    return done.stdout
+
+
+def one_scan(work: Path, garment: str, seed: int) -> dict:
+    """Make (unless made) and fit (unless fitted) one capture; its row of figures."""
+    from torch_diffavatar.evaluation import mesh_distance_m
+    from torch_diffavatar.mesh_io import read_obj
+
+    folder = work / f"{garment}_{seed}"
+    scan, body, log = folder / "scan", folder / "body", folder / "log.txt"
+    folder.mkdir(parents=True, exist_ok=True)
+    if not (scan / "scan.ply").is_file():
+        capture = ["--capture", "ring", "--yaw", "random", "--scan-units", "cm", "--scan-up", "-y"]
+        _run(["make-scan", garment, "--out", str(scan), "--seed", str(seed), *capture], log)
+    if not (body / "fit.json").is_file():
+        line = _run(["fit-body", str(scan / "scan.ply"), "--out", str(body), "--json"], log).strip()
+        (body / "fit.json").write_text(line.splitlines()[-1] + "\n")
+    fit = json.loads((body / "fit.json").read_text())
+    truth = json.loads((scan / "truth" / "truth.json").read_text())
+    fitted, true = read_obj(body / "body.obj"), read_obj(scan / "truth" / "body.obj")
+    surface = mesh_distance_m(fitted.verts, fitted.faces, true.verts, true.faces)
+    same = fitted.verts.shape == true.verts.shape  # the same Anny topology: vertex to vertex
+    vertex = float((fitted.verts - true.verts).norm(dim=1).mean()) if same else None
+    return {
+        "garment": garment,
+        "seed": seed,
+        "true_height_m": truth["height_m"],
+        "height_error_m": fit["height_m"] - truth["height_m"],
+        "surface_m": surface,
+        "vertex_m": vertex,
+        "sole_m": float(fitted.verts[:, 1].min() - true.verts[:, 1].min()),
+        "yaw_true_deg": truth["capture"]["yaw_deg"],
+        "yaw_deg": fit.get("yaw_deg"),
+        "chamfer_m": fit["chamfer_m"],
+        "seconds": fit["seconds"],
+        "warnings": fit.get("warnings", []),
+    }
+
+
+def table(rows: list[dict]) -> str:
+    """The Markdown table of ``rows``, **bold** where a target is missed."""
+    out = [
+        "| scan | true height [m] | height error [cm] | surface / vertex [cm] | soles [cm] "
+        "| yaw true / found [°] | body fit Chamfer [mm] | s |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        h, s = r["height_error_m"], r["surface_m"]
+        hs = f"{100 * h:+.2f}" if abs(h) <= HEIGHT_TARGET_M else f"**{100 * h:+.2f}**"
+        ss = f"{100 * s:.2f}" if s <= SURFACE_TARGET_M else f"**{100 * s:.2f}**"
+        vs = "–" if r["vertex_m"] is None else f"{100 * r['vertex_m']:.2f}"
+        yaw = "–" if r["yaw_deg"] is None else f"{r['yaw_deg'] % 360:.1f}"
+        out.append(
+            f"| {r['garment']} {r['seed']} | {r['true_height_m']:.3f} | {hs} | {ss} / {vs} | "
+            f"{100 * r['sole_m']:+.1f} | {r['yaw_true_deg'] % 360:.1f} / {yaw} | "
+            f"{1e3 * r['chamfer_m']:.1f} | {r['seconds']:.0f} |"
+        )
+    met = sum(
+        abs(r["height_error_m"]) <= HEIGHT_TARGET_M and r["surface_m"] <= SURFACE_TARGET_M for r in rows
+    )
+    out.append(f"\nBoth targets met on {met} of {len(rows)}.")
+    return "\n".join(out)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--work", type=Path, required=True, help="folder for the scans and the fits")
+    parser.add_argument("--garments", nargs="+", default=["tshirt"])
+    parser.add_argument("--seeds", type=int, nargs="+", default=list(range(350, 360)))
+    args = parser.parse_args()
+    rows = [one_scan(args.work, g, s) for g in args.garments for s in args.seeds]
+    (args.work / "summary.json").write_text(json.dumps(rows, indent=1) + "\n")
+    print(table(rows))
+
+
+if __name__ == "__main__":
+    main()
