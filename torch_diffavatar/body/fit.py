@@ -54,7 +54,6 @@ from torch_diffavatar.errors import ScanError
 from torch_diffavatar.geometry import closest_point_on_mesh
 
 SOLE_DEPTH = 0.01  # [m] a foot's vertices this close to its lowest in the rest pose: the sole, heel to toe
-FLOOR_WEIGHT = 0.01
 
 
 @dataclass
@@ -149,7 +148,7 @@ class BodyFitConfig:
     penetration_margin: float = 0.01
     skin_parts: tuple[str, ...] = ("head", "hand.L", "hand.R", "foot.L", "foot.R")
     head_start: bool = True
-    floor_weight: float = FLOOR_WEIGHT
+    floor_weight: float = 0.01
     seed: int = 0
 
 
@@ -516,8 +515,8 @@ def fit_body(
         body: an optional float32 `BodyModel` (batch 1) to fit in place; else one is made from ``anny_model``.
         anny_model: a loaded Anny model to build the body from (saves the load time).
         config: a `BodyFitConfig`.
-        floor_y: the height [m] of the floor the person stands on (the intake's floor plane is y = 0), or
-            None when the scan had none: the soles are then held on it (``config.floor_weight``).
+        floor_y: the height [m] of the floor the person stands on (the intake puts the floor it removed at
+            y = 0): the soles are held on it (``config.floor_weight``); None when the scan had none.
 
     Returns:
         a `BodyFitResult` with the fitted body and its residual.
