@@ -173,7 +173,7 @@ class FitConfig:
             own warm-started one [-]. Where cloth comes to rest depends on its path: a drape carried along
             from the template's keeps what the template's folds and friction gave it, and the pattern bends
             to undo that (measured: a fitted T-shirt's front neckline 2 cm lower in its own drape than in a
-            fresh sewing of the same pattern). Off in the shipped configs: ``[3]`` on ten tops brought 6 of
+            fresh sewing of the same pattern). Off in the shipped configs: ``[3]`` on eight tops brought 6 of
             8 outlines closer but 3 of 8 drapes farther from the truth, at 23-45 s per fit
             (docs/BENCHMARKS.md, "What shrinks the tops' necks, and fresh sewings during the fit"). Empty:
             never.

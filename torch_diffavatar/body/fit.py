@@ -232,7 +232,8 @@ class _Objective:
             raise ValueError(f"unknown skin_parts {unknown}; known body parts: {PART_NAMES}")
         skin_ids = body.vertex_parts.new_tensor([PART_NAMES.index(n) for n in cfg.skin_parts])
         self.vert_skin = torch.isin(body.vertex_parts, skin_ids)  # (V,) bool: never under clothing
-        self.sole_ids, self.sole_lift = _sole_vertices(body)
+        # the soles the floor term holds: an Anny forward pass, only when there is a floor
+        self.sole_ids, self.sole_lift = _sole_vertices(body) if floor_y is not None else (None, None)
         self.scan_tree = cKDTree(scan.numpy())
         k = min(cfg.offset_knn, scan.shape[0])
         _, nbr = self.scan_tree.query(scan.numpy(), k=k)
