@@ -41,8 +41,24 @@ def main() -> None:
         type=int,
         default=0,
         metavar="FRAMES",
-        help="after each iteration, drape its parameters from its start for FRAMES frames (no prediction, "
-        "no settle test) and report how far the iteration's drape ended from that reference",
+        help="after each iteration, drape its parameters on from where its drape ended for FRAMES more "
+        "frames (no prediction, no settle test) and report how far the cloth still moved: how far from "
+        "rest the iteration's drape stopped",
+    )
+    parser.add_argument(
+        "--velocity-scale",
+        type=float,
+        default=None,
+        help="the fit's drape damping (FitConfig.drape_velocity_scale; default: the dress config's)",
+    )
+    parser.add_argument(
+        "--settle-outliers",
+        type=float,
+        default=None,
+        help="fraction of the vertices the settle test lets move (FitConfig.drape_settle_outliers)",
+    )
+    parser.add_argument(
+        "--per-iteration", action="store_true", help="print each iteration's frames, gap and CPU seconds"
     )
     parser.add_argument(
         "--threads",
@@ -66,6 +82,10 @@ def main() -> None:
     base = load_config(garment="dress")
     if args.adjoint:
         base = replace(base, adjoint=args.adjoint)
+    if args.velocity_scale is not None:
+        base = replace(base, drape_velocity_scale=args.velocity_scale)
+    if args.settle_outliers is not None:
+        base = replace(base, drape_settle_outliers=args.settle_outliers)
     t0 = time.perf_counter()
     setup = prepare(DEMO_SCAN, base, anny_model=anny)
     setup_s = time.perf_counter() - t0
@@ -107,6 +127,11 @@ def main() -> None:
             profiler.dump_stats(path)
             _print_breakdown(pstats.Stats(path), args.iters, spacing)
         last = stats[-1]
+        if args.per_iteration:
+            for i, st in enumerate(stats):
+                gap = st.get("reference_gap_mean_mm")
+                gap = "" if gap is None else f", gap {gap:.3f} mm mean, {st['reference_gap_max_mm']:.2f} max"
+                print(f"# iteration {i + 1}: {st['xpbd_steps']} frames, {cpu[i]:.3f} CPU s{gap}", flush=True)
         print(
             json.dumps(
                 {
@@ -133,8 +158,9 @@ def main() -> None:
 
 
 def _reference_gap(fitter, ev, start, frames: int) -> dict:
-    """Distance [mm] of the iteration's drape ``ev.x`` from a ``frames``-frame forward drape of the same
-    parameters from the same start, without the prediction and without the settle test."""
+    """Distance [mm] of the iteration's drape ``ev.x`` from where ``frames`` more frames of the same
+    parameters take it (``start``: the next iteration's start, the drape's end at rest), without the
+    prediction and without the settle test."""
     from torch_diffavatar.fit_config import drape_config
     from torch_diffavatar.sim.forward_drape import drape_to_equilibrium
     from torch_diffavatar.sim.state import ClothState

@@ -42,6 +42,8 @@ def test_numbers_that_yaml_reads_as_strings_parse(tmp_path):
         ("template: 3", "template must be a string"),
         ("boundary_gap_bin: -0.03", "boundary_gap_bin must be >= 0"),
         ("boundary_gap_bin: .inf", "boundary_gap_bin must be >= 0"),
+        ("drape_velocity_scale: 1.5", "drape_velocity_scale must be in \\(0, 1\\]"),  # energy would grow
+        ("drape_velocity_scale: 0", "drape_velocity_scale must be in \\(0, 1\\]"),
     ],
 )
 def test_values_of_the_wrong_type_or_range_are_refused(tmp_path, line, message):
@@ -59,3 +61,16 @@ def test_infinity_switches_a_guard_off_and_nothing_else(tmp_path):
 def test_a_null_where_a_length_or_nothing_is_allowed(tmp_path):
     assert _load(tmp_path, "arms_low_spacing: null\n").arms_low_spacing is None
     assert _load(tmp_path, "arms_low_spacing: '0.03'\n").arms_low_spacing == 0.03
+
+
+def test_the_fit_drapes_with_its_own_damping():
+    """`drape_velocity_scale` reaches every warm-started drape of a fit, with either adjoint; the first
+    (sew and) drape keeps the drape default."""
+    from torch_diffavatar.fit_config import drape_config, first_drape_config
+    from torch_diffavatar.sim.forward_drape import DrapeConfig
+
+    config = FitConfig(drape_velocity_scale=0.9)
+    for adjoint in ("equilibrium", "trajectory"):
+        assert drape_config(config, adjoint=adjoint).drape_velocity_scale == 0.9
+    assert drape_config(FitConfig()).drape_velocity_scale == DrapeConfig().drape_velocity_scale
+    assert first_drape_config(config).drape_velocity_scale == DrapeConfig().drape_velocity_scale

@@ -702,3 +702,30 @@ def test_a_dart_closed_past_zero_costs_rest_area():
     )
     assert float(dart_only) > 1.0  # at least one triangle's ratio at -1: (0.2 + 1)^2
     assert float(objective.rest_terms(crossed)["rest_area"]) >= float(dart_only)
+
+
+@pytest.mark.parametrize("term", ["area", "shape"])
+def test_hinge_terms_with_a_graph_equal_the_whole_sum(term):
+    """With a graph, the rest area and shape terms build it on their live triangles only: the value and
+    the gradient are those of every triangle's penalty summed (batched too, and with none live)."""
+    gen = torch.Generator().manual_seed(3)
+    n = 12
+    u, v = torch.meshgrid(torch.arange(n, dtype=F64), torch.arange(n, dtype=F64), indexing="ij")
+    uv0 = 0.01 * torch.stack([u.reshape(-1), v.reshape(-1)], 1)
+    i = torch.arange(n - 1)
+    a = (i[:, None] * n + i[None, :]).reshape(-1)
+    tri = torch.cat([torch.stack([a, a + n, a + n + 1], 1), torch.stack([a, a + n + 1, a + 1], 1)])
+    loss = rest_area_loss if term == "area" else rest_distortion_loss
+    for jitter in (0.004, 0.0):  # some triangles live, then none
+        uv = (uv0 + jitter * torch.randn(2, *uv0.shape, generator=gen, dtype=F64)).requires_grad_(True)
+        value = loss(uv, uv0, tri)
+        whole = loss(uv, uv0, tri, reduction="none").sum(-1)
+        assert value.shape == (2,)
+        live = int((loss(uv, uv0, tri, reduction="none") > 0).sum())
+        assert (live > 0) == (jitter > 0)
+        torch.testing.assert_close(value, whole, rtol=1e-14, atol=0.0)
+        (g_value,) = torch.autograd.grad(value.sum(), uv)
+        (g_whole,) = torch.autograd.grad(whole.sum(), uv)
+        torch.testing.assert_close(g_value, g_whole, rtol=1e-14, atol=0.0)
+        with torch.no_grad():
+            torch.testing.assert_close(loss(uv, uv0, tri), whole.detach(), rtol=1e-14, atol=0.0)

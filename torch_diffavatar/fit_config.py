@@ -148,6 +148,10 @@ class FitConfig:
             but no CPU time, and its drapes ended 0.47-0.67 mm (mean) from 200-frame drapes of the same
             steps, against 0.17-0.27 mm without it (docs/BENCHMARKS.md, "Warm starts that land").
         drape_substeps: XPBD substeps per frame of the fit's drapes [-].
+        drape_velocity_scale: velocity factor per frame of the fit's warm-started drapes (artificial
+            damping; `DrapeConfig.drape_velocity_scale`) [-], in (0, 1].
+        drape_settle_outliers: fraction of the vertices that the equilibrium adjoint's drapes let move
+            faster than the settle speed when they stop (`DrapeConfig.settle_outliers`) [-], in [0, 1).
         first_max_steps: frames at most of the first (sew and) drape [-].
         first_bend_scales: the first drape is sewn and draped once per entry, with the bending stiffness
             scaled by it, then each is settled at the fit's own stiffness; the one with the lowest loss
@@ -261,6 +265,8 @@ class FitConfig:
     adjoint_hessian: str = "projected"
     predict_warm_starts: bool = False
     drape_substeps: int = 10
+    drape_velocity_scale: float = 0.97
+    drape_settle_outliers: float = 0.0
     first_max_steps: int = 400
     first_bend_scales: tuple[float, ...] = (1.0,)
     first_stretch_scales: tuple[float, ...] = (1.0,)
@@ -323,6 +329,12 @@ class FitConfig:
             raise ValueError(
                 f"FitConfig.waist_shift_bound must be a finite length > 0 [m], got {self.waist_shift_bound}"
             )
+        if not 0 <= self.drape_settle_outliers < 1:
+            outliers = self.drape_settle_outliers
+            raise ValueError(f"FitConfig.drape_settle_outliers must be in [0, 1), got {outliers}")
+        if not 0 < self.drape_velocity_scale <= 1:
+            scale = self.drape_velocity_scale
+            raise ValueError(f"FitConfig.drape_velocity_scale must be in (0, 1], got {scale}")
         self._check_counts()
         for name in ("first_bend_scales", "first_stretch_scales"):
             self._positive_list(name)
@@ -626,9 +638,16 @@ def drape_config(config: FitConfig, steps: int | None = None, adjoint: str | Non
     xpbd = XPBDConfig(
         substeps=config.drape_substeps, iterations=1, max_strain=FIT_MAX_STRAIN, num_threads=FIT_THREADS
     )
+    damped = config.drape_velocity_scale
     if adjoint == "equilibrium":
-        return DrapeConfig(xpbd=xpbd, min_steps=min(5, n), max_steps=n)
-    return DrapeConfig(xpbd=xpbd, min_steps=n, max_steps=n)
+        return DrapeConfig(
+            xpbd=xpbd,
+            min_steps=min(5, n),
+            max_steps=n,
+            drape_velocity_scale=damped,
+            settle_outliers=config.drape_settle_outliers,
+        )
+    return DrapeConfig(xpbd=xpbd, min_steps=n, max_steps=n, drape_velocity_scale=damped)
 
 
 def first_drape_config(config: FitConfig) -> DrapeConfig:

@@ -559,8 +559,13 @@ def rest_area_loss(
     _check_reduction(reduction)
     if not 0.0 < threshold <= 1.0:
         raise ValueError(f"threshold must be in (0, 1], got {threshold}")
-    ratio = rest_area_ratio(rest_uv, template_uv, tri_vertices, template_area=template_area)
-    return _reduce(torch.relu(threshold - ratio) ** 2, None, reduction)
+    if template_area is None:
+        template_area = signed_rest_areas(template_uv.to(rest_uv), tri_vertices)
+
+    def penalty(tri, area):
+        return torch.relu(threshold - signed_rest_areas(rest_uv, tri) / area.to(rest_uv)) ** 2
+
+    return _hinge_sum(penalty, tri_vertices, template_area, rest_uv, reduction)
 
 
 def design_modes(template_uv: torch.Tensor, vert_panel: torch.Tensor) -> torch.Tensor:
@@ -655,13 +660,30 @@ def rest_distortion_loss(
         raise ValueError(f"threshold must be >= 0, got {threshold}")
     if template_inverse is None:
         template_inverse = template_edge_inverse(template_uv.to(rest_uv), tri_vertices)
-    p = rest_uv[..., tri_vertices, :]  # (…, F, 3, 2)
-    e = torch.stack([p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :]], dim=-1)  # columns
-    jac = e @ template_inverse.to(rest_uv)  # (…, F, 2, 2)
-    det = jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]
-    # a collapsing triangle is `rest_area_loss`'s (and the step guard's); keep this one finite there
-    distortion = (jac**2).sum((-2, -1)) / (2.0 * det.abs().clamp_min(1e-3)) - 1.0
-    return _reduce(torch.relu(distortion - threshold) ** 2, None, reduction)
+
+    def penalty(tri, inverse):
+        p = rest_uv[..., tri, :]  # (…, F, 3, 2)
+        e = torch.stack([p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :]], dim=-1)  # columns
+        jac = e @ inverse.to(rest_uv)  # (…, F, 2, 2)
+        det = jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]
+        # a collapsing triangle is `rest_area_loss`'s (and the step guard's); keep this one finite there
+        distortion = (jac**2).sum((-2, -1)) / (2.0 * det.abs().clamp_min(1e-3)) - 1.0
+        return torch.relu(distortion - threshold) ** 2
+
+    return _hinge_sum(penalty, tri_vertices, template_inverse, rest_uv, reduction)
+
+
+def _hinge_sum(penalty, tri_vertices, per_tri, rest_uv, reduction) -> torch.Tensor:
+    """`_reduce` of ``penalty(tri_vertices, per_tri)`` (…, F), a hinge that is 0 for most triangles: for a
+    sum, evaluated with autograd only on the triangles where it is positive (any batch element), the rest
+    found without a graph. The same value and gradient (a zero gets none), at about a third of the cost
+    in a fit's proximal step, where these terms are evaluated ~60 times an iteration and mostly vanish."""
+    if reduction != "sum" or not rest_uv.requires_grad or not torch.is_grad_enabled():
+        return _reduce(penalty(tri_vertices, per_tri), None, reduction)
+    with torch.no_grad():
+        live = penalty(tri_vertices, per_tri).reshape(-1, tri_vertices.shape[0]).gt(0).any(0)
+    keep = torch.nonzero(live).squeeze(1)
+    return penalty(tri_vertices[keep], per_tri[keep]).sum(-1)
 
 
 def template_edge_inverse(template_uv: torch.Tensor, tri_vertices: torch.Tensor) -> torch.Tensor:

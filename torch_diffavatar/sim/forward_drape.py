@@ -54,6 +54,10 @@ class DrapeConfig:
         min_steps: frames always run.
         speed_tol: quasi-equilibrium when the largest vertex speed is below this [m/s] ...
         settle_steps: ... for this many consecutive frames.
+        settle_outliers: ... but for at most this fraction of the vertices [-] (0: every vertex). A few
+            vertices in contact can rock back and forth from frame to frame for good (measured on a fitted
+            dress: 13-17 of 1,992 vertices at the side of the chest, 0.2-0.9 mm each way, 2-12 cm/s) while
+            the rest of the cloth is at rest; with 0 such a drape never settles.
         sew_max_steps: frames of the sewing phase at most.
         sew_ramp_steps: frames over which the stitch stiffness ramps (geometrically) from
             ``sew_stiffness_start`` to ``sew_stiffness_end`` [N/m].
@@ -93,6 +97,7 @@ class DrapeConfig:
     min_steps: int = 10
     speed_tol: float = 0.02
     settle_steps: int = 5
+    settle_outliers: float = 0.0
     sew_max_steps: int = 300
     sew_ramp_steps: int = 100
     sew_stiffness_start: float = 5.0
@@ -108,6 +113,10 @@ class DrapeConfig:
     drape_velocity_scale: float = 0.97
     pose_frames: int = 60
     pose_velocity_scale: float = 0.7
+
+    def __post_init__(self):
+        if not 0 <= self.settle_outliers < 1:
+            raise ValueError(f"DrapeConfig.settle_outliers must be in [0, 1), got {self.settle_outliers}")
 
 
 @dataclass
@@ -187,7 +196,8 @@ def drape_to_equilibrium(
     config: DrapeConfig | None = None,
     attach_height: torch.Tensor | None = None,
 ) -> DrapeResult:
-    """Step until quasi-equilibrium (largest vertex speed < ``speed_tol`` for ``settle_steps`` frames).
+    """Step until quasi-equilibrium (vertex speeds < ``speed_tol`` for ``settle_steps`` frames, all but
+    ``settle_outliers`` of them).
 
     Args:
         model: the cloth model.
@@ -214,6 +224,7 @@ def drape_to_equilibrium(
         raise ValueError(f"state.x must be ({model.vert_count}, 3), got {tuple(state.x.shape)}")
     state = state.to(device=model.device, dtype=model.dtype)
     settled, steps, speed = 0, 0, math.inf
+    allowed = int(config.settle_outliers * model.vert_count)
     while steps < config.max_steps:
         state = solver.step(
             state,
@@ -224,8 +235,10 @@ def drape_to_equilibrium(
             velocity_scale=config.drape_velocity_scale,
         )
         steps += 1
-        speed = float(state.v.norm(dim=-1).max())
-        settled = settled + 1 if speed < config.speed_tol else 0
+        speeds = state.v.norm(dim=-1)
+        speed = float(speeds.max())
+        calm = speed < config.speed_tol or int((speeds >= config.speed_tol).sum()) <= allowed
+        settled = settled + 1 if calm else 0
         if steps >= config.min_steps and settled >= config.settle_steps:
             break
     return _result(
