@@ -729,3 +729,14 @@ def test_hinge_terms_with_a_graph_equal_the_whole_sum(term):
         torch.testing.assert_close(g_value, g_whole, rtol=1e-14, atol=0.0)
         with torch.no_grad():
             torch.testing.assert_close(loss(uv, uv0, tri), whole.detach(), rtol=1e-14, atol=0.0)
+
+
+def test_a_nan_rest_coordinate_still_reaches_the_hinge_terms():
+    """The live-triangle path must not drop a NaN triangle: the fit's guards look for non-finite losses."""
+    uv0 = torch.tensor([[0.0, 0.0], [0.1, 0.0], [0.1, 0.1], [0.0, 0.1]], dtype=F64)
+    tri = torch.tensor([[0, 1, 2], [0, 2, 3]])
+    uv = uv0.clone()
+    uv[2, 0] = float("nan")
+    uv.requires_grad_(True)
+    assert torch.isnan(rest_area_loss(uv, uv0, tri))
+    assert torch.isnan(rest_distortion_loss(uv, uv0, tri))

@@ -676,12 +676,13 @@ def rest_distortion_loss(
 def _hinge_sum(penalty, tri_vertices, per_tri, rest_uv, reduction) -> torch.Tensor:
     """`_reduce` of ``penalty(tri_vertices, per_tri)`` (…, F), a hinge that is 0 for most triangles: for a
     sum, evaluated with autograd only on the triangles where it is positive (any batch element), the rest
-    found without a graph. The same value and gradient (a zero gets none), at about a third of the cost
-    in a fit's proximal step, where these terms are evaluated ~60 times an iteration and mostly vanish."""
+    found without a graph (a NaN counts as live, so it reaches the sum). The same value and gradient (a
+    zero gets none), at about two thirds of the cost in a fit's proximal step, where these terms are
+    evaluated ~60 times an iteration and mostly vanish."""
     if reduction != "sum" or not rest_uv.requires_grad or not torch.is_grad_enabled():
         return _reduce(penalty(tri_vertices, per_tri), None, reduction)
     with torch.no_grad():
-        live = penalty(tri_vertices, per_tri).reshape(-1, tri_vertices.shape[0]).gt(0).any(0)
+        live = ~penalty(tri_vertices, per_tri).reshape(-1, tri_vertices.shape[0]).le(0).all(0)
     keep = torch.nonzero(live).squeeze(1)
     return penalty(tri_vertices[keep], per_tri[keep]).sum(-1)
 
