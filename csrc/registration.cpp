@@ -49,7 +49,7 @@ TORCH_LIBRARY(diffavatar, m) {
   //   seams = [stitch_vertices, attach_vertices, attach_height]
   //   body = [body_verts, body_faces, contact_vert, contact_tri, contact_bary]
   //   coefficients = [gravity x, y, z, velocity_decay, dt, stitch_compliance, stitch_max_move,
-  //                   stitch_snap, attach_compliance, thickness, friction, jacobi_omega]
+  //                   stitch_snap, attach_compliance, thickness, friction, jacobi_omega, contact_bounce]
   m.def(
       "xpbd_substeps_(Tensor(a!) x, Tensor(b!) v, Tensor vert_inv_mass, Tensor[] stretch, Tensor[] bend, "
       "Tensor[] seams, Tensor[] body, float[] coefficients, int substeps, int iterations, bool jacobi, "

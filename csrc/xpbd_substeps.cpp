@@ -577,7 +577,7 @@ struct Options {
   int64_t substeps, iterations;
   double stitch_compliance, stitch_max_move, stitch_snap, attach_compliance, thickness, friction;
   bool jacobi;
-  double omega;
+  double omega, bounce;
   int threads;
 };
 
@@ -609,10 +609,10 @@ FrameTensors unpack_frame(at::TensorList stretch, at::TensorList bend, at::Tenso
 // The op's `coefficients` (the float fields of sim/substep.py's SubstepParams, in order) and counts.
 Options unpack_options(at::ArrayRef<double> c, int64_t substeps, int64_t iterations, bool jacobi,
                        int64_t num_threads) {
-  TORCH_CHECK(c.size() == 12,
-              "diffavatar: xpbd_substeps_ coefficients must hold 12 floats (gravity x, y, z, velocity_decay, dt, "
+  TORCH_CHECK(c.size() == 13,
+              "diffavatar: xpbd_substeps_ coefficients must hold 13 floats (gravity x, y, z, velocity_decay, dt, "
               "stitch_compliance, stitch_max_move, stitch_snap, attach_compliance, thickness, friction, "
-              "jacobi_omega), got ",
+              "jacobi_omega, contact_bounce), got ",
               c.size());
   TORCH_CHECK(num_threads >= 0, "diffavatar: num_threads must be >= 0 (0 = torch.get_num_threads()), got ",
               num_threads);
@@ -627,6 +627,7 @@ Options unpack_options(at::ArrayRef<double> c, int64_t substeps, int64_t iterati
   o.thickness = c[9];
   o.friction = c[10];
   o.omega = c[11];
+  o.bounce = c[12];
   o.substeps = substeps;
   o.iterations = iterations;
   o.jacobi = jacobi;
@@ -661,6 +662,7 @@ void run_substeps(at::Tensor& x_t, at::Tensor& v_t, const at::Tensor& w_t, const
   const T stitch_at = static_cast<T>(o.stitch_compliance) * inv_h2;
   const T stitch_move = static_cast<T>(o.stitch_max_move), stitch_snap = static_cast<T>(o.stitch_snap);
   const T thickness = static_cast<T>(o.thickness), mu = static_cast<T>(o.friction);
+  const T bounce_cut = cp.vert.empty() ? T(0) : static_cast<T>(1.0 - o.bounce);
   const bool friction = mu > T(0) && !cp.vert.empty();
   std::vector<T> x_start(static_cast<size_t>(3 * nv));
   // Jacobi accumulators
@@ -776,6 +778,20 @@ void run_substeps(at::Tensor& x_t, at::Tensor& v_t, const at::Tensor& w_t, const
     }
 #pragma omp for schedule(static)
     for (int64_t j = 0; j < 3 * nv; ++j) v[j] = (x[j] - x_start[j]) * inv_h;
+#pragma omp single
+    if (bounce_cut > T(0)) {
+      // a contact pushed out in this substep keeps only `bounce` of its outward normal velocity (the push
+      // is a position correction; as a velocity it would fling the vertex off the body)
+      for (size_t k = 0; k < cp.vert.size(); ++k) {
+        if (!(cp.depth_sum[k] > T(0))) continue;
+        T* vi = v + 3 * static_cast<int64_t>(cp.vert[k]);
+        const T* nn = cp.normal.data() + 3 * k;
+        const T vn = vi[0] * nn[0] + vi[1] * nn[1] + vi[2] * nn[2];
+        if (vn > T(0)) {
+          for (int j = 0; j < 3; ++j) vi[j] -= bounce_cut * vn * nn[j];
+        }
+      }
+    }
   }
 }
 

@@ -44,6 +44,7 @@ def test_numbers_that_yaml_reads_as_strings_parse(tmp_path):
         ("boundary_gap_bin: .inf", "boundary_gap_bin must be >= 0"),
         ("drape_velocity_scale: 1.5", "drape_velocity_scale must be in \\(0, 1\\]"),  # energy would grow
         ("drape_velocity_scale: 0", "drape_velocity_scale must be in \\(0, 1\\]"),
+        ("drape_contact_bounce: -1", "drape_contact_bounce must be in \\[0, 1\\]"),
     ],
 )
 def test_values_of_the_wrong_type_or_range_are_refused(tmp_path, line, message):
@@ -64,13 +65,15 @@ def test_a_null_where_a_length_or_nothing_is_allowed(tmp_path):
 
 
 def test_the_fit_drapes_with_its_own_damping():
-    """`drape_velocity_scale` reaches every warm-started drape of a fit, with either adjoint; the first
-    (sew and) drape keeps the drape default."""
+    """`drape_velocity_scale` and `drape_contact_bounce` reach every warm-started drape of a fit, with
+    either adjoint; the first (sew and) drape keeps the drape default."""
     from torch_diffavatar.fit_config import drape_config, first_drape_config
     from torch_diffavatar.sim.forward_drape import DrapeConfig
 
-    config = FitConfig(drape_velocity_scale=0.9)
+    config = FitConfig(drape_velocity_scale=0.9, drape_contact_bounce=0.0)
     for adjoint in ("equilibrium", "trajectory"):
         assert drape_config(config, adjoint=adjoint).drape_velocity_scale == 0.9
+        assert drape_config(config, adjoint=adjoint).xpbd.contact_bounce == 0.0
     assert drape_config(FitConfig()).drape_velocity_scale == DrapeConfig().drape_velocity_scale
     assert first_drape_config(config).drape_velocity_scale == DrapeConfig().drape_velocity_scale
+    assert first_drape_config(config).xpbd.contact_bounce == 1.0

@@ -150,6 +150,8 @@ class FitConfig:
         drape_substeps: XPBD substeps per frame of the fit's drapes [-].
         drape_velocity_scale: velocity factor per frame of the fit's warm-started drapes (artificial
             damping; `DrapeConfig.drape_velocity_scale`) [-], in (0, 1].
+        drape_contact_bounce: `XPBDConfig.contact_bounce` of the fit's drapes (1: contacts pushed out keep
+            their outward velocity, as every drape; 0: inelastic) [-], in [0, 1].
         drape_settle_outliers: fraction of the vertices that the equilibrium adjoint's drapes let move
             faster than the settle speed when they stop (`DrapeConfig.settle_outliers`) [-], in [0, 1).
             Both as every drape by default: 0.9 with 1 % took 44-59 % of the frames off five of six fits,
@@ -269,6 +271,7 @@ class FitConfig:
     predict_warm_starts: bool = False
     drape_substeps: int = 10
     drape_velocity_scale: float = 0.97
+    drape_contact_bounce: float = 1.0
     drape_settle_outliers: float = 0.0
     first_max_steps: int = 400
     first_bend_scales: tuple[float, ...] = (1.0,)
@@ -332,12 +335,7 @@ class FitConfig:
             raise ValueError(
                 f"FitConfig.waist_shift_bound must be a finite length > 0 [m], got {self.waist_shift_bound}"
             )
-        if not 0 <= self.drape_settle_outliers < 1:
-            outliers = self.drape_settle_outliers
-            raise ValueError(f"FitConfig.drape_settle_outliers must be in [0, 1), got {outliers}")
-        if not 0 < self.drape_velocity_scale <= 1:
-            scale = self.drape_velocity_scale
-            raise ValueError(f"FitConfig.drape_velocity_scale must be in (0, 1], got {scale}")
+        self._check_drape_options()
         self._check_counts()
         for name in ("first_bend_scales", "first_stretch_scales"):
             self._positive_list(name)
@@ -416,6 +414,19 @@ class FitConfig:
         ):
             raise ValueError(f"FitConfig.{name} must be a non-empty list of positive numbers, got {scales!r}")
         object.__setattr__(self, name, tuple(float(s) for s in scales))
+
+    def _check_drape_options(self) -> None:
+        """ValueError for a drape damping, contact bounce or settle share out of its range."""
+        for name, low, high, closed in (
+            ("drape_velocity_scale", 0.0, 1.0, "(0, 1]"),
+            ("drape_contact_bounce", 0.0, 1.0, "[0, 1]"),
+            ("drape_settle_outliers", 0.0, 1.0, "[0, 1)"),
+        ):
+            value = getattr(self, name)
+            low_ok = value >= low if closed[0] == "[" else value > low
+            high_ok = value <= high if closed[-1] == "]" else value < high
+            if not (low_ok and high_ok):
+                raise ValueError(f"FitConfig.{name} must be in {closed}, got {value}")
 
     def _check_counts(self) -> None:
         """ValueError for a count that is not an integer >= its least value (0 or 1)."""
@@ -639,7 +650,11 @@ def drape_config(config: FitConfig, steps: int | None = None, adjoint: str | Non
     # edges (72-81 rejections in 30 iterations at a limit of 10). The fit catches real blow-ups by
     # the speed limit and the `max_drape_jump` guard instead.
     xpbd = XPBDConfig(
-        substeps=config.drape_substeps, iterations=1, max_strain=FIT_MAX_STRAIN, num_threads=FIT_THREADS
+        substeps=config.drape_substeps,
+        iterations=1,
+        max_strain=FIT_MAX_STRAIN,
+        num_threads=FIT_THREADS,
+        contact_bounce=config.drape_contact_bounce,
     )
     damped = config.drape_velocity_scale
     if adjoint == "equilibrium":

@@ -172,6 +172,23 @@ def test_trajectory_gradcheck_jacobi(sheet, group):
     assert stats["max_contacts"] > 0
 
 
+@pytest.mark.parametrize("group", ("rest_uv", "body"))
+def test_trajectory_gradcheck_contacts_that_do_not_bounce(sheet, group):
+    """`XPBDConfig.contact_bounce` < 1: the replay cuts the pushed contacts' outward speed as the op did."""
+    cfg = DrapeConfig(
+        xpbd=XPBDConfig(substeps=2, iterations=2, contact_bounce=0.0), dt=1 / 30, max_steps=2, min_steps=2
+    )
+    g, model, verts, faces = sheet
+    # the sphere raised through the sheet's middle: the contacts are pushed out, upwards, from the start
+    scene = (g, model, verts + verts.new_tensor([0.0, 0.02, 0.0]), faces)
+    stats = {}
+    f, t = _fn(scene, group, "trajectory", cfg, TrajectoryOptions(checkpoint_every=1), stats)
+    _gradcheck(f, t)
+    assert stats["max_contacts"] > 0
+    bouncing = _fn(scene, group, "trajectory", short_config(2), TrajectoryOptions(checkpoint_every=1))[0]
+    assert float((f(t.detach()) - bouncing(t.detach())).abs().max()) > 1e-6  # the cut acted
+
+
 def test_trajectory_gradcheck_tube(tube):
     f, t = _fn(tube, "rest_uv", "trajectory", short_config(2), TrajectoryOptions(checkpoint_every=1))
     _gradcheck(f, t)

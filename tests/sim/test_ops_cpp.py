@@ -488,6 +488,35 @@ def test_xpbd_substeps_opcheck(monkeypatch):
     )
 
 
+@pytest.mark.parametrize("case, bounce", [("sphere", 0.0), ("sphere", 0.5), ("jacobi", 0.0)])
+def test_contact_bounce_reaches_the_op(case, bounce, monkeypatch):
+    """``contact_bounce`` cuts the outward normal velocity of contacts pushed out in a substep, in the op
+    as in the twin. A 3 cm thickness pushes the sheet's contacts outwards (its 5 mm, the sheet falling
+    onto the sphere, leaves them moving inwards: nothing to cut)."""
+    args = _substep_args(case, monkeypatch=monkeypatch)
+    x_one, v_one = _run_substeps(_op("xpbd_substeps_"), args, thickness=0.03)
+    x_cpp, v_cpp = _run_substeps(_op("xpbd_substeps_"), args, thickness=0.03, contact_bounce=bounce)
+    x_ref, v_ref = _run_substeps(reference.xpbd_substeps_, args, thickness=0.03, contact_bounce=bounce)
+    assert (x_cpp - x_one).abs().max() > 1e-5, "the bounce must change the result"
+    torch.testing.assert_close(x_cpp, x_ref, rtol=0.0, atol=1e-10)
+    torch.testing.assert_close(v_cpp, v_ref, rtol=0.0, atol=1e-7)
+    # what it cuts is outward speed: the contacts leave the sphere more slowly
+    _, _, inputs = args
+    vert = inputs.body.contact_vert
+    normal = x_cpp[vert] / x_cpp[vert].norm(dim=-1, keepdim=True)  # the sphere's outward normal
+    out_one = (v_one[vert] * normal).sum(-1).clamp_min(0).sum()
+    out_cut = (v_cpp[vert] * normal).sum(-1).clamp_min(0).sum()
+    assert float(out_cut) < float(out_one)
+
+
+def test_xpbd_substeps_opcheck_with_contacts_that_do_not_bounce(monkeypatch):
+    x, v, inputs = _substep_args("sphere", monkeypatch=monkeypatch)
+    params = {"substeps": 2, "contact_bounce": 0.0, "thickness": 0.03}
+    torch.library.opcheck(
+        _op("xpbd_substeps_").default, (x.clone(), v.clone(), *_with_params(inputs, **params).op_args())
+    )
+
+
 def test_xpbd_substeps_rejects_bad_arguments(monkeypatch):
     x, v, inputs = _substep_args("sphere", monkeypatch=monkeypatch)
     op = _op("xpbd_substeps_")
@@ -508,7 +537,7 @@ def test_xpbd_substeps_rejects_bad_arguments(monkeypatch):
     with pytest.raises(RuntimeError, match="tri_order"):
         call(stretch={"tri_order": stretch.tri_order + stretch.tri_vertices.shape[0]})
     args = list(inputs.op_args())
-    with pytest.raises(RuntimeError, match="coefficients must hold 12"):
+    with pytest.raises(RuntimeError, match="coefficients must hold 13"):
         op(x.clone(), v.clone(), *args[:5], args[5][:-1], *args[6:])
     with pytest.raises(RuntimeError, match="bend must hold 5 tensors"):
         op(x.clone(), v.clone(), args[0], args[1], args[2][:4], *args[3:])

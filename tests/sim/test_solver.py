@@ -215,3 +215,9 @@ def test_settle_outliers_let_a_drape_stop_while_a_few_vertices_still_move():
     for bad in (-0.1, 1.0, float("nan")):
         with pytest.raises(ValueError, match="settle_outliers"):
             DrapeConfig(settle_outliers=bad)
+
+
+def test_contact_bounce_must_be_a_share():
+    for bad in (-0.5, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="contact_bounce"):
+            XPBDConfig(contact_bounce=bad)

@@ -102,6 +102,16 @@ def apply_friction(
     return x.index_add(0, contacts.vert, -dt_ * scale[:, None])
 
 
+def damp_bounce(
+    v: torch.Tensor, contacts: Contacts, normal: torch.Tensor, depth: torch.Tensor, bounce: float
+) -> torch.Tensor:
+    """Velocities (Vs, 3) after each contact with a normal correction ``depth`` > 0 in this substep kept only
+    ``bounce`` of its outward normal velocity (``XPBDConfig.contact_bounce``; out of place)."""
+    vn = (v[contacts.vert] * normal).sum(-1)
+    cut = torch.where(depth > 0, (1.0 - bounce) * vn.clamp_min(0.0), torch.zeros_like(vn))
+    return v.index_add(0, contacts.vert, -cut[:, None] * normal)
+
+
 def signed_distance_along_normal(x: torch.Tensor, body_verts, body_faces, contacts: Contacts) -> torch.Tensor:
     """(C,) signed distance [m] of each contact vertex above its contact triangle's plane."""
     point, normal = contact_frames(body_verts, body_faces, contacts)

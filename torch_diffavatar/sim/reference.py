@@ -67,7 +67,7 @@ from torch_diffavatar.geometry import (
     green_strain,
     triangle_green_strain,
 )
-from torch_diffavatar.sim.contacts import Contacts, apply_friction, contact_frames, push_out
+from torch_diffavatar.sim.contacts import Contacts, apply_friction, contact_frames, damp_bounce, push_out
 from torch_diffavatar.sim.substep import SubstepInputs
 
 
@@ -551,7 +551,8 @@ def xpbd_substeps(x: torch.Tensor, v: torch.Tensor, inputs: SubstepInputs, membr
     the contact projection (`contacts.push_out`, with the contact frames computed once per call), and
     `stitch_project_` last, so that a seam pressed onto the body still closes); then `contacts.apply_friction`
     with the summed contact depths (when ``friction`` > 0 and there are contacts); finally
-    ``v = (x − x_start) / dt``.
+    ``v = (x − x_start) / dt``, less the outward normal velocity of the pushed contacts that
+    ``contact_bounce`` < 1 removes (`contacts.damp_bounce`).
 
     Args:
         x, v: (Vs, 3) positions [m] and velocities [m/s] (not modified).
@@ -575,6 +576,8 @@ def xpbd_substeps(x: torch.Tensor, v: torch.Tensor, inputs: SubstepInputs, membr
         if contact is not None and p.friction > 0:
             x = apply_friction(x, x_start, contact.contacts, contact.normal, depth_sum, p.friction)
         v = (x - x_start) / p.dt
+        if contact is not None and p.contact_bounce < 1:
+            v = damp_bounce(v, contact.contacts, contact.normal, depth_sum, p.contact_bounce)
     return x, v
 
 

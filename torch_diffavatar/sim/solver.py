@@ -78,6 +78,11 @@ class XPBDConfig:
         num_threads: OpenMP threads of the C++ substep op (0 = ``torch.get_num_threads()``). 1 by
             default: its Gauss–Seidel colours need a barrier each, and on the shared 2-core development
             machine a second thread made a substep slower, not faster (scripts/bench_kernels.py).
+        contact_bounce: the share of its outward normal velocity that a vertex pushed out of the body in a
+            substep keeps (1, the default: all of it, the push becoming a velocity; 0: an inelastic contact).
+            Below 1 the contact vertices of a drape come to rest instead of rocking: on a fitted dress (its
+            own drape continued for 80 frames) 71-90 of 1,992 vertices still moved faster than 2 cm/s at 1,
+            9-14 at 0 (docs/BENCHMARKS.md, "Drapes that never settle").
         contact_cache: against a static body, query only the vertices that can be in the contact band,
             seeded with last frame's triangles (`collision.ContactCache`; C++ only). The contacts, hence
             the results, are the same with and without it.
@@ -97,6 +102,7 @@ class XPBDConfig:
     max_strain: float = 3.0
     use_extension: bool = True
     num_threads: int = 1
+    contact_bounce: float = 1.0
     contact_cache: bool = True
 
     def __post_init__(self):
@@ -108,6 +114,8 @@ class XPBDConfig:
             raise ValueError(f"XPBDConfig.gravity must have 3 components, got {self.gravity}")
         if self.num_threads < 0:
             raise ValueError(f"XPBDConfig.num_threads must be >= 0, got {self.num_threads}")
+        if not 0 <= self.contact_bounce <= 1:
+            raise ValueError(f"XPBDConfig.contact_bounce must be in [0, 1], got {self.contact_bounce}")
 
 
 @dataclass(frozen=True)
@@ -339,6 +347,7 @@ def substep_inputs(
         thickness=float(mat.thickness),
         friction=float(mat.friction) * friction_scale,
         jacobi_omega=config.jacobi_omega,
+        contact_bounce=config.contact_bounce,
         substeps=config.substeps,
         iterations=config.iterations,
         jacobi=config.scheme == "jacobi",

@@ -101,7 +101,7 @@ class BodyInputs:
 
 @dataclass(frozen=True)
 class SubstepParams:
-    """The scalars of one call. The fields up to ``jacobi_omega`` are the op's ``coefficients``.
+    """The scalars of one call. The fields up to ``contact_bounce`` are the op's ``coefficients``.
 
     Attributes:
         gravity: (3,) gravitational acceleration [m/s²].
@@ -112,6 +112,8 @@ class SubstepParams:
         attach_compliance: [m/N].
         thickness: cloth–body distance kept by the contacts [m]; friction: Coulomb coefficient μ [-].
         jacobi_omega: relaxation factor of the Jacobi scheme [-].
+        contact_bounce: the share of its outward normal velocity that a vertex pushed out by a body contact
+            in a substep keeps (1: all of the push, as a velocity; 0: none, an inelastic contact) [-].
         substeps, iterations: counts; jacobi: the Jacobi scheme instead of colour-ordered Gauss–Seidel;
         num_threads: OpenMP threads of the C++ op (0 = torch's setting; unused by the twin).
     """
@@ -126,6 +128,7 @@ class SubstepParams:
     thickness: float
     friction: float
     jacobi_omega: float
+    contact_bounce: float
     substeps: int
     iterations: int
     jacobi: bool
