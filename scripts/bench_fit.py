@@ -58,6 +58,12 @@ def main() -> None:
         help="fraction of the vertices the settle test lets move (FitConfig.drape_settle_outliers)",
     )
     parser.add_argument(
+        "--contact-bounce",
+        type=float,
+        default=None,
+        help="the fit's drapes' contact bounce (FitConfig.drape_contact_bounce)",
+    )
+    parser.add_argument(
         "--per-iteration", action="store_true", help="print each iteration's frames, gap and CPU seconds"
     )
     parser.add_argument(
@@ -86,6 +92,8 @@ def main() -> None:
         base = replace(base, drape_velocity_scale=args.velocity_scale)
     if args.settle_outliers is not None:
         base = replace(base, drape_settle_outliers=args.settle_outliers)
+    if args.contact_bounce is not None:
+        base = replace(base, drape_contact_bounce=args.contact_bounce)
     t0 = time.perf_counter()
     setup = prepare(DEMO_SCAN, base, anny_model=anny)
     setup_s = time.perf_counter() - t0
