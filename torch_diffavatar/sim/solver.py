@@ -80,9 +80,10 @@ class XPBDConfig:
             machine a second thread made a substep slower, not faster (scripts/bench_kernels.py).
         contact_bounce: the share of its outward normal velocity that a vertex pushed out of the body in a
             substep keeps (1, the default: all of it, the push becoming a velocity; 0: an inelastic contact).
-            Below 1 the contact vertices of a drape come to rest instead of rocking: on a fitted dress (its
-            own drape continued for 80 frames) 71-90 of 1,992 vertices still moved faster than 2 cm/s at 1,
-            9-14 at 0 (docs/BENCHMARKS.md, "Drapes that never settle").
+            Below 1 fewer contact vertices rock: on a fitted dress (its own drape continued for 80 frames)
+            71-90 of 1,992 vertices still moved faster than 2 cm/s at 1, 9-14 at 0, among them a shoulder
+            vertex jumping between two body triangles each frame, which no bounce cures (one contact plane
+            per frame over a ridge; docs/BENCHMARKS.md, "Drapes that never settle").
         contact_cache: against a static body, query only the vertices that can be in the contact band,
             seeded with last frame's triangles (`collision.ContactCache`; C++ only). The contacts, hence
             the results, are the same with and without it.
