@@ -154,9 +154,10 @@ class FitConfig:
             their outward velocity, as every drape; 0: inelastic) [-], in [0, 1].
         drape_settle_outliers: fraction of the vertices that the equilibrium adjoint's drapes let move
             faster than the settle speed when they stop (`DrapeConfig.settle_outliers`) [-], in [0, 1).
-            Both as every drape by default: 0.9 with 1 % took 44-59 % of the frames off five of six fits,
-            the results moving by their noise, but Newton's T-shirt 382 ended 1.75 mm farther from its
-            true drape (docs/BENCHMARKS.md, "Drapes that never settle").
+            All three as every drape by default: damping 0.9 with 1 % outliers took 44-59 % of the frames
+            off five of six fits, the results moving by their noise, but Newton's T-shirt 382 ended
+            1.75 mm farther from its true drape; bounce 0 saved 0-12 % of the frames, the drapes mixed
+            (docs/BENCHMARKS.md, "Drapes that never settle").
         first_max_steps: frames at most of the first (sew and) drape [-].
         first_bend_scales: the first drape is sewn and draped once per entry, with the bending stiffness
             scaled by it, then each is settled at the fit's own stiffness; the one with the lowest loss
