@@ -161,11 +161,15 @@ def resew(fitter, ev: ObjectiveOutput, start: ClothState) -> tuple[ObjectiveOutp
         )
     except SimulationError:  # every sewing failed: the warm drape goes on
         starts = []
-    if len(starts) == 1 and math.isnan(starts[0][0]):  # one sewing is not evaluated by `first_states`
-        loss = float(fitter.evaluate(starts[0][1]).loss.detach())
-        starts[0][2].update({"loss": loss} if math.isfinite(loss) else {"error": f"loss {loss}"})
-        starts = [(loss, starts[0][1], starts[0][2])] if math.isfinite(loss) else []
-    new = fitter._checked_evaluate(starts[0][1]) if starts and starts[0][0] < record["warm_loss"] else None
+    fresh = None  # one sewing, which `first_states` does not evaluate: its evaluation, kept if it is taken
+    if len(starts) == 1 and math.isnan(starts[0][0]):
+        fresh = fitter._checked_evaluate(starts[0][1])  # None when the drape is rejected (counted)
+        loss = math.nan if fresh is None else float(fresh.loss.detach())
+        starts[0][2].update({"loss": loss} if fresh is not None else {"error": "drape rejected"})
+        starts = [(loss, starts[0][1], starts[0][2])] if fresh is not None else []
+    new = None
+    if starts and starts[0][0] < record["warm_loss"]:
+        new = fresh if fresh is not None else fitter._checked_evaluate(starts[0][1])
     record["taken"] = new is not None
     fitter.resewings.append(record)
     return (new, starts[0][1]) if new is not None else (ev, start)
