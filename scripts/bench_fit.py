@@ -64,6 +64,11 @@ def main() -> None:
         help="the fit's drapes' contact bounce (FitConfig.drape_contact_bounce)",
     )
     parser.add_argument(
+        "--valley-contacts",
+        action="store_true",
+        help="second contacts in the body's valleys (FitConfig.drape_valley_contacts)",
+    )
+    parser.add_argument(
         "--per-iteration", action="store_true", help="print each iteration's frames, gap and CPU seconds"
     )
     parser.add_argument(
@@ -94,6 +99,8 @@ def main() -> None:
         base = replace(base, drape_settle_outliers=args.settle_outliers)
     if args.contact_bounce is not None:
         base = replace(base, drape_contact_bounce=args.contact_bounce)
+    if args.valley_contacts:
+        base = replace(base, drape_valley_contacts=True)
     t0 = time.perf_counter()
     setup = prepare(DEMO_SCAN, base, anny_model=anny)
     setup_s = time.perf_counter() - t0

@@ -77,3 +77,18 @@ def test_the_fit_drapes_with_its_own_damping():
     assert drape_config(FitConfig()).drape_velocity_scale == DrapeConfig().drape_velocity_scale
     assert first_drape_config(config).drape_velocity_scale == DrapeConfig().drape_velocity_scale
     assert first_drape_config(config).xpbd.contact_bounce == 1.0
+
+
+def test_valley_contacts_reach_the_fit_drapes_and_the_first_one(tmp_path):
+    """`drape_valley_contacts` (off by default) reaches every drape of a fit, the first one's drape too
+    (not its sewing, whose band is wide)."""
+    from torch_diffavatar.fit_config import drape_config, first_drape_config
+
+    assert not drape_config(FitConfig()).xpbd.valley_contacts
+    assert not first_drape_config(FitConfig()).xpbd.valley_contacts
+    config = _load(tmp_path, "drape_valley_contacts: true\n")
+    for adjoint in ("equilibrium", "trajectory"):
+        assert drape_config(config, adjoint=adjoint).xpbd.valley_contacts
+    first = first_drape_config(config)
+    assert first.xpbd.valley_contacts and not first.sew_xpbd.valley_contacts
+    assert first.xpbd.max_strain == drape_config(config).xpbd.max_strain  # the fit's strain limit kept

@@ -158,6 +158,11 @@ class FitConfig:
             off five of six fits, the results moving by their noise, but Newton's T-shirt 382 ended
             1.75 mm farther from its true drape; bounce 0 saved 0-12 % of the frames, the drapes mixed
             (docs/BENCHMARKS.md, "Drapes that never settle").
+        drape_valley_contacts: `XPBDConfig.valley_contacts` of the fit's drapes and of its first drape (a
+            second contact where the body folds inward, so that the armpits' vertices stop jumping between
+            the two sides). Off by default: on five held-out fits it took 31 % of the frames off the one whose
+            armpits rocked, and moved the others by their path noise, one T-shirt 1.3 mm farther from its true
+            drape (docs/BENCHMARKS.md, "Valley contacts").
         first_max_steps: frames at most of the first (sew and) drape [-].
         first_bend_scales: the first drape is sewn and draped once per entry, with the bending stiffness
             scaled by it, then each is settled at the fit's own stiffness; the one with the lowest loss
@@ -274,6 +279,7 @@ class FitConfig:
     drape_velocity_scale: float = 0.97
     drape_contact_bounce: float = 1.0
     drape_settle_outliers: float = 0.0
+    drape_valley_contacts: bool = False
     first_max_steps: int = 400
     first_bend_scales: tuple[float, ...] = (1.0,)
     first_stretch_scales: tuple[float, ...] = (1.0,)
@@ -656,6 +662,7 @@ def drape_config(config: FitConfig, steps: int | None = None, adjoint: str | Non
         max_strain=FIT_MAX_STRAIN,
         num_threads=FIT_THREADS,
         contact_bounce=config.drape_contact_bounce,
+        valley_contacts=config.drape_valley_contacts,
     )
     damped = config.drape_velocity_scale
     if adjoint == "equilibrium":
@@ -673,7 +680,9 @@ def first_drape_config(config: FitConfig) -> DrapeConfig:
     """Options of a fit's first sew and drape: the defaults, with the fit's strain limit (see
     `drape_config`): sewing a template onto a fitted body can pull a seam-corner triangle past the default
     limit for a few frames (measured: E = 3.7 on a long-sleeve shirt) without a blow-up."""
-    return with_fit_strain_limit(DrapeConfig(max_steps=config.first_max_steps))
+    drape = DrapeConfig(max_steps=config.first_max_steps)
+    drape = replace(drape, xpbd=replace(drape.xpbd, valley_contacts=config.drape_valley_contacts))
+    return with_fit_strain_limit(drape)
 
 
 def adjoint_options(config: FitConfig, adjoint: str | None = None):

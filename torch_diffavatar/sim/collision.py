@@ -5,8 +5,8 @@ triangle within a band. The response (`contact_frames`, `project_contacts`, `app
 `sim/contacts.py` and re-exported here) is plain, out-of-place torch and recomputes the contact point
 (barycentric point on the stored triangle) and the face normal from the CURRENT ``body_verts`` each time,
 so the projected positions are a differentiable function of the body vertices (paper eq. 6).
-Limitations: no self-collision, no edge–edge contacts, one contact per cloth vertex, the body is static
-within a step.
+Limitations: no self-collision, no edge–edge contacts, one contact per cloth vertex (two in a valley with
+``valley``), the body is static within a step.
 
 Ties: a vertex whose closest body point lies on a body edge (or vertex) is equally close to every face
 sharing that feature, and the query picks one of them by rounding. The response uses the picked face's
@@ -15,13 +15,20 @@ vertex sliding over the edge switched planes from frame to frame and the drape n
 `detect_contacts` therefore picks, among the faces sharing the closest feature, the one whose plane is
 farthest from the vertex (the normal closest to the direction from the closest point): the plane distance
 is then continuous as the vertex crosses the edge's region.
+
+Valleys: a contact's plane extends past its triangle. Where the body folds inward (the armpit, the spine's
+groove) the plane of one side runs into the other side, and a vertex held by one plane alone slides through
+it: the next frame the other side is closest and pushes it back. Two vertices of a fitted dress's armpits
+jumped 6.5–8.5 mm every frame so, and the drape never settled. With ``valley`` (`XPBDConfig.valley_contacts`)
+a vertex within ``valley`` [m] of a triangle around its contact triangle that rises above the contact's plane
+(a valley) gets a second contact with the closest such triangle, so that it is held by both sides.
 """
 
 from __future__ import annotations
 
 import torch
 
-from torch_diffavatar.sim import ops
+from torch_diffavatar.sim import ops, reference
 
 # the differentiable response lives below the kernels (`sim/contacts.py`); re-exported for callers
 from torch_diffavatar.sim.contacts import (  # noqa: F401
@@ -59,7 +66,7 @@ class BodyIndex:
         self.faces = body_faces.detach().clone().contiguous()
         self.use_extension = use_extension
         self.grid = None
-        self.features = _FeatureFaces(self.faces, self.verts.shape[0])
+        self.features = _feature_faces(self.faces, self.verts.shape[0])  # shared: its tables outlive us
         if ops.closest_point_index_available(self.verts.device, use_extension):
             self.grid = ops.closest_point_index(
                 self.verts, self.faces, 0.0 if cell_size is None else cell_size
@@ -231,6 +238,7 @@ def detect_contacts(
     use_extension=True,
     index: BodyIndex | None = None,
     cache: ContactCache | None = None,
+    valley: float | None = None,
 ) -> Contacts:
     """Closest body triangle of every cloth vertex within ``band`` [m] (no autograd).
 
@@ -239,6 +247,9 @@ def detect_contacts(
         index: a `BodyIndex` of exactly (body_verts, body_faces) to reuse (ValueError otherwise).
         cache: a `ContactCache` of that index (or of the body's, without ``index``): the same contacts,
             faster from frame to frame.
+        valley: a contact vertex within this distance [m] of a valley partner of its triangle (one around
+            it that rises above its plane) gets a second contact with the closest one, listed after every
+            first contact (module docstring). None: one contact per vertex.
     """
     with torch.no_grad():
         if cache is not None:
@@ -263,16 +274,25 @@ def detect_contacts(
         vert = torch.nonzero(tri >= 0).squeeze(1)
         features = index.features if index is not None else _feature_faces(body_faces, body_verts.shape[0])
         tri, bary = features.outermost(x.detach()[vert], body_verts.detach(), tri[vert], bary[vert])
+        if valley is not None and vert.numel():
+            k, tri2, bary2 = features.valley_partners(
+                x.detach()[vert], body_verts.detach(), tri, valley, use_extension=use_extension
+            )
+            vert, tri, bary = torch.cat((vert, vert[k])), torch.cat((tri, tri2)), torch.cat((bary, bary2))
     return Contacts(vert, tri, bary)
 
 
-_LAST_FEATURES: list = []  # [(faces, vert_count, _FeatureFaces)] of the last body without a BodyIndex
+# A valley partner's corners rise this much [m] above the contact plane: coplanar neighbours (flat to
+# rounding) add nothing; any real fold, however shallow, does.
+_VALLEY_RISE = 1e-5
+
+_LAST_FEATURES: list = []  # [(faces, vert_count, _FeatureFaces)] of the last body topology
 
 
 def _feature_faces(faces: torch.Tensor, vert_count: int) -> _FeatureFaces:
     """`_FeatureFaces` of ``faces``, reused while the same topology comes back: a moving body (animation,
     the trajectory adjoint's forward) has no `BodyIndex`, and the build costs ~7 ms on the Anny body,
-    every frame otherwise."""
+    every frame otherwise; each of a fit's drapes builds a `BodyIndex`, and shares the valley table."""
     if _LAST_FEATURES:
         cached, count, features = _LAST_FEATURES[0]
         same = cached.shape == faces.shape and cached.device == faces.device and torch.equal(cached, faces)
@@ -316,6 +336,9 @@ class _FeatureFaces:
         ring[corner_vert[order], slot] = order // 3
         self.ring = ring
         self.faces = f
+        # `valley_candidates`' (key, body verts, table) and the (key, body verts) it last saw
+        self._valley_table: tuple | None = None
+        self._valley_seen: tuple | None = None
 
     def outermost(self, x, body_verts, tri, bary):
         """For contacts whose closest point is on an edge or vertex of face ``tri``: the face sharing that
@@ -366,3 +389,65 @@ class _FeatureFaces:
         bary[moved] = (bary[moved][:, :, None] * same).sum(1)
         tri[moved] = new[moved]
         return tri, bary
+
+    def valley_partners(self, x, body_verts, tri, radius: float, *, use_extension=True):
+        """Second contacts in valleys: for each contact (x (C, 3) on face ``tri`` (C,)), the closest of
+        ``tri``'s valley partners (`valley_candidates`) when x is within ``radius`` [m] of it.
+
+        Returns:
+            (k (P,) int64 ids of the contacts that have one, tri (P,), bary (P, 3)).
+        """
+        cand = self.valley_candidates(body_verts, tri)
+        rows = torch.nonzero(cand[:, 0] >= 0).squeeze(1)
+        if rows.numel() == 0:
+            empty = tri.new_zeros(0)
+            return empty, empty, x.new_zeros(0, 3)
+        fast = ops.closest_point_index_available(x.device, use_extension)
+        among = ops.closest_point_among if fast else reference.closest_point_among
+        points, bv = x[rows].contiguous(), body_verts.to(x.dtype).contiguous()
+        tri2, bary2, _ = among(points, bv, self.faces, cand[rows].contiguous(), float(radius))
+        hit = tri2 >= 0
+        return rows[hit], tri2[hit], bary2[hit].to(x.dtype)
+
+    def valley_candidates(self, body_verts, tri) -> torch.Tensor:
+        """(C, P) int64: for each face ``tri`` (C,), the faces sharing a vertex with it that rise more than
+        `_VALLEY_RISE` above its plane (a fold inward), padded with -1 (partners first).
+
+        A body seen twice in a row (a static one) gets a table of every face's partners (~0.1 s on the Anny
+        body), looked up from then on; a body that moves every frame, only its contact faces' (~1 ms)."""
+        key = (body_verts.shape, body_verts.dtype, body_verts.device)
+
+        def same(entry):
+            return entry is not None and entry[0] == key and torch.equal(entry[1], body_verts)
+
+        if same(self._valley_table):
+            return self._valley_table[2][tri]
+        verts = body_verts.detach().to(torch.float64)
+        if same(self._valley_seen):
+            table = self._partners(torch.arange(self.faces.shape[0], device=tri.device), verts)
+            self._valley_table = (key, body_verts.detach().clone(), table)
+            return table[tri]
+        self._valley_seen = (key, body_verts.detach().clone())
+        uniq, inverse = torch.unique(tri, return_inverse=True)
+        return self._partners(uniq, verts)[inverse]
+
+    def _partners(self, ids, verts) -> torch.Tensor:
+        """`valley_candidates` of the faces ``ids`` (K,) on the float64 body ``verts``, in chunks."""
+        table = torch.full((ids.numel(), 1), -1, dtype=torch.int64, device=self.faces.device)
+        for lo in range(0, ids.numel(), 4096):
+            chunk = ids[lo : lo + 4096]
+            cand = self.ring[self.faces[chunk]].reshape(chunk.numel(), -1)  # the faces around the corners
+            c = verts[self.faces[chunk]]
+            n = torch.linalg.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0])
+            n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-20)
+            top = verts[self.faces[cand.clamp_min(0)]] - c[:, None, None, 0]
+            rise = (top * n[:, None, None]).sum(-1).amax(-1)
+            ok = (cand >= 0) & (cand != chunk[:, None]) & (rise > _VALLEY_RISE)
+            if not bool(ok.any()):
+                continue
+            part = torch.where(ok, cand, -1).sort(dim=1, descending=True).values
+            width = int(ok.sum(1).max())
+            if width > table.shape[1]:
+                table = torch.cat((table, table.new_full((ids.numel(), width - table.shape[1]), -1)), 1)
+            table[lo : lo + chunk.numel(), :width] = part[:, :width]
+        return table

@@ -6,11 +6,17 @@ point and the face normal from the CURRENT ``body_verts``, so projected position
 function of the body vertices. The XPBD frame (`reference.xpbd_frame`), the energy of the equilibrium
 adjoint and the detection all share these functions; this module imports only torch, so the kernels
 below `sim/ops.py` can use it without an import cycle.
+
+A vertex may have two contacts (in a valley of the body, `collision.detect_contacts`'s ``valley``). The C++
+op answers its contacts one after the other, in their order; each function here does the same, as passes
+over `Contacts.layers` (a vertex's first contact in the first pass, its second in the next): contacts of
+different vertices do not interact, so the passes give the op's result.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import torch
 
@@ -23,6 +29,8 @@ class Contacts:
         vert: (C,) int64 cloth (simulated) vertex ids.
         tri: (C,) int64 body face ids.
         bary: (C, 3) barycentric coordinates of the closest point on ``tri`` at detection time.
+
+    A vertex listed twice has two contacts, answered in the order listed (`layers`).
     """
 
     vert: torch.Tensor
@@ -32,6 +40,44 @@ class Contacts:
     @property
     def count(self) -> int:
         return int(self.vert.shape[0])
+
+    @cached_property
+    def layers(self) -> list[torch.Tensor] | None:
+        """None when no vertex is listed twice; else the contacts as passes, (C_k,) int64 ids each: pass k
+        holds every vertex's (k + 1)-th contact, in the listed order."""
+        return occurrence_layers(self.vert)
+
+
+def occurrence_layers(vert: torch.Tensor) -> list[torch.Tensor] | None:
+    """`Contacts.layers` of the (C,) vertex ids ``vert``."""
+    n = vert.shape[0]
+    if n < 2:
+        return None
+    order = torch.argsort(vert, stable=True)
+    sv = vert[order]
+    first = torch.ones(n, dtype=torch.bool, device=vert.device)
+    first[1:] = sv[1:] != sv[:-1]
+    if bool(first.all()):
+        return None
+    pos = torch.arange(n, device=vert.device)
+    run_start = torch.cummax(torch.where(first, pos, torch.zeros_like(pos)), 0).values
+    rank = torch.empty_like(pos)
+    rank[order] = pos - run_start
+    return [torch.nonzero(rank == k).squeeze(1) for k in range(int(rank.max()) + 1)]
+
+
+def _by_layer(layers, fn, x, *per_contact):
+    """Run ``fn(x, *per_contact_k) -> (x, out_k)`` pass by pass over ``layers`` (one pass of everything when
+    None); returns (x, out (C, ...) in the listed order)."""
+    if layers is None:
+        return fn(x, *per_contact)
+    outs, ids = [], []
+    for idx in layers:
+        x, out = fn(x, *(t[idx] for t in per_contact))
+        outs.append(out)
+        ids.append(idx)
+    out = torch.cat(outs)
+    return x, out.new_zeros(out.shape).index_copy(0, torch.cat(ids), out)
 
 
 def contact_frames(body_verts: torch.Tensor, body_faces: torch.Tensor, contacts: Contacts):
@@ -65,23 +111,27 @@ def project_contacts(
     """
     point, normal = contact_frames(body_verts, body_faces, contacts)
     movable = (vert_inv_mass.detach()[contacts.vert] > 0).to(x.dtype)
-    x, depth = push_out(x, contacts.vert, point, normal, movable, thickness)
+    x, depth = push_out(x, contacts.vert, point, normal, movable, thickness, contacts.layers)
     return x, depth, normal
 
 
-def push_out(x, vert, point, normal, movable, thickness) -> tuple[torch.Tensor, torch.Tensor]:
+def push_out(x, vert, point, normal, movable, thickness, layers=None) -> tuple[torch.Tensor, torch.Tensor]:
     """`project_contacts` with the contact frames given (the XPBD frame computes them once per call).
 
     Args:
         x: (Vs, 3) [m]; vert: (C,) int64; point, normal: (C, 3) from `contact_frames`; movable: (C,)
-            1 for a free vertex, 0 for a pinned one; thickness: [m].
+            1 for a free vertex, 0 for a pinned one; thickness: [m]; layers: `Contacts.layers`.
 
     Returns:
         x: (Vs, 3) projected positions (out of place); depth: (C,) correction applied [m].
     """
-    s = ((x[vert] - point) * normal).sum(-1) - thickness
-    depth = (-s).clamp_min(0.0) * movable
-    return x.index_add(0, vert, normal * depth[:, None]), depth
+
+    def one_pass(x, vert, point, normal, movable):
+        s = ((x[vert] - point) * normal).sum(-1) - thickness
+        depth = (-s).clamp_min(0.0) * movable
+        return x.index_add(0, vert, normal * depth[:, None]), depth
+
+    return _by_layer(layers, one_pass, x, vert, point, normal, movable)
 
 
 def apply_friction(
@@ -93,13 +143,17 @@ def apply_friction(
     ``dt = P_t (x − x_start)`` is cancelled when ``|dt| < mu·depth`` (static) and reduced by ``mu·depth``
     otherwise (kinetic). Returns the new (Vs, 3) positions (out of place).
     """
-    d = x[contacts.vert] - x_start[contacts.vert]
-    dt_ = d - (d * normal).sum(-1, keepdim=True) * normal
-    length = dt_.norm(dim=-1)
-    limit = mu * depth
-    scale = torch.where(length <= limit, torch.ones_like(length), limit / length.clamp_min(1e-20))
-    scale = torch.where(depth > 0, scale, torch.zeros_like(scale))
-    return x.index_add(0, contacts.vert, -dt_ * scale[:, None])
+
+    def one_pass(x, vert, normal, depth):
+        d = x[vert] - x_start[vert]
+        dt_ = d - (d * normal).sum(-1, keepdim=True) * normal
+        length = dt_.norm(dim=-1)
+        limit = mu * depth
+        scale = torch.where(length <= limit, torch.ones_like(length), limit / length.clamp_min(1e-20))
+        scale = torch.where(depth > 0, scale, torch.zeros_like(scale))
+        return x.index_add(0, vert, -dt_ * scale[:, None]), depth
+
+    return _by_layer(contacts.layers, one_pass, x, contacts.vert, normal, depth)[0]
 
 
 def damp_bounce(
@@ -107,9 +161,13 @@ def damp_bounce(
 ) -> torch.Tensor:
     """Velocities (Vs, 3) after each contact with a normal correction ``depth`` > 0 in this substep kept only
     ``bounce`` of its outward normal velocity (``XPBDConfig.contact_bounce``; out of place)."""
-    vn = (v[contacts.vert] * normal).sum(-1)
-    cut = torch.where(depth > 0, (1.0 - bounce) * vn.clamp_min(0.0), torch.zeros_like(vn))
-    return v.index_add(0, contacts.vert, -cut[:, None] * normal)
+
+    def one_pass(v, vert, normal, depth):
+        vn = (v[vert] * normal).sum(-1)
+        cut = torch.where(depth > 0, (1.0 - bounce) * vn.clamp_min(0.0), torch.zeros_like(vn))
+        return v.index_add(0, vert, -cut[:, None] * normal), depth
+
+    return _by_layer(contacts.layers, one_pass, v, contacts.vert, normal, depth)[0]
 
 
 def signed_distance_along_normal(x: torch.Tensor, body_verts, body_faces, contacts: Contacts) -> torch.Tensor:

@@ -93,7 +93,7 @@ def closest_point_among(points, verts, faces, cand, max_dist):
     """Twin of the C++ ``closest_point_among``: `closest_point_on_mesh` restricted to each point's
     candidates ``cand`` (N, K) int64 (each row's end at its first -1); ties to the lowest id."""
     n = points.shape[0]
-    tri = torch.full((n,), -1, dtype=torch.int64)
+    tri = torch.full((n,), -1, dtype=torch.int64, device=points.device)
     bary, dist = points.new_zeros(n, 3), points.new_full((n,), float("inf"))
     p = points.to(torch.float64)
     safe = cand.clamp_min(0)
@@ -539,7 +539,9 @@ class _ContactResponse:
         return _ContactResponse(contacts, point, normal, movable, inputs.params.thickness)
 
     def project(self, x: torch.Tensor):
-        return push_out(x, self.contacts.vert, self.point, self.normal, self.movable, self.thickness)
+        return push_out(
+            x, self.contacts.vert, self.point, self.normal, self.movable, self.thickness, self.contacts.layers
+        )
 
 
 def xpbd_substeps(x: torch.Tensor, v: torch.Tensor, inputs: SubstepInputs, membrane=None):

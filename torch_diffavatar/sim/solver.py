@@ -81,12 +81,19 @@ class XPBDConfig:
         contact_bounce: the share of its outward normal velocity that a vertex pushed out of the body in a
             substep keeps (1, the default: all of it, the push becoming a velocity; 0: an inelastic contact).
             Below 1 fewer contact vertices rock: on a fitted dress (its own drape continued for 80 frames)
-            71-90 of 1,992 vertices still moved faster than 2 cm/s at 1, 9-14 at 0, among them a shoulder
-            vertex jumping between two body triangles each frame, which no bounce cures (one contact plane
-            per frame over a ridge; docs/BENCHMARKS.md, "Drapes that never settle").
+            71-90 of 1,992 vertices still moved faster than 2 cm/s at 1, 9-14 at 0, among them an armpit
+            vertex jumping between two body triangles each frame, which no bounce cures (``valley_contacts``
+            does; docs/BENCHMARKS.md, "Drapes that never settle" and "Valley contacts").
         contact_cache: against a static body, query only the vertices that can be in the contact band,
             seeded with last frame's triangles (`collision.ContactCache`; C++ only). The contacts, hence
             the results, are the same with and without it.
+        valley_contacts: a contact vertex within ``valley_margin`` of the thickness from a body triangle
+            around its own that rises above its contact plane (a valley: the armpit, the spine's groove)
+            gets a second contact there (`collision.detect_contacts`' ``valley``; see `sim/collision.py`).
+            Off by default: one contact per vertex. On a fitted dress two armpit vertices otherwise jumped
+            6.5–8.9 mm between the two sides every frame for good, and 71-88 vertices never came to rest (none
+            with it); a strip in a frictionless groove is flung out (docs/BENCHMARKS.md, "Valley contacts").
+        valley_margin: see ``valley_contacts`` [m].
     """
 
     substeps: int = 40
@@ -105,6 +112,8 @@ class XPBDConfig:
     num_threads: int = 1
     contact_bounce: float = 1.0
     contact_cache: bool = True
+    valley_contacts: bool = False
+    valley_margin: float = 0.001
 
     def __post_init__(self):
         if self.scheme not in SCHEMES:
@@ -117,6 +126,13 @@ class XPBDConfig:
             raise ValueError(f"XPBDConfig.num_threads must be >= 0, got {self.num_threads}")
         if not 0 <= self.contact_bounce <= 1:
             raise ValueError(f"XPBDConfig.contact_bounce must be in [0, 1], got {self.contact_bounce}")
+        if not self.valley_margin >= 0:
+            raise ValueError(f"XPBDConfig.valley_margin must be >= 0, got {self.valley_margin}")
+
+    def valley_radius(self, thickness) -> float | None:
+        """The ``valley`` radius [m] of `collision.detect_contacts` for cloth of ``thickness`` [m] (None:
+        valley contacts off)."""
+        return float(thickness) + self.valley_margin if self.valley_contacts else None
 
 
 @dataclass(frozen=True)
@@ -243,9 +259,11 @@ class XPBDSolver:
                 if self._contact_cache is None:
                     self._contact_cache = collision.ContactCache(index)
                 cache = self._contact_cache
+        valley = self.config.valley_radius(rest.material.thickness)
         contacts = collision.detect_contacts(
-            x, body_verts, body_faces, band, use_extension=self.config.use_extension, index=index, cache=cache
-        )
+            x, body_verts, body_faces, band, use_extension=self.config.use_extension, index=index,
+            cache=cache, valley=valley,
+        )  # fmt: skip
         return contacts if contacts.count else None
 
     def _substeps(self, x: torch.Tensor, v: torch.Tensor, inputs: SubstepInputs) -> None:

@@ -181,13 +181,33 @@ def initial_contacts(x, setup, material, body_verts, opts) -> Contacts | None:
     if body_verts is None:
         return None
     thick = float(material.thickness)
-    band = thick + setup.config.xpbd.collision_band
-    c = collision.detect_contacts(x, body_verts, setup.body_faces, band, use_extension=opts.use_extension)
+    c = _detect(x, setup, material, body_verts, opts)
     if c.count == 0:
         return None
     s = _signed(x, setup, body_verts, c)
     c = contacts_subset(c, s < thick + opts.contact_tol)
     return c if c.count else None
+
+
+def _detect(x, setup, material, body_verts, opts) -> Contacts:
+    """The contacts within the XPBD drape's band, valley contacts as the drape has them."""
+    xpbd = setup.config.xpbd
+    band = float(material.thickness) + xpbd.collision_band
+    return collision.detect_contacts(
+        x, body_verts, setup.body_faces, band, use_extension=opts.use_extension,
+        valley=xpbd.valley_radius(material.thickness),
+    )  # fmt: skip
+
+
+def _not_held(cand: Contacts, contacts: Contacts, face_count: int) -> torch.Tensor:
+    """(C_cand,) bool: candidates the active set does not have: a vertex's first contact when the vertex
+    has none, a valley contact (a vertex's second) when its (vertex, triangle) pair is not held."""
+    pair = cand.vert * face_count + cand.tri
+    held_pair = torch.isin(pair, contacts.vert * face_count + contacts.tri)
+    first = torch.ones_like(cand.vert, dtype=torch.bool)
+    if cand.layers is not None:
+        first[torch.cat(cand.layers[1:])] = False
+    return torch.where(first, ~torch.isin(cand.vert, contacts.vert), ~held_pair)
 
 
 def _contact_slack(rest, setup, opts, vert):
@@ -214,13 +234,12 @@ def _update_active_set(x, setup, rest, material, body_verts, contacts, opts):
         if not bool(keep.all()):
             changed = True
             contacts = contacts_subset(contacts, keep)
-    band = thick + setup.config.xpbd.collision_band
-    cand = collision.detect_contacts(x, body_verts, setup.body_faces, band, use_extension=opts.use_extension)
+    cand = _detect(x, setup, material, body_verts, opts)
     if cand.count:
         s = _signed(x, setup, body_verts, cand)
         new = s < thick - _contact_slack(rest, setup, opts, cand.vert)
         if contacts is not None and contacts.count:
-            new &= ~torch.isin(cand.vert, contacts.vert)
+            new &= _not_held(cand, contacts, setup.body_faces.shape[0])
         if bool(new.any()):
             changed = True
             add = contacts_subset(cand, new)

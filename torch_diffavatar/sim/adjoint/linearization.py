@@ -186,7 +186,9 @@ def _held_by_friction(step, setup: DrapeSetup, material, body_verts, contacts: C
     if contacts is None or body_verts is None or not float(material.friction) > 0:
         return step
     _, normal = contact_frames(body_verts.detach().to(step.dtype), setup.body_faces, contacts)
-    s = step[contacts.vert]
     step = step.clone()
-    step[contacts.vert] = (s * normal).sum(-1, keepdim=True) * normal
+    # a vertex with two contacts (a valley) keeps the part of its move along both normals in turn
+    for idx in [None] if contacts.layers is None else contacts.layers:
+        vert, n = (contacts.vert, normal) if idx is None else (contacts.vert[idx], normal[idx])
+        step[vert] = (step[vert] * n).sum(-1, keepdim=True) * n
     return step
