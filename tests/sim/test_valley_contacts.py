@@ -63,6 +63,21 @@ def test_a_point_in_a_groove_gets_both_walls():
     assert collision.detect_contacts(x, rv, rf, 0.05, valley=0.004).count == 3
 
 
+def test_valley_partners_follow_the_body():
+    """Each face's partners are kept while the body stays the same, and worked out again when it moves."""
+    verts, faces = groove()
+    features = collision._FeatureFaces(faces, verts.shape[0])
+    tri = torch.tensor([0, 2, 0])
+    first = features.valley_candidates(verts, tri)
+    assert {int(t) for t in first[0] if t >= 0} == {2, 3} and {int(t) for t in first[1] if t >= 0} == {0, 1}
+    assert torch.equal(features.valley_candidates(verts, tri), first)
+    flat = verts * verts.new_tensor([1.0, 0.0, 1.0])  # the groove flattened: no valley left
+    assert bool((features.valley_candidates(flat, tri) == -1).all())
+    roof_verts, _ = roof()
+    assert bool((features.valley_candidates(roof_verts, tri) == -1).all())  # a ridge (same winding): none
+    assert torch.equal(features.valley_candidates(verts, tri), first)
+
+
 def test_the_layered_response_is_differentiable():
     """Projection, friction and bounce with two contacts on one vertex, through both passes."""
     verts, faces = groove()
