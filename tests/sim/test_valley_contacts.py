@@ -264,7 +264,8 @@ def test_the_active_set_adds_a_second_contact_but_not_a_second_first_one():
 
 
 def test_valley_margin_is_checked():
-    with pytest.raises(ValueError, match="valley_margin"):
-        XPBDConfig(valley_margin=-0.001)
+    for bad in (-0.001, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="valley_margin"):
+            XPBDConfig(valley_margin=bad)
     assert XPBDConfig().valley_radius(0.003) is None
     assert XPBDConfig(valley_contacts=True).valley_radius(0.003) == pytest.approx(0.004)

@@ -126,8 +126,8 @@ class XPBDConfig:
             raise ValueError(f"XPBDConfig.num_threads must be >= 0, got {self.num_threads}")
         if not 0 <= self.contact_bounce <= 1:
             raise ValueError(f"XPBDConfig.contact_bounce must be in [0, 1], got {self.contact_bounce}")
-        if not self.valley_margin >= 0:
-            raise ValueError(f"XPBDConfig.valley_margin must be >= 0, got {self.valley_margin}")
+        if not 0 <= self.valley_margin < math.inf:
+            raise ValueError(f"XPBDConfig.valley_margin must be finite and >= 0, got {self.valley_margin}")
 
     def valley_radius(self, thickness) -> float | None:
         """The ``valley`` radius [m] of `collision.detect_contacts` for cloth of ``thickness`` [m] (None:
