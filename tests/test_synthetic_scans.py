@@ -199,3 +199,22 @@ def test_posed_scan_records_its_pose(anny_model, skirt_scan):
     left_hand = skirt_scan.body_vertices[:, 0] > skirt_scan.body_vertices[:, 0].max() - 0.05
     right_hand = skirt_scan.body_vertices[:, 0] < skirt_scan.body_vertices[:, 0].min() + 0.05
     assert moved[left_hand].min() > 0.05 and moved[right_hand].max() < 1e-5
+
+
+@pytest.mark.anny
+@pytest.mark.slow
+def test_a_drape_through_the_floor_is_recorded(anny_model, skirt_scan):
+    """Our drape has no floor: trousers on a 1.32 m body (the held-out capture seed 343's) hung 16.6 cm below
+    the soles, a capture cut them off at the floor, and their fits shrank body and legs to match. truth.json
+    records how far (`make-scan` warns with `below_floor_note`); a skirt well above the floor records 0."""
+    from torch_diffavatar.synthetic_scans import below_floor_note
+
+    short = dict(gender=0.41, age=0.36, muscle=0.46, weight=0.42, height=0.35, proportions=0.59)
+    scan = make_draped_scan(
+        "pants", anny_model=anny_model, seed=343, phenotypes=short, garment_points=1000, body_points=1000
+    )
+    below = scan.info["drape"]["below_floor_m"]
+    assert 0.10 < below < 0.25 and below == pytest.approx(-float(scan.cloth_x[:, 1].min()))
+    note = below_floor_note(scan.info)
+    assert "pants hangs 1" in note and "--simulator newton" in note
+    assert skirt_scan.info["drape"]["below_floor_m"] == 0.0 and below_floor_note(skirt_scan.info) is None

@@ -217,6 +217,22 @@ def make_draped_scan(
     )
 
 
+def below_floor_note(info: dict) -> str | None:
+    """What a user should know when a truth's cloth (``truth.json``'s ``info``) hangs below the soles, else
+    None. Our drape has no floor (Newton's has): a garment too long for its body hangs through it, and a
+    capture, the floor in view, shows it cut off at the floor, shorter than its pattern. Trousers on a 1.32 m
+    body hung 16.6 cm through it, and their fits shrank the body by 4-6 cm and the legs by 7 cm to match
+    (docs/BENCHMARKS.md, "Trousers through the floor")."""
+    below = float(info.get("drape", {}).get("below_floor_m", 0.0))
+    if below <= 0.0:
+        return None
+    return (
+        f"the draped {info['template']} hangs {below * 100:.1f} cm below the soles, through the floor (our "
+        "drape has no floor): a scan shows it cut off there, shorter than its pattern; --simulator newton "
+        "drapes with a floor"
+    )
+
+
 def _check_settings(spacing: float, bend_stiffness: float, simulator: str, waist_drop: float | None, capture):
     """InputError for a bad setting of `make_draped_scan` (``capture``: its `_Capture`), or Newton missing
     (checked before any work)."""
@@ -494,6 +510,8 @@ def _truth_info(
             "penetrating_count": int(result.diagnostics.get("penetrating_count", 0)),
             # sewn on the body's A-pose and carried to its pose, after sewing on the pose failed
             "sewn_in_a_pose": "fallback_after" in result.diagnostics,
+            # how far the cloth hangs below the soles (y = 0): our drape has no floor (`below_floor_note`)
+            "below_floor_m": max(0.0, -float(result.x[:, 1].min())),
         },
         "seconds": round(time.perf_counter() - t0, 2),
     }

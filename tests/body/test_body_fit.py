@@ -231,7 +231,7 @@ def test_yaw_starts_try_both_directions_when_the_scan_cannot_tell_front_from_bac
         assert body_fit._yaw_starts(scan, config) == starts, facing
 
 
-def test_soles_on_the_floor_when_trousers_hide_the_feet(anny_model, tmp_path):
+def test_soles_on_the_floor_when_trousers_hide_the_feet(anny_model, tmp_path, capsys):
     """A pair of trousers whose hems reach the floor over the feet, captured by a ring of depth cameras
     (`make-scan pants --capture ring`, seed 345; 350-359 are `scripts/capture_body_seeds.py`'s, where
     `fit-body` before the floor term left 7 of 10 such bodies 2.1-3.0 cm short, their soles 2.5-3 cm
@@ -246,6 +246,9 @@ def test_soles_on_the_floor_when_trousers_hide_the_feet(anny_model, tmp_path):
     capture = ["--capture", "ring", "--yaw", "random", "--scan-units", "cm", "--scan-up", "-y"]
     assert main(["make-scan", "pants", "--out", str(scan_dir), "--seed", "345", *capture]) == 0
     truth = json.loads((scan_dir / "truth" / "truth.json").read_text())
+    # these trousers reach the floor because our drape lets them hang through it (14.6 cm): make-scan says so
+    assert truth["drape"]["below_floor_m"] > 0.1
+    assert "through the floor" in capsys.readouterr().err
     points, report = intake_scan(scan_dir / "scan.ply")
     assert report.floor is not None  # the intake found the floor and put it at y = 0
     lowest = points.points[:, 1].min()

@@ -2,13 +2,20 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import torch
 
 from torch_diffavatar.commands.out_paths import check_out_folder
 from torch_diffavatar.errors import InputError, read_json_file
-from torch_diffavatar.synthetic_scans import POSE_SEED_OFFSET, SIMULATORS, make_draped_scan, write_scan
+from torch_diffavatar.synthetic_scans import (
+    POSE_SEED_OFFSET,
+    SIMULATORS,
+    below_floor_note,
+    make_draped_scan,
+    write_scan,
+)
 
 # ``--yaw random`` draws from (seed, this), apart from the scan's and the capture's draws.
 YAW_SEED_OFFSET = 2001
@@ -193,6 +200,9 @@ def _make_scan_command(args) -> dict:
 
         scan, captured = capture_draped_scan(scan, settings, args.seed)
     paths = write_scan(scan, args.out, capture=captured)
+    note = below_floor_note(scan.info)
+    if note is not None:
+        print(f"diffavatar make-scan: warning: {note}", file=sys.stderr)
     summary = dict(scan.info, files=paths)
     if not args.json:
         print(f"scan: {paths['scan']} ({len(scan.points)} points); truth: {Path(paths['truth']).parent}")
