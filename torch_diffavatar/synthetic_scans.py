@@ -221,7 +221,7 @@ def below_floor_note(info: dict) -> str | None:
     """What a user should know when a truth's cloth (``truth.json``'s ``info``) hangs below the soles, else
     None. Our drape has no floor (Newton's has): a garment too long for its body hangs through it, and a
     capture, the floor in view, shows it cut off at the floor, shorter than its pattern. Trousers on a 1.32 m
-    body hung 16.6 cm through it, and their fits shrank the body by 4-6 cm and the legs by 7 cm to match
+    body hung 16.6 cm through it, and their fits shrank the body by 3.7-6.1 cm and the legs by 7 cm to match
     (docs/BENCHMARKS.md, "Trousers through the floor")."""
     below = float(info.get("drape", {}).get("below_floor_m", 0.0))
     if below <= 0.0:
