@@ -42,3 +42,18 @@ def test_a_partial_scan_is_said():
     assert scan_warnings(report, points, full) == []
     (partial,) = scan_warnings(report, points, {"sectors_seen": 4, "sectors": 8})
     assert partial.startswith("a partial scan: it sees 4 of 8 sides of the person")
+
+
+def test_a_garment_that_reaches_the_floor_is_said():
+    """Trousers that hung through the floor were cut off with it, and their fits shrank the body and the legs
+    (docs/BENCHMARKS.md, "Trousers through the floor"): a garment whose scan points reach a floor that the
+    intake found (and put at y = 0) gets a warning; without a floor, or 3 cm and more above it, none."""
+    from torch_diffavatar.fit_report import FLOOR_REACH_M, floor_warnings
+
+    floor = {"normal": [0.0, 1.0, 0.0], "tilt_deg": 0.0, "sigma_m": 0.002, "removed": 5000}
+    legs = torch.tensor([[0.1, 0.9, 0.0], [0.1, 0.3, 0.05], [0.12, 0.017, 0.02]], dtype=torch.float64)
+    (said,) = floor_warnings(floor, legs)
+    assert said.startswith("the garment reaches the floor (its lowest scan points 1.7 cm above it)")
+    assert floor_warnings(None, legs) == []
+    assert floor_warnings(floor, legs + torch.tensor([0.0, FLOOR_REACH_M, 0.0], dtype=torch.float64)) == []
+    assert floor_warnings(floor, legs[:0]) == []

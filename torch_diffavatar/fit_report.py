@@ -27,6 +27,9 @@ FAR_FROM_SCAN_FLOOR_M = 0.02
 # An opening whose boundary Chamfer ends above this is flagged. Matched openings of fits of our synthetic
 # scans end at 1-5 cm (hems the widest); a hem segmented 20-30 cm low on a real capture pulled its pattern.
 FAR_OPENING_M = 0.08
+# A garment whose lowest scan points lie this close [m] above a scan's floor reaches it (the intake removes
+# points up to at least 1.5 cm above it; trousers' hems at the ankles end 3 cm and more above it).
+FLOOR_REACH_M = 0.03
 
 CHAMFER_DEFINITION = (
     "symmetric mean surface distance, not squared: (mean distance of the scan "
@@ -214,3 +217,21 @@ def scan_warnings(report: dict, garment_points: torch.Tensor, coverage: dict | N
             "person; only the cloth on those sides was pulled toward it, the rest follows the simulation"
         )
     return warnings
+
+
+def floor_warnings(floor: dict | None, garment_points) -> list[str]:
+    """A warning when the scan had a floor (``floor``: the intake's, which put it at y = 0; None: none) and
+    the garment's (P, 3) scan points [m] reach it (`FLOOR_REACH_M`): a hem that pools on the floor, or that
+    the floor's removal cut off, does not show where the pattern ends. Trousers on a short body that hung
+    through the floor were cut off there, and their fits shrank the body by 3.7-6.1 cm and the legs by 7 cm
+    (docs/BENCHMARKS.md, "Trousers through the floor")."""
+    if floor is None or len(garment_points) == 0:
+        return []
+    low = float(garment_points[:, 1].min())
+    if low > FLOOR_REACH_M:
+        return []
+    return [
+        f"the garment reaches the floor (its lowest scan points {100 * low:.1f} cm above it): where it "
+        "pools or was cut off with the floor, the scan does not show where the pattern ends; the fitted "
+        "length, and the body's height that the fit refines, may come out short"
+    ]

@@ -277,15 +277,17 @@ def full_report(fit_report: dict, setup: dict, scan_path, spacing: float, second
     """``report.json`` of a fit: the fit loop's ``fit_report`` with the warnings about the scan and the
     body fit, and what the set-up (`fit_setup.prepare`'s ``setup``) found; ``spacing``: the mesh's [m];
     ``seconds``: this run's (a resumed one: since the resume)."""
-    from torch_diffavatar.fit_report import scan_warnings
+    from torch_diffavatar.fit_report import floor_warnings, scan_warnings
 
     report = dict(fit_report)
     coverage = setup.get("scan_coverage")
+    garment_points = setup["target"].garment_points
     report["warnings"] = (
         report["warnings"]
         + setup.get("scan_warnings", [])
         + body_fit_warnings(setup["body_fit_chamfer_m"])
-        + scan_warnings(report, setup["target"].garment_points, coverage)
+        + scan_warnings(report, garment_points, coverage)
+        + floor_warnings(setup.get("scan_floor"), garment_points)
     )
     report.update(
         scan=str(scan_path),

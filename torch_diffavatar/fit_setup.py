@@ -329,6 +329,7 @@ def prepare(
         "scan_points": scan.point_count,
         "scan_coverage": intake.coverage,
         "scan_warnings": list(intake.warnings),
+        "scan_floor": intake.floor,
         "scan_shift": intake.shift,
         "scan_boundaries": sorted(loops),
         "labelled": labelled,
