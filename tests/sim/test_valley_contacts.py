@@ -202,9 +202,10 @@ def _groove_fn(group, adjoint, config, options, stats):
         # 12 mm up, the walls 3.5 mm or more from it
         g, mat = _strip(0.04, 1e3, width=0.01, height=0.012)
     else:
-        # pinned 1.7 mm below the corner of the walls' offset planes: the rows between are pulled into the
-        # corner, where both walls hold them
+        # pinned 1.7 mm below the corner of the walls' offset planes, and heavy (100x), so that its rows are
+        # pulled into the corner and the penalty equilibrium presses both walls
         g, mat = _strip(0.04, 1e3, width=0.01 * 2**0.5, height=0.004, off=0.0)
+        mat = dataclasses.replace(mat, areal_density=15.0)
     verts, faces = groove()
     # the groove does not hold it along z: pinned at the middle of its first row (and of its last one,
     # in the corner, for a well-posed equilibrium)
@@ -238,9 +239,8 @@ def test_trajectory_gradcheck_in_a_groove(group):
 
 @pytest.mark.parametrize("group", ("rest_uv", "body"))
 def test_equilibrium_gradcheck_in_a_groove(group):
-    """The equilibrium adjoint with valley contacts in its drape and its active set. (Its penalty
-    equilibrium leaves the strip's middle resting on one wall and touching the other: the second contacts'
-    blocks in the Hessian are tested by tests/sim/test_hessian.py's repeated vertex.)"""
+    """The equilibrium adjoint with valley contacts in its drape and its active set: at its equilibrium
+    vertices press both walls, each with its two contacts in the energy and the Hessian."""
     cfg = DrapeConfig(
         xpbd=XPBDConfig(substeps=4, iterations=2, valley_contacts=True), dt=1 / 30, max_steps=120,
         min_steps=20, speed_tol=1e-3,
@@ -249,8 +249,14 @@ def test_equilibrium_gradcheck_in_a_groove(group):
     options = EquilibriumOptions(newton_tol=1e-12, solve_tol=1e-12)
     f, t = _groove_fn(group, "equilibrium", cfg, options, stats)
     _gradcheck(f, t)
-    assert stats["xpbd_converged"] and stats["active_contacts"] > 6
-    assert stats["newton_force_residual"] < 1e-12
+    assert stats["xpbd_converged"] and stats["newton_force_residual"] < 1e-12
+    x = f(t.detach())
+    verts, faces = groove()
+    contacts = collision.detect_contacts(x, verts, faces, 0.01, valley=0.005)
+    pressing = collision.signed_distance_along_normal(x, verts, faces, contacts) < 0.004
+    free = torch.isin(contacts.vert, torch.tensor([1, 13]), invert=True)
+    both = torch.bincount(contacts.vert[pressing & free], minlength=x.shape[0]) == 2
+    assert int(both.sum()) >= 2  # vertices held by both walls at the equilibrium
 
 
 def test_the_active_set_adds_a_second_contact_but_not_a_second_first_one():
