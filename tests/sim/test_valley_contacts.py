@@ -52,6 +52,9 @@ def test_a_point_in_a_groove_gets_both_walls():
     assert one.vert.tolist() == [0, 1, 2]
     two = collision.detect_contacts(x, verts, faces, 0.05, valley=0.004)
     assert two.vert.tolist() == [0, 1, 2, 0]
+    twin = collision.detect_contacts(x, verts, faces, 0.05, valley=0.004, use_extension=False)
+    assert torch.equal(twin.vert, two.vert) and torch.equal(twin.tri, two.tri)
+    torch.testing.assert_close(twin.bary, two.bary)
     assert {int(two.tri[0]) // 2, int(two.tri[3]) // 2} == {0, 1}  # one contact on each wall
     # the second contact is the foot of the point on the left wall (y = -x), its closest wall point
     point, normal = collision.contact_frames(verts, faces, two)
