@@ -151,3 +151,21 @@ def test_keyframe_leg_kick_moves_the_skirt_without_penetration(small_dress_asset
     uv = read_obj(frames[12]).uv
     torch.testing.assert_close(uv, assets.rest_uv, atol=1e-8, rtol=0)  # frames keep the pattern as UVs
     assert math.isclose(summary["duration_s"], 0.7)
+
+
+def test_the_fit_report_walks_the_assets(small_dress_assets, anny_model, monkeypatch):
+    """`fit_report.animation_warnings`: assets that walk say nothing; assets that blow up in the walk (the
+    captured trousers 343's fits did within 0.5 s) get a warning in report.json; 0 s checks nothing."""
+    from torch_diffavatar import animate as animate_module
+    from torch_diffavatar.errors import SimulationError
+    from torch_diffavatar.fit_report import animation_warnings
+
+    assert animation_warnings(small_dress_assets, 0.25, anny_model) == []
+
+    def blow_up(*args, **kwargs):
+        raise SimulationError("simulation blew up: Green strain 3.48 > max_strain 3")
+
+    monkeypatch.setattr(animate_module, "animate", blow_up)
+    (said,) = animation_warnings(small_dress_assets, 0.5, anny_model)
+    assert said.startswith("the assets blew up in a 0.5 s walk (simulation blew up: Green strain 3.48")
+    assert animation_warnings(small_dress_assets, 0.0, anny_model) == []

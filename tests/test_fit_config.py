@@ -45,6 +45,7 @@ def test_numbers_that_yaml_reads_as_strings_parse(tmp_path):
         ("drape_velocity_scale: 1.5", "drape_velocity_scale must be in \\(0, 1\\]"),  # energy would grow
         ("drape_velocity_scale: 0", "drape_velocity_scale must be in \\(0, 1\\]"),
         ("drape_contact_bounce: -1", "drape_contact_bounce must be in \\[0, 1\\]"),
+        ("animation_check_s: -0.5", "animation_check_s must be in \\[0, inf\\)"),
     ],
 )
 def test_values_of_the_wrong_type_or_range_are_refused(tmp_path, line, message):

@@ -163,6 +163,8 @@ class FitConfig:
             the two sides). Off by default: on five held-out fits it took 31 % of the frames off the one whose
             armpits rocked, and moved the others by their path noise, one T-shirt 1.3 mm farther from its true
             drape (docs/BENCHMARKS.md, "Valley contacts").
+        animation_check_s: after the fit, its assets walk this long [s] (`fit_report.animation_warnings`:
+            a warning in report.json when they blow up; ~2 CPU s for 0.5 s at 2k vertices). 0: no check.
         first_max_steps: frames at most of the first (sew and) drape [-].
         first_bend_scales: the first drape is sewn and draped once per entry, with the bending stiffness
             scaled by it, then each is settled at the fit's own stiffness; the one with the lowest loss
@@ -280,6 +282,7 @@ class FitConfig:
     drape_contact_bounce: float = 1.0
     drape_settle_outliers: float = 0.0
     drape_valley_contacts: bool = False
+    animation_check_s: float = 0.5
     first_max_steps: int = 400
     first_bend_scales: tuple[float, ...] = (1.0,)
     first_stretch_scales: tuple[float, ...] = (1.0,)
@@ -423,11 +426,12 @@ class FitConfig:
         object.__setattr__(self, name, tuple(float(s) for s in scales))
 
     def _check_drape_options(self) -> None:
-        """ValueError for a drape damping, contact bounce or settle share out of its range."""
+        """ValueError for a drape damping, contact bounce, settle share or check length out of its range."""
         for name, low, high, closed in (
             ("drape_velocity_scale", 0.0, 1.0, "(0, 1]"),
             ("drape_contact_bounce", 0.0, 1.0, "[0, 1]"),
             ("drape_settle_outliers", 0.0, 1.0, "[0, 1)"),
+            ("animation_check_s", 0.0, math.inf, "[0, inf)"),
         ):
             value = getattr(self, name)
             low_ok = value >= low if closed[0] == "[" else value > low

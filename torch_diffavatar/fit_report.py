@@ -235,3 +235,32 @@ def floor_warnings(floor: dict | None, garment_points) -> list[str]:
         "pools or was cut off with the floor, the scan does not show where the pattern ends; the fitted "
         "length, and the body's height that the fit refines, may come out short"
     ]
+
+
+def animation_warnings(assets_dir, seconds: float, anny_model=None) -> list[str]:
+    """A warning when the assets in ``assets_dir`` blow up in a ``seconds`` [s] walk (`animate.animate`,
+    `motion.WalkCycle`, its amplitudes ramped over half of it; nothing written). Assets that a simulator
+    cannot move are not simulation-ready, however well they fit the scan: the fits of the captured trousers
+    343 (docs/BENCHMARKS.md, "Trousers through the floor") blew up within 0.5 s, the suite's and the
+    template's trousers did not. 0 s: no check. ``anny_model``: the fit's (else loaded)."""
+    if seconds <= 0:
+        return []
+    from torch_diffavatar.animate import animate
+    from torch_diffavatar.assets import load_assets
+    from torch_diffavatar.errors import SimulationError
+    from torch_diffavatar.motion import WalkCycle
+
+    walk = WalkCycle(seconds, ramp=seconds / 2)
+    try:
+        summary = animate(
+            load_assets(assets_dir), walk, None, duration=seconds, gif=False, write_body=False,
+            anny_model=anny_model,
+        )  # fmt: skip
+    except SimulationError as exc:
+        return [
+            f"the assets blew up in a {seconds:g} s walk ({exc}): the garment is not simulation-ready, and "
+            "the fit probably went wrong (look at before_after.png)"
+        ]
+    if not summary["finite"]:
+        return [f"the assets' cloth left the finite numbers in a {seconds:g} s walk: not simulation-ready"]
+    return []

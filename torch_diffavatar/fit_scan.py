@@ -25,6 +25,7 @@ import torch
 
 from torch_diffavatar.atomic_file import atomic_write_text
 from torch_diffavatar.errors import InputError, SimulationError
+from torch_diffavatar.json_io import write_json
 
 INCOMPLETE = "INCOMPLETE"  # marker file of a fit folder whose fit has not finished writing
 
@@ -313,6 +314,7 @@ def write_fit_assets(out: Path, setup: dict, fitter, result, report: dict) -> di
         setup: `fit_setup.prepare`'s; fitter: the `Fitter` that ran; result: its `FitResult`.
     """
     from torch_diffavatar.assets import write_assets
+    from torch_diffavatar.fit_report import animation_warnings
 
     body, garment = fitter.params.body, setup["garment"]
     # the fitted k_b and membrane (the stretch factor times the base's k_uu, k_vv, k_uv)
@@ -340,6 +342,10 @@ def write_fit_assets(out: Path, setup: dict, fitter, result, report: dict) -> di
     )
     (out / INCOMPLETE).unlink(missing_ok=True)  # every file is whole now
     written = json.loads(Path(files["report_json"]).read_text())  # with the export's warnings
+    moved = animation_warnings(out, fitter.config.animation_check_s, body.anny)
+    if moved:
+        written["warnings"] = written["warnings"] + moved
+        write_json(files["report_json"], written)
     for message in written["warnings"]:
         print(f"diffavatar fit: warning: {message}", file=sys.stderr)
     return written
