@@ -241,8 +241,8 @@ def animation_warnings(assets_dir, seconds: float, anny_model=None) -> list[str]
     """A warning when the assets in ``assets_dir`` blow up in a ``seconds`` [s] walk (`animate.animate`,
     `motion.WalkCycle`, its amplitudes ramped over half of it; nothing written). Assets that a simulator
     cannot move are not simulation-ready, however well they fit the scan: the fits of the captured trousers
-    343 (docs/BENCHMARKS.md, "Trousers through the floor") blew up within 0.5 s, the suite's and the
-    template's trousers did not. 0 s: no check. ``anny_model``: the fit's (else loaded)."""
+    343 (docs/BENCHMARKS.md, "Trousers through the floor") blew up within 0.5 s; those of a dress, a T-shirt
+    and a skirt, and the trousers template, did not. 0 s: no check. ``anny_model``: the fit's (or loaded)."""
     if seconds <= 0:
         return []
     from torch_diffavatar.animate import animate
