@@ -684,9 +684,8 @@ def first_drape_config(config: FitConfig) -> DrapeConfig:
     """Options of a fit's first sew and drape: the defaults, with the fit's strain limit (see
     `drape_config`): sewing a template onto a fitted body can pull a seam-corner triangle past the default
     limit for a few frames (measured: E = 3.7 on a long-sleeve shirt) without a blow-up."""
-    drape = DrapeConfig(max_steps=config.first_max_steps)
-    drape = replace(drape, xpbd=replace(drape.xpbd, valley_contacts=config.drape_valley_contacts))
-    return with_fit_strain_limit(drape)
+    xpbd = XPBDConfig(valley_contacts=config.drape_valley_contacts)
+    return with_fit_strain_limit(DrapeConfig(max_steps=config.first_max_steps, xpbd=xpbd))
 
 
 def adjoint_options(config: FitConfig, adjoint: str | None = None):
