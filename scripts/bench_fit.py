@@ -69,6 +69,9 @@ def main() -> None:
         help="second contacts in the body's valleys (FitConfig.drape_valley_contacts)",
     )
     parser.add_argument(
+        "--no-floor", action="store_true", help="drapes without the floor (FitConfig.drape_floor false)"
+    )
+    parser.add_argument(
         "--per-iteration", action="store_true", help="print each iteration's frames, gap and CPU seconds"
     )
     parser.add_argument(
@@ -101,6 +104,8 @@ def main() -> None:
         base = replace(base, drape_contact_bounce=args.contact_bounce)
     if args.valley_contacts:
         base = replace(base, drape_valley_contacts=True)
+    if args.no_floor:
+        base = replace(base, drape_floor=False)
     t0 = time.perf_counter()
     setup = prepare(DEMO_SCAN, base, anny_model=anny)
     setup_s = time.perf_counter() - t0

@@ -93,3 +93,14 @@ def test_valley_contacts_reach_the_fit_drapes_and_the_first_one(tmp_path):
     first = first_drape_config(config)
     assert first.xpbd.valley_contacts and not first.sew_xpbd.valley_contacts
     assert first.xpbd.max_strain == drape_config(config).xpbd.max_strain  # the fit's strain limit kept
+
+
+def test_the_floor_reaches_every_drape_of_a_fit(tmp_path):
+    """`drape_floor` (on by default) reaches the fit's drapes, its first drape and that drape's sewing."""
+    from torch_diffavatar.fit_config import drape_config, first_drape_config
+
+    for adjoint in ("equilibrium", "trajectory"):
+        assert drape_config(FitConfig(), adjoint=adjoint).floor
+    assert first_drape_config(FitConfig()).floor
+    config = _load(tmp_path, "drape_floor: false\n")
+    assert not drape_config(config).floor and not first_drape_config(config).floor

@@ -203,18 +203,24 @@ def test_posed_scan_records_its_pose(anny_model, skirt_scan):
 
 @pytest.mark.anny
 @pytest.mark.slow
-def test_a_drape_through_the_floor_is_recorded(anny_model, skirt_scan):
-    """Our drape has no floor: trousers on a 1.32 m body (the held-out capture seed 343's) hung 16.6 cm below
-    the soles, a capture cut them off at the floor, and their fits shrank body and legs to match. truth.json
-    records how far (`make-scan` warns with `below_floor_note`); a skirt well above the floor records 0."""
+def test_trousers_longer_than_the_legs_pile_on_the_floor(anny_model, skirt_scan):
+    """Trousers on a 1.32 m body (the held-out capture seed 343's) are 17 cm longer than its legs. Draped
+    without a floor they hung 16.6 cm below the soles, a capture cut them off at the floor, and their fits
+    shrank body and legs to match: truth.json records how far, and `make-scan --no-floor` warns
+    (`below_floor_note`). On the floor (the default) they pile on it: nothing below it, no warning."""
     from torch_diffavatar.synthetic_scans import below_floor_note
 
     short = dict(gender=0.41, age=0.36, muscle=0.46, weight=0.42, height=0.35, proportions=0.59)
-    scan = make_draped_scan(
-        "pants", anny_model=anny_model, seed=343, phenotypes=short, garment_points=1000, body_points=1000
-    )
+    kwargs = dict(anny_model=anny_model, seed=343, phenotypes=short, garment_points=1000, body_points=1000)
+    scan = make_draped_scan("pants", floor=False, **kwargs)
     below = scan.info["drape"]["below_floor_m"]
     assert 0.10 < below < 0.25 and below == pytest.approx(-float(scan.cloth_x[:, 1].min()))
     note = below_floor_note(scan.info)
-    assert "pants hangs 1" in note and "--simulator newton" in note
+    assert "pants hangs 1" in note and "--no-floor" in note and not scan.info["drape"]["floor"]
+    piled = make_draped_scan("pants", **kwargs)
+    assert piled.info["drape"]["floor"] and piled.info["drape"]["converged"]
+    assert piled.info["drape"]["below_floor_m"] == 0.0 and below_floor_note(piled.info) is None
+    lowest = float(piled.cloth_x[:, 1].min())
+    assert 0.0 < lowest < 0.004  # resting on the floor at the cloth's thickness (3 mm)
+    assert int((piled.cloth_x[:, 1] < 0.01).sum()) > 50  # a pile, not a hem that just touches it
     assert skirt_scan.info["drape"]["below_floor_m"] == 0.0 and below_floor_note(skirt_scan.info) is None

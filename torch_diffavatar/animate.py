@@ -31,6 +31,7 @@ from torch_diffavatar.errors import InputError
 from torch_diffavatar.json_io import write_json
 from torch_diffavatar.mesh_io import write_ply
 from torch_diffavatar.sim import ops
+from torch_diffavatar.sim.floor import sole_height, with_floor
 from torch_diffavatar.sim.solver import XPBDConfig, XPBDSolver
 
 # A body vertex may move this far [m] from the pose the asset's body.obj was written in before the
@@ -97,6 +98,7 @@ def animate(
     gif: bool = True,
     gif_size: int = 240,
     progress: bool = False,
+    floor: bool = True,
 ) -> dict:
     """Simulate the asset's garment through ``motion``; optionally write frames and a GIF.
 
@@ -110,6 +112,8 @@ def animate(
         config: XPBD options (default `XPBDConfig()`: 40 substeps × 1 iteration per simulated frame).
         velocity_scale: velocity factor per simulated frame (mild air drag, as in the drape).
         write_body: also write the body per frame; gif: write the preview GIF (front and side views).
+        floor: the cloth also collides with a floor under the first frame's soles (`sim.floor`; the fit
+            drapes on one): trousers piled on it stay on it while the feet lift.
 
     Returns:
         a summary: frames, seconds, worst penetration fraction (vertices behind the body surface /
@@ -128,8 +132,16 @@ def animate(
     solver, rest, state = _cloth_solver(assets, config)
     out = Path(out_dir) if out_dir is not None else None
     writer = _FrameWriter(out, assets.garment, faces, write_body=write_body, gif=gif, gif_size=gif_size)
+    colliders, collider_faces = bodies, faces
+    if floor:
+        colliders, collider_faces = with_floor(bodies, faces, sole_height(bodies[0]))
+    nb = bodies.shape[1]
+
+    def emit(k, x, collider):  # the body's frame, without the floor
+        writer(k, x, collider[:nb])
+
     run = _simulate(
-        solver, rest, state, bodies, faces, dt, velocity_scale, per_out, writer, progress=progress
+        solver, rest, state, colliders, collider_faces, dt, velocity_scale, per_out, emit, progress=progress
     )
     summary = {
         "garment": assets.garment.garment_type,

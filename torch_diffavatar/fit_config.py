@@ -163,6 +163,9 @@ class FitConfig:
             the two sides). Off by default: on five held-out fits it took 31 % of the frames off the one whose
             armpits rocked, and moved the others by their path noise, one T-shirt 1.3 mm farther from its true
             drape (docs/BENCHMARKS.md, "Valley contacts").
+        drape_floor: the fit's drapes, its first drape and its sewing have a floor at the body's soles
+            (`DrapeConfig.floor`): trousers or a dress longer than the legs pile on it, as a captured one
+            does, instead of hanging through it. A garment that never reaches the floor drapes as without.
         animation_check_s: after the fit, its assets walk this long [s] (`fit_report.animation_warnings`:
             a warning in report.json when they blow up; ~2 CPU s for 0.5 s at 2k vertices). 0: no check.
         first_max_steps: frames at most of the first (sew and) drape [-].
@@ -282,6 +285,7 @@ class FitConfig:
     drape_contact_bounce: float = 1.0
     drape_settle_outliers: float = 0.0
     drape_valley_contacts: bool = False
+    drape_floor: bool = True
     animation_check_s: float = 0.5
     first_max_steps: int = 400
     first_bend_scales: tuple[float, ...] = (1.0,)
@@ -676,8 +680,11 @@ def drape_config(config: FitConfig, steps: int | None = None, adjoint: str | Non
             max_steps=n,
             drape_velocity_scale=damped,
             settle_outliers=config.drape_settle_outliers,
+            floor=config.drape_floor,
         )
-    return DrapeConfig(xpbd=xpbd, min_steps=n, max_steps=n, drape_velocity_scale=damped)
+    return DrapeConfig(
+        xpbd=xpbd, min_steps=n, max_steps=n, drape_velocity_scale=damped, floor=config.drape_floor
+    )
 
 
 def first_drape_config(config: FitConfig) -> DrapeConfig:
@@ -685,7 +692,8 @@ def first_drape_config(config: FitConfig) -> DrapeConfig:
     `drape_config`): sewing a template onto a fitted body can pull a seam-corner triangle past the default
     limit for a few frames (measured: E = 3.7 on a long-sleeve shirt) without a blow-up."""
     xpbd = XPBDConfig(valley_contacts=config.drape_valley_contacts)
-    return with_fit_strain_limit(DrapeConfig(max_steps=config.first_max_steps, xpbd=xpbd))
+    first = DrapeConfig(max_steps=config.first_max_steps, xpbd=xpbd, floor=config.drape_floor)
+    return with_fit_strain_limit(first)
 
 
 def adjoint_options(config: FitConfig, adjoint: str | None = None):

@@ -37,8 +37,8 @@ lives in `sim.newton_units`, pure numpy, re-exported here; the asset export writ
   ``k_b = edge_ke |ē| / w`` (`bend_from_newton`, the mean over the edges).
 * Mass: ``density`` [kg/m²] = our ``areal_density``. Contact: Newton's penalty contact (stiffness
   ``soft_contact_ke``, Coulomb friction ``soft_contact_mu`` = our ``friction``) at ``particle_radius`` =
-  our ``thickness``, with the body and with a floor at the body's lowest point (ours has none). Gravity
-  −9.81 m/s² along −Y.
+  our ``thickness``, with the body and with a floor at the body's lowest point (as ours,
+  `DrapeConfig.floor`). Gravity −9.81 m/s² along −Y.
 
 Waist-held garments (our ``attach_vertices``: skirts, trousers) slid off the body on contact and friction
 alone, and zero-length springs (or Newton's particle-body attachments) to fixed points did not hold them
@@ -247,9 +247,9 @@ def lower_onto_body(
     lowest point plus ``thickness``: cloth below it is put on it), then every vertex that lands within
     ``thickness`` [m] of the body (or behind it) pushed out along its closest body triangle's normal. A
     waist-held garment then starts lower on the hips (`waist_anchors` then pins its waist on the body
-    there). Our drape has no floor, and trouser legs can hang through it: Newton's floor then met cloth
-    8 cm under it and blew up at the first frame (`make-scan pants --seed 305 --simulator newton
-    --hem-up 0.1 --hem-widen 0.15`)."""
+    there). Our drape without a floor (`DrapeConfig.floor` off) lets trouser legs hang through it:
+    Newton's floor then met cloth 8 cm under it and blew up at the first frame (`make-scan pants --seed 305
+    --simulator newton --hem-up 0.1 --hem-widen 0.15`)."""
     from torch_diffavatar.sim import collision
 
     xd = x.double().clone()

@@ -154,6 +154,7 @@ def make_draped_scan(
     missing_bottom: float = 0.0,
     simulator: str = "ours",
     waist_drop: float | None = None,
+    floor: bool = True,
 ) -> DrapedScan:
     """Drape a changed template on an Anny body and sample it like a real scan (see the module docstring).
 
@@ -172,6 +173,8 @@ def make_draped_scan(
             real scanner gives far more; the cloth's 40k (about one per 4 mm on a dress) keep the scan ↔
             drape Chamfer's own floor from the point spacing near the noise (14k: a 6 mm floor).
         simulator: ``"ours"`` or ``"newton"``; waist_drop [m]: `_newton_truth` (and the module docstring).
+        floor: our drape (and the sewing before Newton's) has a floor at the soles (`DrapeConfig.floor`):
+            a garment longer than the body's legs piles on it. False: it hangs through (`below_floor_note`).
         noise: Gaussian noise sigma [m]. hole_fraction: fraction of the points cut away in round holes.
         underarm_holes: also cut a 7 cm hole under each arm. missing_bottom: drop points below this
             height [m] (0: keep all).
@@ -190,7 +193,7 @@ def make_draped_scan(
     anny_model = load_anny(dtype=torch.float32) if anny_model is None else anny_model
     body, out, normals, height = _posed_body(anny_model, phenotypes, pose, gen)
     pattern = changed_pattern(resolve_pattern(template), hem_up, hem_widen)
-    garment, result = _drape_on_body(pattern, body, out, spacing, bend_stiffness)
+    garment, result = _drape_on_body(pattern, body, out, spacing, bend_stiffness, floor)
     result.x, material, newton_info = _final_drape(
         simulator, garment, result, out, body, seed, bend_stiffness, waist_drop
     )
@@ -219,17 +222,17 @@ def make_draped_scan(
 
 def below_floor_note(info: dict) -> str | None:
     """What a user should know when a truth's cloth (``truth.json``'s ``info``) hangs below the soles, else
-    None. Our drape has no floor (Newton's has): a garment too long for its body hangs through it, and a
-    capture, the floor in view, shows it cut off at the floor, shorter than its pattern. Trousers on a 1.32 m
-    body hung 16.6 cm through it, and their fits shrank the body by 3.7-6.1 cm and the legs by 7 cm to match
-    (docs/BENCHMARKS.md, "Trousers through the floor")."""
+    None. Drapes without a floor (``make_draped_scan(floor=False)``, `make-scan --no-floor`) let a garment
+    too long for its body hang through it, and a capture, the floor in view, shows it cut off at the floor,
+    shorter than its pattern. Trousers on a 1.32 m body hung 16.6 cm through it, and their fits shrank the
+    body by 3.7-6.1 cm and the legs by 7 cm to match (docs/BENCHMARKS.md, "Trousers through the floor")."""
     below = float(info.get("drape", {}).get("below_floor_m", 0.0))
     if below <= 0.0:
         return None
     return (
-        f"the draped {info['template']} hangs {below * 100:.1f} cm below the soles, through the floor (our "
-        "drape has no floor): a scan shows it cut off there, shorter than its pattern; --simulator newton "
-        "drapes with a floor"
+        f"the draped {info['template']} hangs {below * 100:.1f} cm below the soles, through the floor "
+        "(draped without one): a scan shows it cut off there, shorter than its pattern; drop --no-floor to "
+        "drape on the floor"
     )
 
 
@@ -421,11 +424,12 @@ def _posed_body(anny_model, phenotypes, pose: torch.Tensor | None, gen: torch.Ge
     return body, out, normals, height
 
 
-def _drape_on_body(pattern, body, out, spacing: float, bend_stiffness: float):
+def _drape_on_body(pattern, body, out, spacing: float, bend_stiffness: float, floor: bool):
     """Mesh ``pattern`` at ``spacing`` [m], place it on the posed ``body`` (``out``: its output), sew and
-    drape it with ``bend_stiffness`` [N·m]. Returns (the placed `GarmentMesh`, the drape's result)."""
+    drape it with ``bend_stiffness`` [N·m] (on a floor at the soles with ``floor``). Returns (the placed
+    `GarmentMesh`, the drape's result)."""
     from torch_diffavatar.pattern import mesh_pattern
-    from torch_diffavatar.sim.forward_drape import sew_and_drape
+    from torch_diffavatar.sim.forward_drape import DrapeConfig, sew_and_drape
     from torch_diffavatar.sim.material import ClothMaterial
     from torch_diffavatar.sim.placement import a_pose_route, place_garment
 
@@ -435,8 +439,9 @@ def _drape_on_body(pattern, body, out, spacing: float, bend_stiffness: float):
     material = ClothMaterial(bend_stiffness=bend_stiffness)
     route = a_pose_route(mesh, body)
     result = sew_and_drape(
-        garment, body_verts=verts, body_faces=body.faces, fallback=route, material=material
-    )
+        garment, body_verts=verts, body_faces=body.faces, fallback=route, material=material,
+        config=DrapeConfig(floor=floor),
+    )  # fmt: skip
     return garment, result
 
 
@@ -510,8 +515,9 @@ def _truth_info(
             "penetrating_count": int(result.diagnostics.get("penetrating_count", 0)),
             # sewn on the body's A-pose and carried to its pose, after sewing on the pose failed
             "sewn_in_a_pose": "fallback_after" in result.diagnostics,
-            # how far the cloth hangs below the soles (y = 0): our drape has no floor (`below_floor_note`)
+            # how far the cloth hangs below the soles (y = 0): through the floor, when our drape has none
             "below_floor_m": max(0.0, -float(result.x[:, 1].min())),
+            "floor": bool(result.diagnostics.get("floor", False)),
         },
         "seconds": round(time.perf_counter() - t0, 2),
     }

@@ -28,6 +28,7 @@ def register(subparsers) -> None:
     )
     p.add_argument("--substeps", type=int, default=40, help="XPBD substeps per simulated frame")
     p.add_argument("--no-body-frames", action="store_true", help="do not write the body per frame")
+    p.add_argument("--no-floor", action="store_true", help="no floor under the body's soles")
     p.add_argument("--no-gif", action="store_true", help="do not render the preview GIF")
     p.add_argument("--gif-size", type=int, default=240, help="width of one GIF view [px]")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON line")
@@ -66,6 +67,7 @@ def run_animate(args) -> dict:
         gif=not args.no_gif,
         gif_size=args.gif_size,
         progress=not args.json,
+        floor=not args.no_floor,
     )
     short = {k: v for k, v in summary.items() if k != "per_frame"}
     if not args.json:

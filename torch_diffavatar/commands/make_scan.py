@@ -64,6 +64,12 @@ def register(subparsers) -> None:
         help="with --simulator newton: a skirt / trousers sits this much lower on the body [m] (default: "
         "random in [0, 0.08] from --seed; 0 for other garments)",
     )
+    p.add_argument(
+        "--no-floor",
+        action="store_true",
+        help="drape without a floor at the soles: a garment longer than the legs hangs through it instead "
+        "of piling on it (the truths before this option)",
+    )
     p.add_argument("--json", action="store_true", help="print the ground-truth summary as one JSON line")
     _capture_args(p)
     p.set_defaults(func=_make_scan_command)
@@ -193,6 +199,7 @@ def _make_scan_command(args) -> dict:
         body_points=args.body_points,
         simulator=args.simulator,
         waist_drop=args.waist_drop,
+        floor=not args.no_floor,
     )
     captured = None
     if settings is not None:

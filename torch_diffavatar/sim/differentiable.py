@@ -23,11 +23,13 @@ Example::
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import torch
 from torch.autograd.function import once_differentiable
 
 from torch_diffavatar.pattern.garment_mesh import GarmentMesh
+from torch_diffavatar.sim import floor
 from torch_diffavatar.sim.adjoint import ADJOINTS
 from torch_diffavatar.sim.adjoint.common import DrapeSetup, material_tensor_fields, material_with
 from torch_diffavatar.sim.forward_drape import DrapeConfig
@@ -167,7 +169,8 @@ def _drape_batch(rest_uv, garment, body_verts, material, *, state, stats, **kwar
 
 
 def _drape_setup(rest_uv, garment, body_verts, material, body_faces, state, config, adjoint, options, stats):
-    """Check `drape`'s inputs and build its `DrapeSetup` (on the CPU model) and material tensors."""
+    """Check `drape`'s inputs and build its `DrapeSetup` (on the CPU model), its material tensors and
+    what the cloth collides with (the body, with ``config.floor`` the floor appended: (Vb [+ 4], 3))."""
     if adjoint not in ADJOINTS:
         raise ValueError(f"unknown adjoint {adjoint!r}; valid: {sorted(ADJOINTS)}")
     spec = ADJOINTS[adjoint]
@@ -184,8 +187,11 @@ def _drape_setup(rest_uv, garment, body_verts, material, body_faces, state, conf
     material = model.material if material is None else material
     names, values = material_tensor_fields(material)
     values = tuple(v.to(dtype=model.dtype, device=model.device) for v in values)
+    config = DrapeConfig() if config is None else config
     if state is None:
         x0, v0 = model.vert_init_pos, torch.zeros_like(model.vert_init_pos)
+        if config.floor and body_verts is not None:
+            x0 = floor.fold_above_floor(x0, floor.sole_height(body_verts), float(material.thickness))
     else:
         if state.x.shape != (model.vert_count, 3):
             raise ValueError(f"state.x must be ({model.vert_count}, 3), got {tuple(state.x.shape)}")
@@ -195,7 +201,7 @@ def _drape_setup(rest_uv, garment, body_verts, material, body_faces, state, conf
         material=material_with(material, names, tuple(v.detach() for v in values)),
         material_names=names,
         body_faces=None if body_faces is None else body_faces.to(model.device),
-        config=DrapeConfig() if config is None else config,
+        config=config,
         x0=x0,
         v0=v0,
         options=options,
@@ -203,7 +209,11 @@ def _drape_setup(rest_uv, garment, body_verts, material, body_faces, state, conf
         linearization=None if state is None else state.linearization,
     )
     setup.saved["adjoint"] = adjoint
-    return setup, values
+    if config.floor and body_verts is not None:
+        # the floor joins the body once, here: the adjoints' own drapes then see it as body triangles
+        body_verts, setup.body_faces = floor.with_floor(body_verts, setup.body_faces)
+        setup.config = replace(config, floor=False)
+    return setup, values, body_verts
 
 
 def drape(
@@ -274,7 +284,7 @@ def drape(
             stats=stats,
             attach_height=attach_height,
         )
-    setup, values = _drape_setup(
+    setup, values, body_verts = _drape_setup(
         rest_uv, garment, body_verts, material, body_faces, state, config, adjoint, options, stats
     )
     device = rest_uv.device

@@ -26,7 +26,7 @@ import torch
 from torch_diffavatar.errors import SimulationError
 from torch_diffavatar.geometry import green_strain
 from torch_diffavatar.pattern.garment_mesh import GarmentMesh
-from torch_diffavatar.sim import collision
+from torch_diffavatar.sim import collision, floor
 from torch_diffavatar.sim.material import ClothMaterial
 from torch_diffavatar.sim.model import ClothModel, ClothModelBuilder
 from torch_diffavatar.sim.solver import XPBDConfig, XPBDSolver
@@ -86,6 +86,9 @@ class DrapeConfig:
             strong damping, as while sewing, for the move is a way to the pose, not a motion to simulate.
             At the drape's 0.97, cloth squeezed out from between a lowering arm and the torso flew on
             and the drape then tore around the arm (Green strain 13, a long sleeve, arms 0.4 rad low).
+        floor: a floor at the body's soles (its lowest vertex) that the cloth rests on (`sim.floor`): the
+            body mesh gets two floor triangles, and cloth placed below the floor is first folded up onto
+            it. Off by default (no floor: cloth longer than the legs hangs through where the floor is).
     """
 
     xpbd: XPBDConfig = field(default_factory=XPBDConfig)
@@ -113,6 +116,7 @@ class DrapeConfig:
     drape_velocity_scale: float = 0.97
     pose_frames: int = 60
     pose_velocity_scale: float = 0.7
+    floor: bool = False
 
     def __post_init__(self):
         if not 0 <= self.settle_outliers < 1:
@@ -175,6 +179,23 @@ def _check_body(body_verts, body_faces, model: ClothModel):
     return body_verts.to(device=model.device, dtype=model.dtype), body_faces.to(model.device, torch.int64)
 
 
+def _collider(body_verts, body_faces, config: DrapeConfig):
+    """What the cloth collides with: the body, and with ``config.floor`` the floor at its soles."""
+    if body_verts is None or not config.floor:
+        return body_verts, body_faces
+    return floor.with_floor(body_verts, body_faces)
+
+
+def _placed_state(model: ClothModel, body_verts, config: DrapeConfig, material) -> ClothState:
+    """The placement at rest; with ``config.floor``, what lies below the floor folded up onto it."""
+    state = model.initial_state()
+    if body_verts is None or not config.floor:
+        return state
+    thickness = float((model.material if material is None else material).thickness)
+    x = floor.fold_above_floor(state.x, floor.sole_height(body_verts), thickness)
+    return model.initial_state(x)
+
+
 def penetration_diagnostics(x, body_verts, body_faces, band: float = 0.05) -> dict:
     """``contact_count`` (vertices within ``band`` of the body) and ``penetrating_count`` (of those,
     vertices behind the plane of their closest body triangle)."""
@@ -216,10 +237,12 @@ def drape_to_equilibrium(
     """
     config = DrapeConfig() if config is None else config
     body_verts, body_faces = _check_body(body_verts, body_faces, model)
+    placed = _placed_state(model, body_verts, config, material)
+    body_verts, body_faces = _collider(body_verts, body_faces, config)
     t0 = time.perf_counter()
     rest = model.rest_data(rest_uv, material, attach_height)
     solver = XPBDSolver(model, config.xpbd)
-    state = model.initial_state() if state is None else state
+    state = placed if state is None else state
     if state.x.shape != (model.vert_count, 3):
         raise ValueError(f"state.x must be ({model.vert_count}, 3), got {tuple(state.x.shape)}")
     state = state.to(device=model.device, dtype=model.dtype)
@@ -282,6 +305,8 @@ def follow_body(
         raise ValueError(f"frames must be >= 1, got {frames}")
     bodies = bodies.to(device=model.device, dtype=model.dtype)
     _, body_faces = _check_body(bodies[0], body_faces, model)
+    if config.floor:  # the floor under the first pose's soles, in every keyframe
+        bodies, body_faces = floor.with_floor(bodies, body_faces, floor.sole_height(bodies[0]))
     t0 = time.perf_counter()
     rest = model.rest_data(rest_uv, material)
     solver = XPBDSolver(model, config.xpbd)
@@ -359,12 +384,13 @@ def sew(
     """
     config = DrapeConfig() if config is None else config
     body_verts, body_faces = _check_body(body_verts, body_faces, model)
+    state = _placed_state(model, body_verts, config, material)
+    body_verts, body_faces = _collider(body_verts, body_faces, config)
     t0 = time.perf_counter()
     rest = model.rest_data(rest_uv, material)
     solver = XPBDSolver(model, config.sew_xpbd)
     snap = max(config.sew_xpbd.stitch_snap, config.sew_finish_snap)
     finisher = XPBDSolver(model, replace(config.sew_xpbd, stitch_snap=snap))
-    state = model.initial_state()
     gap = max_stitch_gap(model, state.x)
     steps = 0
     k0, k1 = config.sew_stiffness_start, config.sew_stiffness_end
@@ -437,7 +463,7 @@ def sew_and_drape(
     Returns:
         the phase-2 `DrapeResult` on the merged model (``result.model``), whose diagnostics also hold
         ``max_stitch_gap_m``, ``sew_steps``, ``sew_seconds``, ``sew_converged`` and ``sew_snap_m`` from
-        phase 1 (and ``pose_frames``, with a ``body_path``).
+        phase 1, ``floor`` (``config.floor``) (and ``pose_frames``, with a ``body_path``).
 
     Raises:
         SimulationError: a phase blew up or the seams did not close (the message says which; with a
@@ -533,6 +559,7 @@ def _sew_and_drape(
         sew_seconds=sewn.seconds,
         sew_converged=sewn.converged,
         sew_snap_m=sewn.diagnostics["sew_snap_m"],
+        floor=config.floor,
     )
     result.seconds += sewn.seconds
     if moved is not None:
