@@ -166,15 +166,13 @@ def make_draped_scan(
             `DEFAULT_PHENOTYPE_RANGE`: a template is made for a size range, and a garment too small for
             its body cannot be sewn on it).
         pose: (1, K, 3) axis-angle of `BodyModel.pose_bones` [rad] (default: the A-pose).
-        bend_stiffness: true bending stiffness [N·m].
+        bend_stiffness: true bending stiffness [N·m]. spacing: drape mesh spacing [m] (finer than a fit's).
         hem_up [m], hem_widen [-]: the design change (`changed_pattern`).
-        spacing: drape mesh spacing [m] (finer than a fit's).
         garment_points, body_points: samples on the cloth and on the uncovered skin (before holes). A
             real scanner gives far more; the cloth's 40k (about one per 4 mm on a dress) keep the scan ↔
             drape Chamfer's own floor from the point spacing near the noise (14k: a 6 mm floor).
         simulator: ``"ours"`` or ``"newton"``; waist_drop [m]: `_newton_truth` (and the module docstring).
-        floor: our drape (and the sewing before Newton's) has a floor at the soles (`DrapeConfig.floor`):
-            a garment longer than the body's legs piles on it. False: it hangs through (`below_floor_note`).
+        floor: our drape and sewing on a floor at the soles (`DrapeConfig.floor`; else `below_floor_note`).
         noise: Gaussian noise sigma [m]. hole_fraction: fraction of the points cut away in round holes.
         underarm_holes: also cut a 7 cm hole under each arm. missing_bottom: drop points below this
             height [m] (0: keep all).
@@ -188,8 +186,7 @@ def make_draped_scan(
     capture = _Capture(garment_points, body_points, noise, hole_fraction, underarm_holes, missing_bottom)
     _check_settings(spacing, bend_stiffness, simulator, waist_drop, capture)
     t0 = time.perf_counter()
-    rng = np.random.default_rng(seed)
-    gen = torch.Generator().manual_seed(seed)
+    rng, gen = np.random.default_rng(seed), torch.Generator().manual_seed(seed)
     anny_model = load_anny(dtype=torch.float32) if anny_model is None else anny_model
     body, out, normals, height = _posed_body(anny_model, phenotypes, pose, gen)
     pattern = changed_pattern(resolve_pattern(template), hem_up, hem_widen)
