@@ -37,6 +37,7 @@ from torch_diffavatar.sim.contacts import (  # noqa: F401
     contact_frames,
     project_contacts,
     signed_distance_along_normal,
+    unit_normals,
 )
 
 
@@ -368,11 +369,8 @@ class _FeatureFaces:
             k = torch.argmax((~zero[corner]).to(torch.int8), dim=-1)
             cand[corner, 1:] = self.ring[self.faces[tri[corner], k]]
         valid = cand >= 0
-        c = self.faces[cand.clamp_min(0)]  # (C, K, 3)
-        p0 = body_verts[c[..., 0]].to(x.dtype)
-        n = torch.linalg.cross(body_verts[c[..., 1]].to(x.dtype) - p0, body_verts[c[..., 2]].to(x.dtype) - p0)
-        n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-20)
-        s = ((x[:, None, :] - p0) * n).sum(-1)
+        corners = body_verts[self.faces[cand.clamp_min(0)]].to(x.dtype)  # (C, K, 3, 3)
+        s = ((x[:, None, :] - corners[..., 0, :]) * unit_normals(corners)).sum(-1)
         s = torch.where(valid, s, torch.full_like(s, -torch.inf))
         best = torch.argmax(s, dim=-1)
         # keep the query's face unless another one's plane is strictly farther
@@ -439,8 +437,7 @@ class _FeatureFaces:
             chunk = ids[lo : lo + 4096]
             cand = self.ring[self.faces[chunk]].reshape(chunk.numel(), -1)  # the faces around the corners
             c = verts[self.faces[chunk]]
-            n = torch.linalg.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0])
-            n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-20)
+            n = unit_normals(c)
             top = verts[self.faces[cand.clamp_min(0)]] - c[:, None, None, 0]
             rise = (top * n[:, None, None]).sum(-1).amax(-1)
             ok = (cand >= 0) & (cand != chunk[:, None]) & (rise > _VALLEY_RISE)

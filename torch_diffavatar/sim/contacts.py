@@ -80,6 +80,12 @@ def _by_layer(layers, fn, x, *per_contact):
     return x, out.new_zeros(out.shape).index_copy(0, torch.cat(ids), out)
 
 
+def unit_normals(corners: torch.Tensor) -> torch.Tensor:
+    """(..., 3) unit right-hand normals of the triangles with corners (..., 3, 3) [m] (0 where degenerate)."""
+    n = torch.linalg.cross(corners[..., 1, :] - corners[..., 0, :], corners[..., 2, :] - corners[..., 0, :])
+    return n / n.norm(dim=-1, keepdim=True).clamp_min(1e-20)
+
+
 def contact_frames(body_verts: torch.Tensor, body_faces: torch.Tensor, contacts: Contacts):
     """Contact points and unit outward face normals from the current body (differentiable).
 
@@ -87,9 +93,7 @@ def contact_frames(body_verts: torch.Tensor, body_faces: torch.Tensor, contacts:
         point: (C, 3) [m]; normal: (C, 3) unit right-hand normal of the contact triangle.
     """
     corners = body_verts[body_faces[contacts.tri]]  # (C, 3, 3)
-    point = (contacts.bary[:, :, None] * corners).sum(1)
-    n = torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    return point, n / n.norm(dim=-1, keepdim=True).clamp_min(1e-20)
+    return (contacts.bary[:, :, None] * corners).sum(1), unit_normals(corners)
 
 
 def project_contacts(
