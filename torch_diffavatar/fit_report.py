@@ -224,7 +224,9 @@ def floor_warnings(floor: dict | None, garment_points) -> list[str]:
     the garment's (P, 3) scan points [m] reach it (`FLOOR_REACH_M`): a hem that pools on the floor, or that
     the floor's removal cut off, does not show where the pattern ends. Trousers on a short body that hung
     through the floor were cut off there, and their fits shrank the body by 3.7-6.1 cm and the legs by 7 cm
-    (docs/BENCHMARKS.md, "Trousers through the floor")."""
+    (docs/BENCHMARKS.md, "Trousers through the floor"); trousers piled on the floor, fitted on a floor
+    (`FitConfig.drape_floor`), kept the template's extra 5-6 cm of leg in the pile ("A floor under the
+    body")."""
     if floor is None or len(garment_points) == 0:
         return []
     low = float(garment_points[:, 1].min())
@@ -233,7 +235,8 @@ def floor_warnings(floor: dict | None, garment_points) -> list[str]:
     return [
         f"the garment reaches the floor (its lowest scan points {100 * low:.1f} cm above it): where it "
         "pools or was cut off with the floor, the scan does not show where the pattern ends; the fitted "
-        "length, and the body's height that the fit refines, may come out short"
+        "length may be off by the cloth that pools (or, without the fit's floor, come out short with the "
+        "body's height)"
     ]
 
 
