@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +31,7 @@ from torch_diffavatar.errors import InputError
 from torch_diffavatar.json_io import write_json
 from torch_diffavatar.mesh_io import write_ply
 from torch_diffavatar.sim import ops
-from torch_diffavatar.sim.floor import sole_height, with_floor
+from torch_diffavatar.sim.floor import FLOOR_FACES, sole_height, with_floor
 from torch_diffavatar.sim.solver import XPBDConfig, XPBDSolver
 
 # A body vertex may move this far [m] from the pose the asset's body.obj was written in before the
@@ -129,6 +129,8 @@ def animate(
     times = torch.arange(n_sim + 1, dtype=torch.float64) * dt
     bodies = body_sequence(assets, motion, times, anny_model=anny_model)  # (n_sim + 1, Vb, 3)
     faces = assets.body_faces.to(torch.int64)
+    if floor:
+        config = replace(XPBDConfig() if config is None else config, floor_faces=FLOOR_FACES)
     solver, rest, state = _cloth_solver(assets, config)
     out = Path(out_dir) if out_dir is not None else None
     writer = _FrameWriter(out, assets.garment, faces, write_body=write_body, gif=gif, gif_size=gif_size)

@@ -9,7 +9,8 @@ import dataclasses
 import pytest
 import torch
 
-from torch_diffavatar.sim import floor
+from torch_diffavatar.errors import SimulationError
+from torch_diffavatar.sim import collision, floor
 from torch_diffavatar.sim.adjoint import EquilibriumOptions, TrajectoryOptions
 from torch_diffavatar.sim.differentiable import drape
 from torch_diffavatar.sim.forward_drape import DrapeConfig, drape_to_equilibrium, sew_and_drape
@@ -163,3 +164,122 @@ def test_equilibrium_gradcheck_on_the_floor(group):
     assert stats["xpbd_converged"] and stats["active_contacts"] >= 3
     x = f(t.detach())
     assert float(x[:, 1].min()) < THICKNESS + 1e-6  # resting on the floor, pressed into its penalty
+
+
+def overhang(tilt: float = 0.0):
+    """A 20 cm wide plane rising at 45° from the floor line x = 0 towards +x, facing down and out (+x, −y):
+    the side of a foot over the floor. (4, 3) verts, (2, 3) faces. With ``tilt`` [m] its corners at z = 0.1
+    are that much higher: its lowest vertex (0, 0, −0.1) is then unique, and the floor's height
+    differentiable in it."""
+    v = [[0, 0, -0.1], [0, tilt, 0.1], [0.1, 0.1 + tilt, 0.1], [0.1, 0.1, -0.1]]
+    return torch.tensor(v, dtype=F64), torch.tensor([[0, 2, 1], [0, 3, 2]], dtype=torch.int64)
+
+
+def _wedge_strip(x_end: float = 0.006, nv: int = 11, length: float = 0.1):
+    """A frictionless 4 cm wide cotton strip 0.5 mm above its rest on the floor under the overhang (not at
+    it: the placement's fold is not differentiable), its far end pinned, its near end ``x_end`` [m] from the
+    floor line, where the gap under the overhang is thinner than two thicknesses."""
+    g = rectangle_garment(
+        3,
+        nv,
+        0.04,
+        length,
+        origin=(x_end + length, THICKNESS + 5e-4, 0.02),
+        axis_u=(0, 0, -1),
+        axis_v=(-1, 0, 0),
+    )
+    mat = dataclasses.replace(_cotton(), friction=0.0)
+    return g, mat, ClothModelBuilder(mat).add_garment(g, pinned=torch.arange(3)).finalize(dtype=F64)
+
+
+def test_a_vertex_where_a_foot_meets_the_floor_gets_both():
+    verts, faces = overhang()
+    bv, bf = floor.with_floor(verts, faces)
+    # in the wedge (under the overhang, 2 mm above the floor), under the overhang 6 cm out (the floor
+    # beyond reach), and on the floor beside it (the floor its first contact)
+    x = torch.tensor([[0.004, 0.002, 0.0], [0.06, 0.03, 0.0], [-0.05, 0.002, 0.0]], dtype=F64)
+    plain = collision.detect_contacts(x, bv, bf, 0.05)
+    assert plain.vert.tolist() == [0, 1, 2] and bool((plain.tri[:2] < 2).all()) and int(plain.tri[2]) >= 2
+    both = collision.detect_contacts(x, bv, bf, 0.05, floor=(2, 0.005))
+    assert both.vert.tolist() == [0, 1, 2, 0] and int(both.tri[3]) >= 2  # the wedge's vertex, on the floor
+    assert float(collision.signed_distance_along_normal(x, bv, bf, both)[3]) == pytest.approx(0.002)
+    twin = collision.detect_contacts(x, bv, bf, 0.05, floor=(2, 0.005), use_extension=False)
+    assert torch.equal(twin.vert, both.vert) and torch.equal(twin.tri, both.tri)
+    torch.testing.assert_close(twin.bary, both.bary)
+
+
+@pytest.mark.parametrize("floor_contacts", [False, True])
+def test_cloth_comes_to_rest_where_a_foot_meets_the_floor(floor_contacts):
+    """One contact per vertex in the wedge: the overhang's plane pushes the vertex through the floor, the
+    floor's back up, and the strip is squeezed apart (or never rests); with the floor's own contact it
+    rests."""
+    g, mat, model = _wedge_strip()
+    verts, faces = overhang()
+    if floor_contacts:
+        config = DrapeConfig(
+            xpbd=XPBDConfig(substeps=20, iterations=1), floor=True, min_steps=200, max_steps=300
+        )
+        res = drape_to_equilibrium(model, g.vert_uv, body_verts=verts, body_faces=faces, config=config)
+        assert res.converged and float(res.x[:, 1].min()) > THICKNESS - 5e-4
+        return
+    bv, bf = floor.with_floor(verts, faces)  # the floor joined, but its faces not told to the steps
+    config = DrapeConfig(xpbd=XPBDConfig(substeps=20, iterations=1), min_steps=200, max_steps=300)
+    try:
+        res = drape_to_equilibrium(model, g.vert_uv, body_verts=bv, body_faces=bf, config=config)
+    except SimulationError:
+        return  # torn apart in the wedge
+    assert not res.converged
+
+
+@pytest.mark.parametrize("group", ("rest_uv", "body"))
+def test_trajectory_gradcheck_where_a_foot_meets_the_floor(group):
+    g, mat, model = _wedge_strip(x_end=0.005, nv=4, length=0.03)
+    verts, faces = overhang(tilt=0.001)
+    xpbd = XPBDConfig(substeps=4, iterations=2)
+    cfg = DrapeConfig(xpbd=xpbd, dt=1 / 30, max_steps=3, min_steps=3, floor=True)
+    nominal = {"rest_uv": g.vert_uv.to(F64), "body": verts}
+
+    def f(t):
+        v = dict(nominal, **{group: t})
+        options = TrajectoryOptions(checkpoint_every=1)
+        return drape(v["rest_uv"], model, v["body"], mat, body_faces=faces, config=cfg, options=options,
+                     adjoint="trajectory")  # fmt: skip
+
+    _gradcheck(f, nominal[group].clone().requires_grad_(True))
+    bv, bf = floor.with_floor(verts, faces)
+    start = collision.detect_contacts(model.vert_init_pos, bv, bf, 0.01, floor=(2, THICKNESS + 0.001))
+    assert start.count > torch.unique(start.vert).numel()  # vertices with both the overhang and the floor
+
+
+@pytest.mark.parametrize("group", ("rest_uv", "body"))
+def test_equilibrium_gradcheck_where_a_foot_meets_the_floor(group):
+    """The equilibrium adjoint where the floor's contacts join its drape: the strip's near end, pushed out
+    of the wedge, comes to rest at the corner of the two planes (a thickness from each)."""
+    g, mat, _ = _wedge_strip(x_end=0.005, nv=4, length=0.03)
+    mat = dataclasses.replace(mat, areal_density=15.0)
+    model = ClothModelBuilder(mat).add_garment(g, pinned=torch.tensor([0, 2])).finalize(dtype=F64)
+    verts, faces = overhang(tilt=0.001)
+    cfg = DrapeConfig(
+        xpbd=XPBDConfig(substeps=4, iterations=2), dt=1 / 30, max_steps=200, min_steps=20, speed_tol=1e-3,
+        floor=True,
+    )  # fmt: skip
+    nominal = {"rest_uv": g.vert_uv.to(F64), "body": verts}
+    stats = {}
+    options = EquilibriumOptions(newton_tol=1e-12, solve_tol=1e-12)
+
+    def f(t):
+        v = dict(nominal, **{group: t})
+        return drape(v["rest_uv"], model, v["body"], mat, body_faces=faces, config=cfg, options=options,
+                     stats=stats)  # fmt: skip
+
+    _gradcheck(f, nominal[group].clone().requires_grad_(True))
+    assert stats["xpbd_converged"] and stats["newton_force_residual"] < 1e-12
+    assert stats["active_contacts"] >= 6
+    x = f(nominal[group])
+    bv, bf = floor.with_floor(verts, faces)
+    near = x[9:].detach()  # the near row
+    on_overhang = collision.detect_contacts(near, verts, faces, 0.01)
+    assert on_overhang.count == 3
+    s = collision.signed_distance_along_normal(near, verts, faces, on_overhang)
+    torch.testing.assert_close(s, torch.full_like(s, THICKNESS), rtol=0, atol=2e-5)
+    torch.testing.assert_close(near[:, 1], torch.full_like(s, THICKNESS), rtol=0, atol=2e-5)

@@ -23,7 +23,6 @@ Example::
 from __future__ import annotations
 
 import time
-from dataclasses import replace
 
 import torch
 from torch.autograd.function import once_differentiable
@@ -32,7 +31,7 @@ from torch_diffavatar.pattern.garment_mesh import GarmentMesh
 from torch_diffavatar.sim import floor
 from torch_diffavatar.sim.adjoint import ADJOINTS
 from torch_diffavatar.sim.adjoint.common import DrapeSetup, material_tensor_fields, material_with
-from torch_diffavatar.sim.forward_drape import DrapeConfig
+from torch_diffavatar.sim.forward_drape import DrapeConfig, floor_joined
 from torch_diffavatar.sim.material import ClothMaterial
 from torch_diffavatar.sim.model import ClothModel, ClothModelBuilder
 from torch_diffavatar.sim.state import ClothState
@@ -212,7 +211,7 @@ def _drape_setup(rest_uv, garment, body_verts, material, body_faces, state, conf
     if config.floor and body_verts is not None:
         # the floor joins the body once, here: the adjoints' own drapes then see it as body triangles
         body_verts, setup.body_faces = floor.with_floor(body_verts, setup.body_faces)
-        setup.config = replace(config, floor=False)
+        setup.config = floor_joined(config)
     return setup, values, body_verts
 
 

@@ -4,9 +4,10 @@ Trousers and dresses longer than the body's legs reach the floor in a real captu
 no floor our drapes let them hang through it (a captured trousers scan's truth hung 16.6 cm below the
 soles, docs/BENCHMARKS.md, "Trousers through the floor"). The floor is two upward-facing triangles
 appended to the body mesh (`with_floor`), so that every part of the simulator that answers body contacts
-(the C++ substep op, its twin, both adjoints) answers floor contacts as they are: nothing of the contact
-response is special to it. The quad reaches `FLOOR_MARGIN` beyond the body's horizontal extent; its
-height follows the body's lowest vertex (differentiably); its extent is fixed.
+(the C++ substep op, its twin, both adjoints) answers floor contacts as they are. One thing is the floor's
+own: where a foot's side meets the floor the two form a valley whose sides share no vertex, and a vertex
+there gets both contacts (`XPBDConfig.floor_faces`). The quad reaches `FLOOR_MARGIN` beyond the body's
+horizontal extent; its height follows the body's lowest vertex (differentiably); its extent is fixed.
 
 Cloth that the placement lays below the floor (legs longer than the body's) would be pushed up through
 the floor's whole depth in one substep, a velocity of metres per second: `fold_above_floor` mirrors it
@@ -20,6 +21,8 @@ import torch
 # How far [m] the floor quad reaches beyond the body's horizontal extent: farther than cloth spreads
 # around the feet (a hem's radius beyond the body is ~0.3 m) and the body grid grows with it.
 FLOOR_MARGIN = 0.75
+# the floor's faces, appended last to the body's (`XPBDConfig.floor_faces`)
+FLOOR_FACES = 2
 
 
 def sole_height(body_verts: torch.Tensor) -> float:

@@ -180,10 +180,22 @@ def _check_body(body_verts, body_faces, model: ClothModel):
 
 
 def _collider(body_verts, body_faces, config: DrapeConfig):
-    """What the cloth collides with: the body, and with ``config.floor`` the floor at its soles."""
+    """What the cloth collides with, and the options to step against it: the body, and with
+    ``config.floor`` the floor at its soles (`floor_joined`)."""
     if body_verts is None or not config.floor:
-        return body_verts, body_faces
-    return floor.with_floor(body_verts, body_faces)
+        return body_verts, body_faces, config
+    return *floor.with_floor(body_verts, body_faces), floor_joined(config)
+
+
+def floor_joined(config: DrapeConfig) -> DrapeConfig:
+    """``config`` for a body mesh that has the floor joined already (`sim.floor.with_floor`): ``floor`` off
+    (not joined again), the steps told which faces are the floor (`XPBDConfig.floor_faces`)."""
+    return replace(
+        config,
+        floor=False,
+        xpbd=replace(config.xpbd, floor_faces=floor.FLOOR_FACES),
+        sew_xpbd=replace(config.sew_xpbd, floor_faces=floor.FLOOR_FACES),
+    )
 
 
 def _placed_state(model: ClothModel, body_verts, config: DrapeConfig, material) -> ClothState:
@@ -238,7 +250,7 @@ def drape_to_equilibrium(
     config = DrapeConfig() if config is None else config
     body_verts, body_faces = _check_body(body_verts, body_faces, model)
     placed = _placed_state(model, body_verts, config, material)
-    body_verts, body_faces = _collider(body_verts, body_faces, config)
+    body_verts, body_faces, config = _collider(body_verts, body_faces, config)
     t0 = time.perf_counter()
     rest = model.rest_data(rest_uv, material, attach_height)
     solver = XPBDSolver(model, config.xpbd)
@@ -307,6 +319,7 @@ def follow_body(
     _, body_faces = _check_body(bodies[0], body_faces, model)
     if config.floor:  # the floor under the first pose's soles, in every keyframe
         bodies, body_faces = floor.with_floor(bodies, body_faces, floor.sole_height(bodies[0]))
+        config = floor_joined(config)
     t0 = time.perf_counter()
     rest = model.rest_data(rest_uv, material)
     solver = XPBDSolver(model, config.xpbd)
@@ -385,7 +398,7 @@ def sew(
     config = DrapeConfig() if config is None else config
     body_verts, body_faces = _check_body(body_verts, body_faces, model)
     state = _placed_state(model, body_verts, config, material)
-    body_verts, body_faces = _collider(body_verts, body_faces, config)
+    body_verts, body_faces, config = _collider(body_verts, body_faces, config)
     t0 = time.perf_counter()
     rest = model.rest_data(rest_uv, material)
     solver = XPBDSolver(model, config.sew_xpbd)

@@ -94,6 +94,9 @@ class XPBDConfig:
             6.5–8.9 mm between the two sides every frame for good, and 71-88 vertices never came to rest (none
             with it); a strip in a frictionless groove is flung out (docs/BENCHMARKS.md, "Valley contacts").
         valley_margin: see ``valley_contacts`` [m].
+        floor_faces: the body mesh's last ``floor_faces`` faces are a floor (`sim.floor.with_floor`, which
+            `DrapeConfig.floor` sets up): a contact vertex within the thickness plus ``valley_margin`` of it
+            also gets a floor contact (`collision.detect_contacts`' ``floor``). 0: no floor.
     """
 
     substeps: int = 40
@@ -114,6 +117,7 @@ class XPBDConfig:
     contact_cache: bool = True
     valley_contacts: bool = False
     valley_margin: float = 0.001
+    floor_faces: int = 0
 
     def __post_init__(self):
         if self.scheme not in SCHEMES:
@@ -128,11 +132,20 @@ class XPBDConfig:
             raise ValueError(f"XPBDConfig.contact_bounce must be in [0, 1], got {self.contact_bounce}")
         if not 0 <= self.valley_margin < math.inf:
             raise ValueError(f"XPBDConfig.valley_margin must be finite and >= 0, got {self.valley_margin}")
+        if self.floor_faces < 0:
+            raise ValueError(f"XPBDConfig.floor_faces must be >= 0, got {self.floor_faces}")
 
     def valley_radius(self, thickness) -> float | None:
         """The ``valley`` radius [m] of `collision.detect_contacts` for cloth of ``thickness`` [m] (None:
         valley contacts off)."""
         return float(thickness) + self.valley_margin if self.valley_contacts else None
+
+    def floor_contacts(self, face_count: int, thickness) -> tuple[int, float] | None:
+        """The ``floor`` of `collision.detect_contacts` for a body mesh of ``face_count`` faces and cloth of
+        ``thickness`` [m] (None: no floor)."""
+        if not self.floor_faces:
+            return None
+        return face_count - self.floor_faces, float(thickness) + self.valley_margin
 
 
 @dataclass(frozen=True)
@@ -259,10 +272,11 @@ class XPBDSolver:
                 if self._contact_cache is None:
                     self._contact_cache = collision.ContactCache(index)
                 cache = self._contact_cache
-        valley = self.config.valley_radius(rest.material.thickness)
+        thickness = rest.material.thickness
         contacts = collision.detect_contacts(
             x, body_verts, body_faces, band, use_extension=self.config.use_extension, index=index,
-            cache=cache, valley=valley,
+            cache=cache, valley=self.config.valley_radius(thickness),
+            floor=self.config.floor_contacts(body_faces.shape[0], thickness),
         )  # fmt: skip
         return contacts if contacts.count else None
 

@@ -190,18 +190,20 @@ def initial_contacts(x, setup, material, body_verts, opts) -> Contacts | None:
 
 
 def _detect(x, setup, material, body_verts, opts) -> Contacts:
-    """The contacts within the XPBD drape's band, valley contacts as the drape has them."""
+    """The contacts within the XPBD drape's band, valley and floor contacts as the drape has them."""
     xpbd = setup.config.xpbd
     band = float(material.thickness) + xpbd.collision_band
     return collision.detect_contacts(
         x, body_verts, setup.body_faces, band, use_extension=opts.use_extension,
         valley=xpbd.valley_radius(material.thickness),
+        floor=xpbd.floor_contacts(setup.body_faces.shape[0], material.thickness),
     )  # fmt: skip
 
 
 def _not_held(cand: Contacts, contacts: Contacts, face_count: int) -> torch.Tensor:
     """(C_cand,) bool: candidates the active set does not have: a vertex's first contact when the vertex
-    has none, a valley contact (a vertex's second) when its (vertex, triangle) pair is not held."""
+    has none, a valley or floor contact (a vertex's second or third) when its (vertex, triangle) pair is not
+    held."""
     pair = cand.vert * face_count + cand.tri
     held_pair = torch.isin(pair, contacts.vert * face_count + contacts.tri)
     first = torch.ones_like(cand.vert, dtype=torch.bool)
