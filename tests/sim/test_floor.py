@@ -12,12 +12,11 @@ import torch
 from torch_diffavatar.errors import SimulationError
 from torch_diffavatar.sim import collision, floor
 from torch_diffavatar.sim.adjoint import EquilibriumOptions, TrajectoryOptions
-from torch_diffavatar.sim.differentiable import drape
 from torch_diffavatar.sim.forward_drape import DrapeConfig, drape_to_equilibrium, sew_and_drape
 from torch_diffavatar.sim.material import ClothMaterial, medium_cotton
 from torch_diffavatar.sim.model import ClothModelBuilder
 from torch_diffavatar.sim.solver import XPBDConfig
-from torch_diffavatar.sim.testing import rectangle_garment, tube_garment
+from torch_diffavatar.sim.testing import drape_gradcheck, drape_of, rectangle_garment, tube_garment
 
 F64 = torch.float64
 THICKNESS = 0.004
@@ -123,19 +122,12 @@ def _floor_fn(group, adjoint, config, options, stats):
     pins = torch.tensor([1] if adjoint == "trajectory" else [1, 13])
     model = ClothModelBuilder(mat).add_garment(g, pinned=pins).finalize(dtype=F64)
     nominal = {"rest_uv": g.vert_uv.to(F64), "body": verts}
-
-    def f(t):
-        v = dict(nominal, **{group: t})
-        return drape(
-            v["rest_uv"], model, v["body"], mat, body_faces=faces, config=config, adjoint=adjoint,
-            options=options, stats=stats,
-        )  # fmt: skip
-
-    return f, nominal[group].clone().requires_grad_(True)
+    kwargs = dict(config=config, adjoint=adjoint, options=options, stats=stats)
+    return drape_of(group, nominal, model, mat, faces, **kwargs)
 
 
 def _gradcheck(f, t):
-    assert torch.autograd.gradcheck(f, (t,), eps=1e-6, atol=1e-7, rtol=1e-4, fast_mode=True)
+    assert drape_gradcheck(f, t)
 
 
 @pytest.mark.parametrize("group", ("rest_uv", "body"))
@@ -238,14 +230,10 @@ def test_trajectory_gradcheck_where_a_foot_meets_the_floor(group):
     xpbd = XPBDConfig(substeps=4, iterations=2)
     cfg = DrapeConfig(xpbd=xpbd, dt=1 / 30, max_steps=3, min_steps=3, floor=True)
     nominal = {"rest_uv": g.vert_uv.to(F64), "body": verts}
-
-    def f(t):
-        v = dict(nominal, **{group: t})
-        options = TrajectoryOptions(checkpoint_every=1)
-        return drape(v["rest_uv"], model, v["body"], mat, body_faces=faces, config=cfg, options=options,
-                     adjoint="trajectory")  # fmt: skip
-
-    _gradcheck(f, nominal[group].clone().requires_grad_(True))
+    options = TrajectoryOptions(checkpoint_every=1)
+    _gradcheck(
+        *drape_of(group, nominal, model, mat, faces, config=cfg, options=options, adjoint="trajectory")
+    )
     bv, bf = floor.with_floor(verts, faces)
     start = collision.detect_contacts(model.vert_init_pos, bv, bf, 0.01, floor=(2, THICKNESS + 0.001))
     assert start.count > torch.unique(start.vert).numel()  # vertices with both the overhang and the floor
@@ -266,16 +254,11 @@ def test_equilibrium_gradcheck_where_a_foot_meets_the_floor(group):
     nominal = {"rest_uv": g.vert_uv.to(F64), "body": verts}
     stats = {}
     options = EquilibriumOptions(newton_tol=1e-12, solve_tol=1e-12)
-
-    def f(t):
-        v = dict(nominal, **{group: t})
-        return drape(v["rest_uv"], model, v["body"], mat, body_faces=faces, config=cfg, options=options,
-                     stats=stats)  # fmt: skip
-
-    _gradcheck(f, nominal[group].clone().requires_grad_(True))
+    f, t = drape_of(group, nominal, model, mat, faces, config=cfg, options=options, stats=stats)
+    _gradcheck(f, t)
     assert stats["xpbd_converged"] and stats["newton_force_residual"] < 1e-12
     assert stats["active_contacts"] >= 6
-    x = f(nominal[group])
+    x = f(t.detach())
     bv, bf = floor.with_floor(verts, faces)
     near = x[9:].detach()  # the near row
     on_overhang = collision.detect_contacts(near, verts, faces, 0.01)

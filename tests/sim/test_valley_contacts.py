@@ -13,12 +13,11 @@ from torch_diffavatar.sim import collision, ops, reference
 from torch_diffavatar.sim.adjoint import EquilibriumOptions, TrajectoryOptions
 from torch_diffavatar.sim.adjoint.equilibrium import _not_held
 from torch_diffavatar.sim.contacts import Contacts, apply_friction, damp_bounce, occurrence_layers
-from torch_diffavatar.sim.differentiable import drape
 from torch_diffavatar.sim.forward_drape import DrapeConfig
 from torch_diffavatar.sim.material import ClothMaterial
 from torch_diffavatar.sim.model import ClothModelBuilder
 from torch_diffavatar.sim.solver import XPBDConfig, XPBDSolver
-from torch_diffavatar.sim.testing import rectangle_garment
+from torch_diffavatar.sim.testing import drape_gradcheck, drape_of, rectangle_garment
 
 F64 = torch.float64
 
@@ -215,19 +214,12 @@ def _groove_fn(group, adjoint, config, options, stats):
     pins = torch.tensor([1] if adjoint == "trajectory" else [1, 13])
     model = ClothModelBuilder(mat).add_garment(g, pinned=pins).finalize(dtype=F64)
     nominal = {"rest_uv": g.vert_uv.to(F64), "body": verts}
-
-    def f(t):
-        v = dict(nominal, **{group: t})
-        return drape(
-            v["rest_uv"], model, v["body"], mat, body_faces=faces, config=config, adjoint=adjoint,
-            options=options, stats=stats,
-        )  # fmt: skip
-
-    return f, nominal[group].clone().requires_grad_(True)
+    kwargs = dict(config=config, adjoint=adjoint, options=options, stats=stats)
+    return drape_of(group, nominal, model, mat, faces, **kwargs)
 
 
 def _gradcheck(f, t):
-    assert torch.autograd.gradcheck(f, (t,), eps=1e-6, atol=1e-7, rtol=1e-4, fast_mode=True)
+    assert drape_gradcheck(f, t)
 
 
 @pytest.mark.parametrize("group", ("rest_uv", "body"))

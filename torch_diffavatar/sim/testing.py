@@ -1,7 +1,8 @@
-"""Small synthetic garments for tests and benchmarks: a rectangular sheet and a two-panel stitched tube.
+"""Small synthetic garments for tests and benchmarks: a rectangular sheet and a two-panel stitched tube;
+and the harness of the drapes' gradchecks (`drape_of`, `drape_gradcheck`).
 
-They are real `GarmentMesh` objects (regular grid triangulation), so they exercise the same code path as
-meshed sewing patterns without needing the pattern mesher.
+The garments are real `GarmentMesh` objects (regular grid triangulation), so they exercise the same code
+path as meshed sewing patterns without needing the pattern mesher.
 """
 
 from __future__ import annotations
@@ -124,3 +125,21 @@ def tube_garment(
         garment_type="skirt",
         spacing=width / (nx - 1),
     )
+
+
+def drape_of(group: str, nominal: dict, model, material, body_faces, **drape_kwargs):
+    """(f, t0) for a gradcheck of `sim.differentiable.drape` in one input: ``f(t)`` drapes ``model`` with
+    ``nominal``'s ``"rest_uv"`` (V, 2) [m] and ``"body"`` (Vb, 3) [m], ``group`` (one of the two) replaced by
+    ``t``; ``t0`` is a leaf copy of ``nominal[group]`` that requires grad. ``drape_kwargs`` go to `drape`."""
+    from torch_diffavatar.sim.differentiable import drape
+
+    def f(t):
+        v = dict(nominal, **{group: t})
+        return drape(v["rest_uv"], model, v["body"], material, body_faces=body_faces, **drape_kwargs)
+
+    return f, nominal[group].clone().requires_grad_(True)
+
+
+def drape_gradcheck(f, t: torch.Tensor) -> bool:
+    """`torch.autograd.gradcheck` of ``f`` at ``t`` (float64) with the tolerances of the drapes' tests."""
+    return torch.autograd.gradcheck(f, (t,), eps=1e-6, atol=1e-7, rtol=1e-4, fast_mode=True)
