@@ -87,8 +87,9 @@ class DrapeConfig:
             At the drape's 0.97, cloth squeezed out from between a lowering arm and the torso flew on
             and the drape then tore around the arm (Green strain 13, a long sleeve, arms 0.4 rad low).
         floor: a floor at the body's soles (its lowest vertex) that the cloth rests on (`sim.floor`): the
-            body mesh gets two floor triangles, and cloth placed below the floor is first folded up onto
-            it. Off by default (no floor: cloth longer than the legs hangs through where the floor is).
+            body mesh gets two floor triangles (`floor_joined`: a vertex by a foot gets the floor as a second
+            contact), and cloth placed below the floor is first folded up onto it. Off by default (no floor:
+            cloth longer than the legs hangs through where the floor is; `make-scan` and the fit turn it on).
     """
 
     xpbd: XPBDConfig = field(default_factory=XPBDConfig)
