@@ -225,7 +225,7 @@ def floor_warnings(floor: dict | None, garment_points) -> list[str]:
     the floor's removal cut off, does not show where the pattern ends. Trousers on a short body that hung
     through the floor were cut off there, and their fits shrank the body by 3.7-6.1 cm and the legs by 7 cm
     (docs/BENCHMARKS.md, "Trousers through the floor"); trousers piled on the floor, fitted on a floor
-    (`FitConfig.drape_floor`), kept the template's extra 5-6 cm of leg in the pile ("A floor under the
+    (`FitConfig.drape_floor`), kept 2.6-5.3 cm of the template's extra leg in the pile ("A floor under the
     body")."""
     if floor is None or len(garment_points) == 0:
         return []
