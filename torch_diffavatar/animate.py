@@ -129,21 +129,17 @@ def animate(
     times = torch.arange(n_sim + 1, dtype=torch.float64) * dt
     bodies = body_sequence(assets, motion, times, anny_model=anny_model)  # (n_sim + 1, Vb, 3)
     faces = assets.body_faces.to(torch.int64)
-    if floor:
-        config = replace(XPBDConfig() if config is None else config, floor_faces=FLOOR_FACES)
-    solver, rest, state = _cloth_solver(assets, config)
+    solver, rest, state = _cloth_solver(assets, config, floor)
     out = Path(out_dir) if out_dir is not None else None
     writer = _FrameWriter(out, assets.garment, faces, write_body=write_body, gif=gif, gif_size=gif_size)
-    colliders, collider_faces = bodies, faces
-    if floor:
-        colliders, collider_faces = with_floor(bodies, faces, sole_height(bodies[0]))
+    colliders, c_faces = with_floor(bodies, faces, sole_height(bodies[0])) if floor else (bodies, faces)
     nb = bodies.shape[1]
 
     def emit(k, x, collider):  # the body's frame, without the floor
         writer(k, x, collider[:nb])
 
     run = _simulate(
-        solver, rest, state, colliders, collider_faces, dt, velocity_scale, per_out, emit, progress=progress
+        solver, rest, state, colliders, c_faces, dt, velocity_scale, per_out, emit, progress=progress
     )
     summary = {
         "garment": assets.garment.garment_type,
@@ -181,11 +177,13 @@ def _frame_counts(motion, fps: float, sim_fps: float, duration: float | None) ->
     return per_out, n_out, n_out * per_out
 
 
-def _cloth_solver(assets, config: XPBDConfig | None):
+def _cloth_solver(assets, config: XPBDConfig | None, floor: bool = False):
     """The asset's garment on its seam-merged mesh (float32): (`XPBDSolver`, rest data, state at the
-    asset's drape)."""
+    asset's drape). With ``floor`` the body mesh it steps against ends with the floor (`sim.floor`)."""
     from torch_diffavatar.sim.model import ClothModelBuilder
 
+    if floor:
+        config = replace(XPBDConfig() if config is None else config, floor_faces=FLOOR_FACES)
     model = (
         ClothModelBuilder(assets.material)
         .add_garment(assets.garment, merge_seams=True)
