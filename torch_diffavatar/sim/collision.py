@@ -6,7 +6,7 @@ triangle within a band. The response (`contact_frames`, `project_contacts`, `app
 (barycentric point on the stored triangle) and the face normal from the CURRENT ``body_verts`` each time,
 so the projected positions are a differentiable function of the body vertices (paper eq. 6).
 Limitations: no self-collision, no edge–edge contacts, one contact per cloth vertex (two in a valley with
-``valley``), the body is static within a step.
+``valley``, and the floor besides by a foot with ``floor``), the body is static within a step.
 
 Ties: a vertex whose closest body point lies on a body edge (or vertex) is equally close to every face
 sharing that feature, and the query picks one of them by rounding. The response uses the picked face's

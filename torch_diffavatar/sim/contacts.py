@@ -7,10 +7,11 @@ function of the body vertices. The XPBD frame (`reference.xpbd_frame`), the ener
 adjoint and the detection all share these functions; this module imports only torch, so the kernels
 below `sim/ops.py` can use it without an import cycle.
 
-A vertex may have two contacts (in a valley of the body, `collision.detect_contacts`'s ``valley``). The C++
-op answers its contacts one after the other, in their order; each function here does the same, as passes
-over `Contacts.layers` (a vertex's first contact in the first pass, its second in the next): contacts of
-different vertices do not interact, so the passes give the op's result.
+A vertex may have several contacts (in a valley of the body, `collision.detect_contacts`'s ``valley``; by a
+foot, the floor, its ``floor``). The C++ op answers a vertex's contacts one after the other, in their order;
+each function here does the same, as passes over `Contacts.layers` (a vertex's first contact in the first
+pass, its second in the next, …): contacts of different vertices do not interact, so the passes give the
+op's result.
 """
 
 from __future__ import annotations
