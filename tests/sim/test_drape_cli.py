@@ -104,3 +104,13 @@ def test_sewing_finishes_with_an_unbounded_pull(monkeypatch):
     drape.sew(model, garment.vert_uv.float(), config=config)
     bounded = config.sew_xpbd.stitch_snap
     assert snaps[:3] == [bounded] * 3 and set(snaps[3:]) == {0.02}
+
+
+def test_drape_is_on_a_floor_unless_no_floor():
+    from argparse import Namespace
+
+    from torch_diffavatar.commands.drape import _drape_config
+
+    args = Namespace(max_steps=None, sew_steps=12, no_floor=False)
+    assert _drape_config(args).floor and _drape_config(args).sew_max_steps == 12
+    assert not _drape_config(Namespace(max_steps=None, sew_steps=None, no_floor=True)).floor

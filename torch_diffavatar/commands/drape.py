@@ -50,6 +50,11 @@ def register(subparsers) -> None:
     p.add_argument("--png", help="write a front + back picture of the cloth on the body")
     p.add_argument("--max-steps", type=int, default=None, help="frames of the drape phase at most")
     p.add_argument("--sew-steps", type=int, default=None, help="frames of the sewing phase at most")
+    p.add_argument(
+        "--no-floor",
+        action="store_true",
+        help="no floor at the body's lowest point (default: a garment longer than the legs piles on it)",
+    )
     p.add_argument("--json", action="store_true", help="print the result as one JSON line")
     p.set_defaults(func=run_drape)
 
@@ -115,10 +120,10 @@ def _check_args(args) -> None:
 
 def _drape_config(args):
     """The `DrapeConfig` with ``--max-steps`` / ``--sew-steps`` applied (the sewing ramp no longer than
-    the sewing phase)."""
+    the sewing phase), on a floor unless ``--no-floor``."""
     from torch_diffavatar.sim.forward_drape import DrapeConfig
 
-    overrides = {}
+    overrides = {"floor": not args.no_floor}
     if args.max_steps is not None:
         overrides["max_steps"] = args.max_steps
     if args.sew_steps is not None:
