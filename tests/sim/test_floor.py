@@ -1,6 +1,7 @@
 """The floor under the body (`DrapeConfig.floor`, `sim.floor`): cloth longer than the body rests on it
-instead of hanging through, the placement folded up at it without strain, and both adjoints' gradients
-through floor contacts (the floor's height following the body's lowest vertex)."""
+instead of hanging through, the placement folded up at it stretching no edge, the floor's own contact where
+a foot meets it (`XPBDConfig.floor_faces`), and both adjoints' gradients through floor contacts (the floor's
+height following the body's lowest vertex)."""
 
 from __future__ import annotations
 
