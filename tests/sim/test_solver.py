@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import pytest
 import torch
@@ -147,9 +148,24 @@ def test_blow_up_detection_stretch():
     rest = model.rest_data(g.vert_uv)
     # a rest shape 4x smaller than the placement: the first frame reports an absurd strain (E = 7.5)
     solver = XPBDSolver(model, XPBDConfig(substeps=1, iterations=1))
-    with pytest.raises(SimulationError, match="strain"):
+    with pytest.raises(SimulationError, match="strain") as err:
         solver.step(model.initial_state(), model.rest_data(g.vert_uv / 4), 1 / 60)
+    # the message says how many triangles are over the limit and where the worst one is
+    count = int(re.search(r"in (\d+) triangle\(s\), the worst at \(", str(err.value)).group(1))
+    assert 0 < count <= model.tri_vertices.shape[0]
     solver.step(model.initial_state(), rest, 1 / 60)  # the right rest shape is fine
+
+
+def test_blow_up_detection_speed_says_where():
+    g, model = _hanging_sheet()
+    state = model.initial_state()
+    v = state.v.clone()
+    v[-1] = torch.tensor([0.0, 0.0, 100.0], dtype=v.dtype)  # one free vertex flung at 100 m/s
+    solver = XPBDSolver(model, XPBDConfig(substeps=1, iterations=1, max_speed=20.0))
+    with pytest.raises(SimulationError, match=r"a vertex at \(") as err:
+        solver.step(type(state)(state.x, v), model.rest_data(g.vert_uv), 1 / 60)
+    _, _, z = (float(c) for c in str(err.value).split("a vertex at (")[1].split(")")[0].split(", "))
+    assert z > float(state.x[-1, 2]) + 0.2  # where the flung vertex went, far out along +z
 
 
 def test_sew_tube_closes_seams_then_drape_warm_start():

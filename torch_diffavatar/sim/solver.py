@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import torch
 
 from torch_diffavatar.errors import SimulationError
+from torch_diffavatar.geometry import green_strain
 from torch_diffavatar.sim import collision, ops
 from torch_diffavatar.sim.constraints import RestData
 from torch_diffavatar.sim.contacts import Contacts
@@ -304,9 +305,10 @@ class XPBDSolver:
             )
         speed = float(v.norm(dim=-1).max()) if v.numel() else 0.0
         if speed > cfg.max_speed:
+            fastest = _where(x[int(v.norm(dim=-1).argmax())])
             raise SimulationError(
-                f"simulation blew up: a vertex moves at {speed:.3g} m/s > max_speed {cfg.max_speed:g} m/s "
-                "(reduce dt or increase substeps)"
+                f"simulation blew up: a vertex at {fastest} moves at {speed:.3g} m/s > max_speed "
+                f"{cfg.max_speed:g} m/s (reduce dt or increase substeps)"
             )
         strain = float(
             ops.max_abs_green_strain(
@@ -317,10 +319,19 @@ class XPBDSolver:
             )
         )
         if strain > cfg.max_strain:
+            # where, for the message: the op gives the largest strain only, and this runs once, at the end
+            e = green_strain(x, self.model.tri_vertices, rest.tri_rest_inv.detach()).abs().amax(-1)
+            worst = _where(x[self.model.tri_vertices[int(e.argmax())]].mean(0))
             raise SimulationError(
-                f"simulation blew up: Green strain {strain:.3g} > max_strain {cfg.max_strain:g} "
-                "(reduce dt, increase substeps/iterations, or check the rest shape)"
+                f"simulation blew up: Green strain {strain:.3g} > max_strain {cfg.max_strain:g} in "
+                f"{int((e > cfg.max_strain).sum())} triangle(s), the worst at {worst} (reduce dt, increase "
+                "substeps/iterations, or check the rest shape)"
             )
+
+
+def _where(p: torch.Tensor) -> str:
+    """A point (3,) [m] for a message: "(x, y, z) m", to the millimetre."""
+    return "(" + ", ".join(f"{float(c):.3f}" for c in p) + ") m"
 
 
 def contact_band(v: torch.Tensor, material, config: XPBDConfig, dt: float) -> float:
