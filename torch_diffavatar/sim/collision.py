@@ -305,13 +305,23 @@ def _floor_contacts(x, body_verts, body_faces, tri, start: int, radius: float, u
     rows = torch.nonzero((tri < start) & (x[:, 1] - height < radius)).squeeze(1)
     if rows.numel() == 0:
         return rows, rows, x.new_zeros(0, 3)
-    cand = torch.arange(start, body_faces.shape[0], device=tri.device).expand(rows.numel(), -1).contiguous()
+    cand = torch.arange(start, body_faces.shape[0], device=tri.device).expand(rows.numel(), -1)
+    return _second_contacts(x, body_verts, body_faces, rows, cand, radius, use_extension)
+
+
+def _second_contacts(x, body_verts, body_faces, rows, cand, radius: float, use_extension):
+    """Second contacts of the contacts ``rows`` (R,) (at x (C, 3)): the closest of each row's candidate
+    faces ``cand`` (R, K) (-1 padded) within ``radius`` [m], by the C++ op or its twin.
+
+    Returns:
+        (k (P,) int64 the rows that have one, tri (P,), bary (P, 3)).
+    """
     fast = ops.closest_point_index_available(x.device, use_extension)
     among = ops.closest_point_among if fast else reference.closest_point_among
-    bv = body_verts.to(x.dtype).contiguous()
-    tri3, bary3, _ = among(x[rows].contiguous(), bv, body_faces.contiguous(), cand, float(radius))
-    hit = tri3 >= 0
-    return rows[hit], tri3[hit], bary3[hit].to(x.dtype)
+    points, bv = x[rows].contiguous(), body_verts.to(x.dtype).contiguous()
+    tri, bary, _ = among(points, bv, body_faces.contiguous(), cand.contiguous(), float(radius))
+    hit = tri >= 0
+    return rows[hit], tri[hit], bary[hit].to(x.dtype)
 
 
 # A valley partner's corners rise this much [m] above the contact plane: coplanar neighbours (flat to
@@ -430,12 +440,7 @@ class _FeatureFaces:
         if rows.numel() == 0:
             empty = tri.new_zeros(0)
             return empty, empty, x.new_zeros(0, 3)
-        fast = ops.closest_point_index_available(x.device, use_extension)
-        among = ops.closest_point_among if fast else reference.closest_point_among
-        points, bv = x[rows].contiguous(), body_verts.to(x.dtype).contiguous()
-        tri2, bary2, _ = among(points, bv, self.faces, cand[rows].contiguous(), float(radius))
-        hit = tri2 >= 0
-        return rows[hit], tri2[hit], bary2[hit].to(x.dtype)
+        return _second_contacts(x, body_verts, self.faces, rows, cand[rows], radius, use_extension)
 
     def valley_candidates(self, body_verts, tri) -> torch.Tensor:
         """(C, P) int64: for each face ``tri`` (C,), the faces sharing a vertex with it that rise more than

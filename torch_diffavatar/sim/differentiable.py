@@ -28,10 +28,9 @@ import torch
 from torch.autograd.function import once_differentiable
 
 from torch_diffavatar.pattern.garment_mesh import GarmentMesh
-from torch_diffavatar.sim import floor
 from torch_diffavatar.sim.adjoint import ADJOINTS
 from torch_diffavatar.sim.adjoint.common import DrapeSetup, material_tensor_fields, material_with
-from torch_diffavatar.sim.forward_drape import DrapeConfig, floor_joined
+from torch_diffavatar.sim.forward_drape import DrapeConfig, collider, start_positions
 from torch_diffavatar.sim.material import ClothMaterial
 from torch_diffavatar.sim.model import ClothModel, ClothModelBuilder
 from torch_diffavatar.sim.state import ClothState
@@ -188,9 +187,8 @@ def _drape_setup(rest_uv, garment, body_verts, material, body_faces, state, conf
     values = tuple(v.to(dtype=model.dtype, device=model.device) for v in values)
     config = DrapeConfig() if config is None else config
     if state is None:
-        x0, v0 = model.vert_init_pos, torch.zeros_like(model.vert_init_pos)
-        if config.floor and body_verts is not None:
-            x0 = floor.fold_above_floor(x0, floor.sole_height(body_verts), float(material.thickness))
+        x0 = start_positions(model, body_verts, config, material)
+        v0 = torch.zeros_like(x0)
     else:
         if state.x.shape != (model.vert_count, 3):
             raise ValueError(f"state.x must be ({model.vert_count}, 3), got {tuple(state.x.shape)}")
@@ -200,7 +198,7 @@ def _drape_setup(rest_uv, garment, body_verts, material, body_faces, state, conf
         material=material_with(material, names, tuple(v.detach() for v in values)),
         material_names=names,
         body_faces=None if body_faces is None else body_faces.to(model.device),
-        config=config,
+        config=config,  # with the floor, replaced below by `collider`'s
         x0=x0,
         v0=v0,
         options=options,
@@ -208,10 +206,8 @@ def _drape_setup(rest_uv, garment, body_verts, material, body_faces, state, conf
         linearization=None if state is None else state.linearization,
     )
     setup.saved["adjoint"] = adjoint
-    if config.floor and body_verts is not None:
-        # the floor joins the body once, here: the adjoints' own drapes then see it as body triangles
-        body_verts, setup.body_faces = floor.with_floor(body_verts, setup.body_faces)
-        setup.config = floor_joined(config)
+    # the floor joins the body once, here: the adjoints' own drapes then see it as body triangles
+    body_verts, setup.body_faces, setup.config = collider(body_verts, setup.body_faces, config)
     return setup, values, body_verts
 
 

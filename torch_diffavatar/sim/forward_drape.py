@@ -180,12 +180,13 @@ def _check_body(body_verts, body_faces, model: ClothModel):
     return body_verts.to(device=model.device, dtype=model.dtype), body_faces.to(model.device, torch.int64)
 
 
-def _collider(body_verts, body_faces, config: DrapeConfig):
-    """What the cloth collides with, and the options to step against it: the body, and with
-    ``config.floor`` the floor at its soles (`floor_joined`)."""
+def collider(body_verts, body_faces, config: DrapeConfig, height: float | None = None):
+    """What the cloth collides with, and the options to step against it: the body (..., Vb, 3) [m] (one
+    pose or several), and with ``config.floor`` the floor at ``height`` [m] (default: its soles) joined to it
+    (`sim.floor.with_floor`, `floor_joined`). Returns (verts, faces, config)."""
     if body_verts is None or not config.floor:
         return body_verts, body_faces, config
-    return *floor.with_floor(body_verts, body_faces), floor_joined(config)
+    return *floor.with_floor(body_verts, body_faces, height), floor_joined(config)
 
 
 def floor_joined(config: DrapeConfig) -> DrapeConfig:
@@ -199,14 +200,14 @@ def floor_joined(config: DrapeConfig) -> DrapeConfig:
     )
 
 
-def _placed_state(model: ClothModel, body_verts, config: DrapeConfig, material) -> ClothState:
-    """The placement at rest; with ``config.floor``, what lies below the floor folded up onto it."""
-    state = model.initial_state()
+def start_positions(model: ClothModel, body_verts, config: DrapeConfig, material=None) -> torch.Tensor:
+    """(Vs, 3) [m] where a drape without a start state begins: the placement, and with ``config.floor`` what
+    lies below the floor (at the soles of ``body_verts``) folded up onto it."""
+    x = model.vert_init_pos
     if body_verts is None or not config.floor:
-        return state
+        return x
     thickness = float((model.material if material is None else material).thickness)
-    x = floor.fold_above_floor(state.x, floor.sole_height(body_verts), thickness)
-    return model.initial_state(x)
+    return floor.fold_above_floor(x, floor.sole_height(body_verts), thickness)
 
 
 def penetration_diagnostics(x, body_verts, body_faces, band: float = 0.05) -> dict:
@@ -250,8 +251,8 @@ def drape_to_equilibrium(
     """
     config = DrapeConfig() if config is None else config
     body_verts, body_faces = _check_body(body_verts, body_faces, model)
-    placed = _placed_state(model, body_verts, config, material)
-    body_verts, body_faces, config = _collider(body_verts, body_faces, config)
+    placed = model.initial_state(start_positions(model, body_verts, config, material))
+    body_verts, body_faces, config = collider(body_verts, body_faces, config)
     t0 = time.perf_counter()
     rest = model.rest_data(rest_uv, material, attach_height)
     solver = XPBDSolver(model, config.xpbd)
@@ -318,9 +319,8 @@ def follow_body(
         raise ValueError(f"frames must be >= 1, got {frames}")
     bodies = bodies.to(device=model.device, dtype=model.dtype)
     _, body_faces = _check_body(bodies[0], body_faces, model)
-    if config.floor:  # the floor under the first pose's soles, in every keyframe
-        bodies, body_faces = floor.with_floor(bodies, body_faces, floor.sole_height(bodies[0]))
-        config = floor_joined(config)
+    # the floor under the first pose's soles, in every keyframe
+    bodies, body_faces, config = collider(bodies, body_faces, config, floor.sole_height(bodies[0]))
     t0 = time.perf_counter()
     rest = model.rest_data(rest_uv, material)
     solver = XPBDSolver(model, config.xpbd)
@@ -398,8 +398,8 @@ def sew(
     """
     config = DrapeConfig() if config is None else config
     body_verts, body_faces = _check_body(body_verts, body_faces, model)
-    state = _placed_state(model, body_verts, config, material)
-    body_verts, body_faces, config = _collider(body_verts, body_faces, config)
+    state = model.initial_state(start_positions(model, body_verts, config, material))
+    body_verts, body_faces, config = collider(body_verts, body_faces, config)
     t0 = time.perf_counter()
     rest = model.rest_data(rest_uv, material)
     solver = XPBDSolver(model, config.sew_xpbd)
