@@ -63,6 +63,9 @@ ABLATIONS = {
     # panel's share of the hem held (docs/BENCHMARKS.md, "Openings the scan shows in part")
     "w/o gap rule": {"boundary_gap_bin": 0.0},
     "w/o hem split": {"weights": {"opening_split": 0.0}},
+    # issues #29/#30: the template's hem set to the scan's height and traced length before the fit
+    # (docs/BENCHMARKS.md, "The hem from the scan before the fit")
+    "w/o hem from scan": {"hem_from_scan": False},
 }
 
 

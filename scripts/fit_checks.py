@@ -123,10 +123,10 @@ class _TrueDrape:
         from torch_diffavatar.fit import with_fit_strain_limit
         from torch_diffavatar.mesh_io import read_obj
         from torch_diffavatar.pattern import load_pattern, mesh_pattern
+        from torch_diffavatar.pattern.design import changed_pattern
         from torch_diffavatar.pattern.library import resolve_pattern
         from torch_diffavatar.sim.forward_drape import DrapeConfig
         from torch_diffavatar.sim.material import ClothMaterial
-        from torch_diffavatar.synthetic_scans import changed_pattern
 
         truth_dir = Path(garment_dir) / "scan" / "truth"
         self.truth = json.loads((truth_dir / "truth.json").read_text())

@@ -57,11 +57,12 @@ def main() -> None:
     from torch_diffavatar.body.geometry import vertex_normals
     from torch_diffavatar.body.model import BodyModel
     from torch_diffavatar.pattern import load_template, mesh_pattern, save_pattern
+    from torch_diffavatar.pattern.design import changed_pattern
     from torch_diffavatar.scan import save_ply
     from torch_diffavatar.sim.forward_drape import sew_and_drape
     from torch_diffavatar.sim.material import ClothMaterial
     from torch_diffavatar.sim.placement import place_garment
-    from torch_diffavatar.synthetic_scans import changed_pattern, covered_by
+    from torch_diffavatar.synthetic_scans import covered_by
 
     t0 = time.perf_counter()
     out = Path(args.out)

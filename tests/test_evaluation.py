@@ -120,8 +120,8 @@ def test_pattern_overlay_gives_narrow_panels_room_for_their_names(tmp_path):
 def test_garment_measurements_of_a_changed_hem(tmp_path):
     """A fit whose skirt hem is 10 cm too high and 20 % too wide: the hem reads 20 % long, every
     length 10 cm short, the waist exact; the largest error is the hem's."""
+    from torch_diffavatar.pattern.design import changed_pattern
     from torch_diffavatar.pattern.library import load_template
-    from torch_diffavatar.synthetic_scans import changed_pattern
 
     truth = load_template("skirt")
     folder = _write_assets(tmp_path / "fit", changed_pattern(truth, hem_up=0.1, hem_widen=0.2))
@@ -145,8 +145,8 @@ def test_eval_report_leads_with_the_truth(tmp_path):
     """The text report: the outline error and the measurements table (cm) first, then the Chamfer to the
     true drape, then to the scan beside its floor (mm), then the rest."""
     from torch_diffavatar.commands.eval import report_lines
+    from torch_diffavatar.pattern.design import changed_pattern
     from torch_diffavatar.pattern.library import load_template
-    from torch_diffavatar.synthetic_scans import changed_pattern
 
     truth = load_template("skirt")
     folder = _write_assets(tmp_path / "fit", changed_pattern(truth, hem_up=0.05, hem_widen=0.0))

@@ -12,9 +12,10 @@ import torch
 
 from torch_diffavatar.cli import main
 from torch_diffavatar.evaluation import DRAPE_PICTURE, evaluate_assets, seam_length_mismatch
+from torch_diffavatar.pattern.design import changed_pattern
 from torch_diffavatar.pattern.garmentcode import load_pattern
 from torch_diffavatar.pattern.library import load_template
-from torch_diffavatar.synthetic_scans import changed_pattern, make_draped_scan, write_scan
+from torch_diffavatar.synthetic_scans import make_draped_scan, write_scan
 
 
 def test_changed_pattern_reproduces_the_demo_truth():

@@ -168,6 +168,11 @@ class FitConfig:
             does, instead of hanging through it. A garment that never reaches the floor drapes as without.
         animation_check_s: after the fit, its assets walk this long [s] (`fit_report.animation_warnings`:
             a warning in report.json when they blow up; ~2 CPU s for 0.5 s at 2k vertices). 0: no check.
+        hem_from_scan: before the fit, the template is sewn and draped once and its hem raised or lowered to
+            the scan's hem height and widened to the loop the scan's hem traces (`fit_design`): a template
+            5 cm too long made the fit lift its hem by shrinking the neck (a T-shirt's 6.2 cm; from the hem
+            set so, 1.3; docs/BENCHMARKS.md, "The hem from the scan before the fit"). False: the template
+            as it is.
         first_max_steps: frames at most of the first (sew and) drape [-].
         first_bend_scales: the first drape is sewn and draped once per entry, with the bending stiffness
             scaled by it, then each is settled at the fit's own stiffness; the one with the lowest loss
@@ -287,6 +292,7 @@ class FitConfig:
     drape_valley_contacts: bool = False
     drape_floor: bool = True
     animation_check_s: float = 0.5
+    hem_from_scan: bool = False
     first_max_steps: int = 400
     first_bend_scales: tuple[float, ...] = (1.0,)
     first_stretch_scales: tuple[float, ...] = (1.0,)

@@ -299,6 +299,7 @@ def full_report(fit_report: dict, setup: dict, scan_path, spacing: float, second
         scan_shift=setup.get("scan_shift"),
         spacing=spacing,
         upper_arm_angles_deg=setup.get("upper_arm_angles_deg"),
+        hem_from_scan=setup.get("hem_from_scan"),
         body_fit_chamfer_m=setup["body_fit_chamfer_m"],
         setup_seconds=round(setup["setup_seconds"], 2),
         total_seconds=round(seconds, 2),

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import sys
 import time
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -257,6 +258,56 @@ def scan_target(scan, mask: np.ndarray, boundaries: dict, coverage: dict | None)
     )
 
 
+@dataclass
+class DressedTemplate:
+    """The template on the initial body (`dress_template`): ``pattern`` (the template, its hem set from the
+    scan with ``FitConfig.hem_from_scan``), ``garment`` (meshed and placed), ``fallback`` (its
+    `a_pose_route`), ``boundaries`` (the scan's openings matched to the garment's, `match_boundaries`) and
+    ``design`` (`fit_design.HemDesign`: what the scan said of the hem, or None when not asked or no hem)."""
+
+    pattern: object
+    garment: object
+    fallback: object
+    boundaries: dict
+    design: object = None
+
+
+def dress_template(pattern, mesh, body, body_out, loops: dict, config, spacing: float) -> DressedTemplate:
+    """``mesh`` (``pattern`` meshed at ``spacing`` [m]) placed on the body facing its way, its openings
+    matched to the scan's ``loops``; with ``config.hem_from_scan`` it is first sewn and draped once, and
+    when the scan's hem lies higher or lower or traces a longer loop (`fit_design.hem_design`) the pattern
+    is changed so (`pattern.design.changed_pattern`) and meshed and placed again."""
+    from torch_diffavatar.body.facing import body_facing_yaw
+    from torch_diffavatar.fit_design import first_hem_drape, hem_design
+    from torch_diffavatar.pattern import mesh_pattern
+    from torch_diffavatar.pattern.design import changed_pattern
+    from torch_diffavatar.sim.placement import a_pose_route, place_garment_turned
+
+    body_verts = body_out.vertices[0].double()
+    yaw = body_facing_yaw(body.global_orient[0])  # a captured person faces any way (issue #29)
+    arms = body.arm_joints(body_out.joints[0])
+
+    def placed(pattern, mesh, design=None) -> DressedTemplate:
+        garment = place_garment_turned(mesh, body_verts, body.faces, yaw, arm_joints=arms)
+        fallback = a_pose_route(mesh, body, yaw)
+        return DressedTemplate(pattern, garment, fallback, match_boundaries(garment, loops), design)
+
+    dressed = placed(pattern, mesh)
+    if not config.hem_from_scan:
+        return dressed
+    x = first_hem_drape(dressed.garment, body_verts, body.faces, config, fallback=dressed.fallback)
+    design = hem_design(dressed.garment, x, dressed.boundaries, config.opening_length_bin)
+    if design is None or not design.applied:
+        return replace(dressed, design=design)
+    print(
+        f"diffavatar fit: the scan's hem lies {100 * design.hem_up:+.1f} cm from the template's first drape "
+        f"and traces {100 * design.hem_widen:.1f} % more: the fit starts from the template with its hem so",
+        file=sys.stderr,
+    )
+    changed = changed_pattern(pattern, design.hem_up, design.hem_widen, spacing=spacing)
+    return placed(changed, mesh_pattern(changed, spacing=spacing), design)
+
+
 def prepare(
     scan_path,
     config,
@@ -290,12 +341,10 @@ def prepare(
         ``labelled``, ``spacing`` (mesh [m]), ``upper_arm_angles_deg`` (initial body), ``setup_seconds``.
     """
     from torch_diffavatar.body.anny_model import load_anny
-    from torch_diffavatar.body.facing import body_facing_yaw
     from torch_diffavatar.body.model import BodyModel
     from torch_diffavatar.body.parts import vertex_parts
     from torch_diffavatar.pattern import mesh_pattern
     from torch_diffavatar.pattern.library import resolve_pattern
-    from torch_diffavatar.sim.placement import a_pose_route, place_garment_turned
 
     t0 = time.perf_counter()
     scan, intake = load_fit_scan(scan_path, units=units, up=up) if loaded_scan is None else loaded_scan
@@ -316,15 +365,14 @@ def prepare(
     if mask.sum() < 50:
         raise InputError(f"{scan_path}: only {int(mask.sum())} garment points; cannot fit a garment")
     loops = scan_boundaries(scan.points, mask, body_verts.numpy(), faces, parts, seg_type)
-    yaw = body_facing_yaw(body.global_orient[0])  # a captured person faces any way (issue #29)
-    arms = body.arm_joints(body_out.joints[0])
-    garment = place_garment_turned(mesh, body_verts, body.faces, yaw, arm_joints=arms)
+    dressed = dress_template(pattern, mesh, body, body_out, loops, config, spacing)
     return {
-        "garment": garment,
-        "pattern": pattern,
-        "target": scan_target(scan, mask, match_boundaries(garment, loops), intake.coverage),
+        "garment": dressed.garment,
+        "pattern": dressed.pattern,
+        "hem_from_scan": None if dressed.design is None else dressed.design.as_dict(),
+        "target": scan_target(scan, mask, dressed.boundaries, intake.coverage),
         "body_params": body.parameters_dict(),
-        "sewing_fallback": a_pose_route(mesh, body, yaw),
+        "sewing_fallback": dressed.fallback,
         "body_fit_chamfer_m": body_fit_chamfer_m,
         "scan_points": scan.point_count,
         "scan_coverage": intake.coverage,

@@ -574,7 +574,7 @@ def design_modes(template_uv: torch.Tensor, vert_panel: torch.Tensor) -> torch.T
 
     Applied to either coordinate of the displacement, these span a panel moved, scaled in width or length,
     sheared, and flared (its width changing linearly along its length): what GarmentCode's design
-    parameters (length, width, flare) and `synthetic_scans.changed_pattern` do. A neckline dug deeper or an
+    parameters (length, width, flare) and `pattern.design.changed_pattern` do. A neckline dug deeper or an
     armhole reshaped is outside it. ``template_uv``: (V, 2) [m]; ``vert_panel``: (V,) int64.
     """
     modes = torch.zeros(len(template_uv), 4, dtype=template_uv.dtype, device=template_uv.device)

@@ -23,7 +23,6 @@ garment (skirt, trousers) starts ``waist_drop`` lower and its waist is pinned to
 
 from __future__ import annotations
 
-import copy
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,8 +33,8 @@ from scipy.spatial import cKDTree
 
 from torch_diffavatar.errors import InputError
 from torch_diffavatar.json_io import write_json
+from torch_diffavatar.pattern.design import changed_pattern
 
-HEM_LOOPS = ("hem", "hem_left", "hem_right")
 # Default range of the random phenotypes of `make_draped_scan` (each of the six, uniform).
 DEFAULT_PHENOTYPE_RANGE = (0.35, 0.65)
 # ``--pose random`` draws from seed + this offset, apart from the phenotypes' draws.
@@ -45,43 +44,6 @@ NEWTON_SEED_OFFSET = 2000
 SIMULATORS = ("ours", "newton")
 # [m] range of the random waist drop of a waist-held garment under ``simulator="newton"``
 WAIST_DROP_RANGE = (0.0, 0.08)
-
-
-def changed_pattern(pattern, hem_up: float = 0.0, hem_widen: float = 0.0, spacing: float = 0.03):
-    """A copy of ``pattern`` with its hem raised by ``hem_up`` [m] and widened by ``hem_widen`` [-].
-
-    The hem corners are the pattern vertices of each panel that lie on the garment's bottom openings
-    (`HEM_LOOPS` of the template meshed at ``spacing``); in each panel they move up by ``hem_up`` and
-    away from their mean x by the factor ``1 + hem_widen`` (panel frame). A pattern without a bottom
-    opening is returned unchanged.
-    """
-    from torch_diffavatar.pattern import mesh_pattern
-
-    garment = mesh_pattern(pattern, spacing=spacing)
-    hem_sim = [loop.vertices for loop in garment.boundary_loops if loop.name in HEM_LOOPS]
-    if not hem_sim:
-        return copy.deepcopy(pattern)
-    on_loop = torch.isin(garment.vert_to_sim, torch.cat(hem_sim))
-    hem_verts = set(torch.nonzero(on_loop).flatten().tolist())  # panel vertices on the hem
-    out = copy.deepcopy(pattern)
-    for name in garment.panel_names:
-        panel = out.panels[name]
-        on_hem = []
-        for k, edge in enumerate(panel.edges):
-            ids = garment.edge_vertices[(name, k)]
-            first, last = int(ids[0]), int(ids[-1])
-            if first in hem_verts:
-                on_hem.append(edge.start)
-            if last in hem_verts:
-                on_hem.append(edge.end)
-        corners = sorted(set(on_hem))
-        if not corners:
-            continue
-        v = panel.vertices
-        centre = v[corners, 0].mean()
-        v[corners, 0] = centre + (v[corners, 0] - centre) * (1.0 + hem_widen)
-        v[corners, 1] += hem_up
-    return out
 
 
 def covered_by(

@@ -87,7 +87,7 @@ def test_measurements_ignore_a_rigid_motion_of_a_panel(template, panel):
 def test_a_raised_widened_hem_changes_length_and_hem_by_the_expected_amounts(template):
     """`changed_pattern` moves each panel's hem corners up 10 cm and 20 % away from their mean: the
     templates' hems are straight, so each hem grows by 20 % and each length shrinks by 10 cm."""
-    from torch_diffavatar.synthetic_scans import changed_pattern
+    from torch_diffavatar.pattern.design import changed_pattern
 
     pattern = load_template(template)
     openings = pattern_openings(pattern)

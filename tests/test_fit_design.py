@@ -1,0 +1,115 @@
+"""The template's hem set from the scan before the fit (`fit_design`, ``FitConfig.hem_from_scan``)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from torch_diffavatar.fit_design import HEM_UP_TOLERANCE, hem_design
+from torch_diffavatar.opening_lengths import rest_loop_edges, rest_loop_length
+from torch_diffavatar.pattern import mesh_pattern
+from torch_diffavatar.pattern.library import load_template
+
+
+@pytest.fixture(scope="module")
+def tshirt():
+    """A T-shirt template meshed at 5 cm; its panels' own 3D placement stands in for a drape."""
+    return mesh_pattern(load_template("tshirt"), spacing=0.05)
+
+
+def _hem(garment):
+    (loop,) = [lp for lp in garment.boundary_loops if lp.name == "hem"]
+    return loop
+
+
+def _ring(garment, x: torch.Tensor, up: float, scale: float) -> torch.Tensor:
+    """(k, 3) points along the hem of ``x`` raised by ``up`` [m] and scaled by ``scale`` about its axis,
+    4 per loop edge: what a scan's hem opening holds."""
+    loop = _hem(garment).vertices
+    a, b = x[loop], x[torch.roll(loop, -1)]
+    t = torch.linspace(0, 1, 5, dtype=x.dtype)[:-1, None, None]
+    p = (a + t * (b - a)).reshape(-1, 3)
+    centre = p.mean(0)
+    p = centre + (p - centre) * torch.tensor([scale, 1.0, scale], dtype=x.dtype)
+    return p + torch.tensor([0.0, up, 0.0], dtype=x.dtype)
+
+
+def _round_hem(garment) -> torch.Tensor:
+    """(Vs, 3) the garment with its hem loop on a horizontal circle as long as the rest hem."""
+    x = torch.zeros(garment.sim_vert_count, 3, dtype=torch.float64)
+    loop = _hem(garment).vertices
+    length = float(rest_loop_length(garment.vert_uv.double(), rest_loop_edges(garment, _hem(garment))))
+    angle = torch.linspace(0, 2 * math.pi, len(loop) + 1, dtype=torch.float64)[:-1]
+    radius = length / (2 * math.pi)
+    x[loop] = torch.stack([radius * angle.cos(), torch.full_like(angle, 0.9), radius * angle.sin()], 1)
+    return x
+
+
+def test_the_scan_hem_higher_and_wider_is_measured(tshirt):
+    x = _round_hem(tshirt)
+    design = hem_design(tshirt, x, {"hem": _ring(tshirt, x, 0.04, 1.10)})
+    assert design.loops == ("hem",) and design.applied
+    assert design.hem_up == pytest.approx(0.04, abs=1e-9)
+    # the traced loop of a circle of a 10 % larger radius, against the rest hem (a polygon's chords)
+    assert design.hem_widen == pytest.approx(0.10, abs=0.02)
+    lower = hem_design(tshirt, x, {"hem": _ring(tshirt, x, -0.03, 1.0)})
+    assert lower.hem_up == pytest.approx(-0.03, abs=1e-9) and abs(lower.hem_widen) < 0.02
+
+
+def test_a_hem_within_the_tolerances_or_traced_short_is_left(tshirt):
+    x = _round_hem(tshirt)
+    near = hem_design(tshirt, x, {"hem": _ring(tshirt, x, 0.5 * HEM_UP_TOLERANCE, 1.0)})
+    assert not near.applied
+    # folds make a traced hem shorter than the cloth: never narrowed from the trace
+    folded = hem_design(tshirt, x, {"hem": _ring(tshirt, x, 0.0, 0.8)})
+    assert folded.hem_widen == 0.0 and not folded.applied
+
+
+def test_no_hem_in_the_scan_is_no_design(tshirt):
+    x = _round_hem(tshirt)
+    assert hem_design(tshirt, x, {"neck": _ring(tshirt, x, 0.0, 1.0)}) is None
+    assert hem_design(tshirt, x, {"hem": torch.zeros(0, 3, dtype=torch.float64)}) is None
+
+
+@pytest.mark.anny
+@pytest.mark.slow
+def test_the_set_up_starts_from_the_scans_hem(skirt_scan, anny_model, tmp_path):
+    """The skirt scan's truth has its hem 5 cm up and 10 % wider than the template; with ``hem_from_scan``
+    the set-up's pattern starts within 1.5 cm of the truth's length, its hem nearer the truth's; without
+    it, the template."""
+    from torch_diffavatar.fit import load_config
+    from torch_diffavatar.fit_setup import prepare
+    from torch_diffavatar.pattern import measure_pattern, pattern_openings
+    from torch_diffavatar.synthetic_scans import write_scan
+
+    write_scan(skirt_scan, tmp_path / "scan")
+    scan, truth = tmp_path / "scan" / "scan.ply", skirt_scan.body_params
+    config = load_config(garment="skirt", spacing=0.05, hem_from_scan=True)
+    setup = prepare(scan, config, anny_model=anny_model, body_params=truth)
+    design = setup["hem_from_scan"]
+    assert design["applied"] and design["loops"] == ["hem"]
+    assert design["hem_up"] == pytest.approx(0.05, abs=0.015) and 0.0 < design["hem_widen"] < 0.2
+    off = prepare(scan, load_config(garment="skirt", spacing=0.05), anny_model=anny_model, body_params=truth)
+    assert off["hem_from_scan"] is None
+    openings = pattern_openings(skirt_scan.pattern)
+    true, start, template = (
+        measure_pattern(p, openings).lengths for p in (skirt_scan.pattern, setup["pattern"], off["pattern"])
+    )
+    assert abs(template["garment_length"] - true["garment_length"]) > 0.045
+    assert abs(start["garment_length"] - true["garment_length"]) < 0.015
+    # the hem widened towards the truth's (this coarse scan's hem traces short: folds and 4k points)
+    hem_error = {
+        k: abs(m["hem_circumference"] - true["hem_circumference"])
+        for k, m in (("start", start), ("template", template))
+    }
+    assert hem_error["start"] < 0.6 * hem_error["template"]
+
+    # the fit gets that pattern meshed and placed: its hem as long as the changed pattern's
+    def hem(garment):
+        return float(rest_loop_length(garment.vert_uv.double(), rest_loop_edges(garment, _hem(garment))))
+
+    assert hem(setup["garment"]) == pytest.approx(start["hem_circumference"], rel=0.02)
+    assert hem(off["garment"]) == pytest.approx(template["hem_circumference"], rel=0.02)
+    assert set(setup["target"].boundaries) == set(off["target"].boundaries)
