@@ -19,7 +19,7 @@ from dataclasses import asdict, dataclass, replace
 
 import torch
 
-from torch_diffavatar.fit_config import FitConfig, drape_config, first_drape_config
+from torch_diffavatar.fit_config import FitConfig, first_drape_config
 from torch_diffavatar.opening_lengths import rest_loop_edges, rest_loop_length, scan_loop_length
 from torch_diffavatar.pattern.design import HEM_LOOPS
 
@@ -88,7 +88,8 @@ def first_hem_drape(
 ) -> torch.Tensor:
     """(Vs, 3) [m] the template sewn onto the body and settled as a fit's first drape is (its first
     `first_bend_scales`, then the fit's own substeps at its stiffness: `fit_start.first_states`)."""
-    from torch_diffavatar.sim.forward_drape import drape_to_equilibrium, sew_and_drape
+    from torch_diffavatar.fit_start import settle
+    from torch_diffavatar.sim.forward_drape import sew_and_drape
     from torch_diffavatar.sim.material import ClothMaterial
     from torch_diffavatar.sim.state import ClothState
 
@@ -101,13 +102,7 @@ def first_hem_drape(
         material=replace(material, bend_stiffness=material.bend_stiffness * config.first_bend_scales[0]),
         config=first_drape_config(config),
     )
-    res = drape_to_equilibrium(
-        sewn.model,
-        garment.vert_uv.float(),
-        body_verts=body_verts.float(),
-        body_faces=body_faces,
-        material=material,
-        state=ClothState(sewn.state.x, torch.zeros_like(sewn.state.x)),
-        config=replace(drape_config(config), min_steps=10, max_steps=config.first_max_steps),
-    )
-    return res.x
+    state = ClothState(sewn.state.x, torch.zeros_like(sewn.state.x))
+    return settle(
+        sewn.model, state, garment.vert_uv.float(), body_verts.float(), body_faces, material, config
+    ).x

@@ -33,16 +33,23 @@ def settled(
     body_verts: torch.Tensor | None,
     material: ClothMaterial,
 ) -> ClothState:
-    """``state`` draped to rest with the fit's own substeps (at least 10 frames, ``first_max_steps`` at
-    most), its velocities zeroed. ``rest_uv``: (V, 2) [m]; ``body_verts``: (Vb, 3) [m] or None."""
+    """``state`` draped to rest with the fit's own substeps (`settle` on the objective's cloth model, body
+    faces and config). ``rest_uv``: (V, 2) [m]; ``body_verts``: (Vb, 3) [m] or None."""
+    faces = objective.body_faces
+    return settle(objective.cloth_model, state, rest_uv, body_verts, faces, material, objective.config)
+
+
+def settle(model, state: ClothState, rest_uv, body_verts, body_faces, material, config) -> ClothState:
+    """``state`` of the cloth ``model`` draped to rest on the body (``body_verts`` (Vb, 3) [m] and
+    ``body_faces``, or None) with a fit's own substeps (``config``'s `drape_config`; at least 10 frames,
+    ``first_max_steps`` at most), its velocities zeroed: how a fit settles a first sewing."""
     from torch_diffavatar.sim.forward_drape import drape_to_equilibrium
 
-    config = objective.config
     res = drape_to_equilibrium(
-        objective.cloth_model,
+        model,
         rest_uv,
         body_verts=body_verts,
-        body_faces=None if body_verts is None else objective.body_faces,
+        body_faces=None if body_verts is None else body_faces,
         material=material,
         state=state,
         config=replace(drape_config(config), min_steps=10, max_steps=config.first_max_steps),
