@@ -75,7 +75,7 @@ def test_no_hem_in_the_scan_is_no_design(tshirt):
 
 @pytest.mark.anny
 @pytest.mark.slow
-def test_the_set_up_starts_from_the_scans_hem(skirt_scan, anny_model, tmp_path):
+def test_the_set_up_starts_from_the_scans_hem(skirt_scan, anny_model, tmp_path, monkeypatch):
     """The skirt scan's truth has its hem 5 cm up and 10 % wider than the template; with ``hem_from_scan``
     the set-up's pattern starts within 1.5 cm of the truth's length, its hem nearer the truth's; without
     it, the template."""
@@ -113,3 +113,14 @@ def test_the_set_up_starts_from_the_scans_hem(skirt_scan, anny_model, tmp_path):
     assert hem(setup["garment"]) == pytest.approx(start["hem_circumference"], rel=0.02)
     assert hem(off["garment"]) == pytest.approx(template["hem_circumference"], rel=0.02)
     assert set(setup["target"].boundaries) == set(off["target"].boundaries)
+    # a sewing that fails leaves the template as it is: the fit's own sewings may still succeed
+    import torch_diffavatar.fit_design as fit_design
+    from torch_diffavatar.errors import SimulationError
+
+    def blows_up(*args, **kwargs):
+        raise SimulationError("the drape blew up at frame 3")
+
+    monkeypatch.setattr(fit_design, "first_hem_drape", blows_up)
+    failed = prepare(scan, config, anny_model=anny_model, body_params=truth)
+    assert failed["hem_from_scan"] is None
+    assert measure_pattern(failed["pattern"], openings).lengths == template

@@ -14,11 +14,17 @@ from __future__ import annotations
 import sys
 import time
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
-from torch_diffavatar.errors import InputError
+from torch_diffavatar.errors import InputError, SimulationError
+
+if TYPE_CHECKING:
+    from torch_diffavatar.fit_design import HemDesign
+    from torch_diffavatar.pattern import GarmentMesh, Pattern
+    from torch_diffavatar.sim.forward_drape import PoseRoute
 
 # Template name -> segmentation garment type (`body.segment.GARMENT_TYPES`).
 SEGMENT_TYPES = {
@@ -265,18 +271,19 @@ class DressedTemplate:
     `a_pose_route`), ``boundaries`` (the scan's openings matched to the garment's, `match_boundaries`) and
     ``design`` (`fit_design.HemDesign`: what the scan said of the hem, or None when not asked or no hem)."""
 
-    pattern: object
-    garment: object
-    fallback: object
+    pattern: Pattern
+    garment: GarmentMesh
+    fallback: PoseRoute | None
     boundaries: dict
-    design: object = None
+    design: HemDesign | None = None
 
 
 def dress_template(pattern, mesh, body, body_out, loops: dict, config, spacing: float) -> DressedTemplate:
     """``mesh`` (``pattern`` meshed at ``spacing`` [m]) placed on the body facing its way, its openings
     matched to the scan's ``loops``; with ``config.hem_from_scan`` it is first sewn and draped once, and
     when the scan's hem lies higher or lower or traces a longer loop (`fit_design.hem_design`) the pattern
-    is changed so (`pattern.design.changed_pattern`) and meshed and placed again."""
+    is changed so (`pattern.design.changed_pattern`) and meshed and placed again. When that sewing fails,
+    the template stays as it is (the fit's own first sewings may still succeed: `fit_start.first_states`)."""
     from torch_diffavatar.body.facing import body_facing_yaw
     from torch_diffavatar.fit_design import first_hem_drape, hem_design
     from torch_diffavatar.pattern import mesh_pattern
@@ -295,7 +302,11 @@ def dress_template(pattern, mesh, body, body_out, loops: dict, config, spacing: 
     dressed = placed(pattern, mesh)
     if not config.hem_from_scan:
         return dressed
-    x = first_hem_drape(dressed.garment, body_verts, body.faces, config, fallback=dressed.fallback)
+    try:
+        x = first_hem_drape(dressed.garment, body_verts, body.faces, config, fallback=dressed.fallback)
+    except SimulationError as exc:
+        print(f"diffavatar fit: the template's hem is not set from the scan ({exc})", file=sys.stderr)
+        return dressed
     design = hem_design(dressed.garment, x, dressed.boundaries, config.opening_length_bin)
     if design is None or not design.applied:
         return replace(dressed, design=design)
