@@ -267,6 +267,8 @@ def _run_garment(garment: str, simulator: str, args, anny, work: Path, pictures:
             ablation_rows.append({"garment": garment, "name": "full", "eval": fit["eval"]})
             for name, change in ABLATIONS.items():
                 cfg = config_from_dict(change, base=config)
+                if cfg == config:  # nothing to take out of this garment's config (its row would be "full")
+                    continue
                 ab = _fit_and_eval(scan_dir, work / re.sub(r"\W+", "_", name), cfg, anny)
                 ablation_rows.append({"garment": garment, "name": name, "eval": ab["eval"]})
     except Exception as exc:  # a garment that fails is a result too: record it and go on
