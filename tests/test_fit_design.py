@@ -75,7 +75,7 @@ def test_no_hem_in_the_scan_is_no_design(tshirt):
 
 @pytest.mark.anny
 @pytest.mark.slow
-def test_the_set_up_starts_from_the_scans_hem(skirt_scan, anny_model, tmp_path, monkeypatch):
+def test_the_set_up_starts_from_the_scans_hem(skirt_scan, anny_model, tmp_path, monkeypatch, capsys):
     """The skirt scan's truth has its hem 5 cm up and 10 % wider than the template; with ``hem_from_scan``
     the set-up's pattern starts within 1.5 cm of the truth's length, its hem nearer the truth's; without
     it, the template."""
@@ -89,6 +89,7 @@ def test_the_set_up_starts_from_the_scans_hem(skirt_scan, anny_model, tmp_path, 
     config = load_config(garment="skirt", spacing=0.05, hem_from_scan=True)
     setup = prepare(scan, config, anny_model=anny_model, body_params=truth)
     design = setup["hem_from_scan"]
+    assert "cm above the template's first drape" in capsys.readouterr().err  # the user is told
     assert design["applied"] and design["loops"] == ["hem"]
     assert design["hem_up"] == pytest.approx(0.05, abs=0.015) and 0.0 < design["hem_widen"] < 0.2
     off = prepare(scan, load_config(garment="skirt", spacing=0.05), anny_model=anny_model, body_params=truth)

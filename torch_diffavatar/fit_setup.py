@@ -310,9 +310,10 @@ def dress_template(pattern, mesh, body, body_out, loops: dict, config, spacing: 
     design = hem_design(dressed.garment, x, dressed.boundaries, config.opening_length_bin)
     if design is None or not design.applied:
         return replace(dressed, design=design)
+    where = f"{abs(100 * design.hem_up):.1f} cm {'above' if design.hem_up > 0 else 'below'}"
     print(
-        f"diffavatar fit: the scan's hem lies {100 * design.hem_up:+.1f} cm from the template's first drape "
-        f"and traces {100 * design.hem_widen:.1f} % more: the fit starts from the template with its hem so",
+        f"diffavatar fit: the scan's hem lies {where} the template's first drape and traces a "
+        f"{100 * design.hem_widen:.1f} % longer loop: the fit starts from the template with its hem so",
         file=sys.stderr,
     )
     changed = changed_pattern(pattern, design.hem_up, design.hem_widen, spacing=spacing)
