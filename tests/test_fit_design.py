@@ -15,7 +15,7 @@ from torch_diffavatar.pattern.library import load_template
 
 @pytest.fixture(scope="module")
 def tshirt():
-    """A T-shirt template meshed at 5 cm; its panels' own 3D placement stands in for a drape."""
+    """A T-shirt template meshed at 5 cm (its drape is made up: `_round_hem`)."""
     return mesh_pattern(load_template("tshirt"), spacing=0.05)
 
 

@@ -171,7 +171,7 @@ class FitConfig:
         hem_from_scan: before the fit, the template is sewn and draped once and its hem raised or lowered to
             the scan's hem height and widened to the loop the scan's hem traces (`fit_design`): a template
             5 cm too long made the fit lift its hem by shrinking the neck (a T-shirt's 6.2 cm; from the hem
-            set so, 1.3; docs/BENCHMARKS.md, "The hem from the scan before the fit"). False: the template
+            set so, 1.6; docs/BENCHMARKS.md, "The hem from the scan before the fit"). False: the template
             as it is.
         first_max_steps: frames at most of the first (sew and) drape [-].
         first_bend_scales: the first drape is sewn and draped once per entry, with the bending stiffness
