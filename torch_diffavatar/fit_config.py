@@ -16,6 +16,7 @@ from pathlib import Path
 from torch_diffavatar.atomic_file import atomic_write_text
 from torch_diffavatar.chamfer import ROBUST_KERNELS
 from torch_diffavatar.errors import InputError
+from torch_diffavatar.pattern.measurements import HEM_OPENINGS
 from torch_diffavatar.sim.forward_drape import SEW_MAX_STRAIN, DrapeConfig
 from torch_diffavatar.sim.solver import XPBDConfig
 
@@ -306,7 +307,7 @@ class FitConfig:
     boundary_trim: float = 0.0
     boundary_gap_bin: float = 0.0
     boundary_samples: int = 2
-    opening_length_names: tuple[str, ...] = ("hem", "hem_left", "hem_right")
+    opening_length_names: tuple[str, ...] = HEM_OPENINGS
     opening_length_bin: float = 0.02
     opening_length_tolerance: float = 0.0
     min_rest_area_ratio: float = 0.1

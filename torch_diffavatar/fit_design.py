@@ -21,7 +21,7 @@ import torch
 
 from torch_diffavatar.fit_config import FitConfig, first_drape_config
 from torch_diffavatar.opening_lengths import rest_loop_edges, rest_loop_length, scan_loop_length
-from torch_diffavatar.pattern.design import HEM_LOOPS
+from torch_diffavatar.pattern.measurements import HEM_OPENINGS
 
 # a hem within this of the scan's height [m] and length [-] is left as the template has it
 HEM_UP_TOLERANCE = 0.01
@@ -35,7 +35,7 @@ class HemDesign:
     Attributes:
         hem_up: the scan's hem lies this far above the first drape's [m] (negative: below).
         hem_widen: the scan's hem traces a loop this much longer than the template's hem [-] (>= 0).
-        loops: the hem loops measured (names of `HEM_LOOPS` that both the garment and the scan have).
+        loops: the hem loops measured (names of `HEM_OPENINGS` that both the garment and the scan have).
         applied: the template was changed (either beyond `HEM_UP_TOLERANCE` / `HEM_WIDEN_TOLERANCE`).
     """
 
@@ -59,7 +59,7 @@ def hem_design(
         boundaries: the scan's openings (`ScanTarget.boundaries`: name -> (k, 3) points [m]).
         bin_length: `scan_loop_length`'s bin [m] (`FitConfig.opening_length_bin`).
     """
-    loops = [lp for lp in garment.boundary_loops if lp.name in HEM_LOOPS and lp.name in boundaries]
+    loops = [lp for lp in garment.boundary_loops if lp.name in HEM_OPENINGS and lp.name in boundaries]
     loops = [lp for lp in loops if len(boundaries[lp.name]) > 0]
     if not loops:
         return None

@@ -1,8 +1,8 @@
 """Design changes of a pattern at its hem: raised or lowered, widened or narrowed.
 
-The hem is the panel corners on the garment's bottom openings (`HEM_LOOPS`, found on the pattern meshed):
-``hem_up`` raises them in their panels (a shorter garment; negative: longer), ``hem_widen`` spreads them
-about their panel's hem centre (more flare). Synthetic scans change their truths' design this way
+The hem is the panel corners on the garment's bottom openings (`measurements.HEM_OPENINGS`, found on the
+pattern meshed): ``hem_up`` raises them in their panels (a shorter garment; negative: longer), ``hem_widen``
+spreads them about their panel's hem centre (more flare). Synthetic scans change their truths' design this way
 (`synthetic_scans`), and a fit sets its template's hem from the scan's with it (`fit_design`).
 """
 
@@ -12,22 +12,20 @@ import copy
 
 import torch
 
-# the openings at a garment's bottom: a top's or a skirt's hem, the legs of trousers
-HEM_LOOPS = ("hem", "hem_left", "hem_right")
+from torch_diffavatar.pattern.measurements import HEM_OPENINGS
+from torch_diffavatar.pattern.mesher import mesh_pattern
 
 
 def changed_pattern(pattern, hem_up: float = 0.0, hem_widen: float = 0.0, spacing: float = 0.03):
     """A copy of ``pattern`` with its hem raised by ``hem_up`` [m] and widened by ``hem_widen`` [-].
 
     The hem corners are the pattern vertices of each panel that lie on the garment's bottom openings
-    (`HEM_LOOPS` of the template meshed at ``spacing``); in each panel they move up by ``hem_up`` and
+    (`HEM_OPENINGS` of the template meshed at ``spacing``); in each panel they move up by ``hem_up`` and
     away from their mean x by the factor ``1 + hem_widen`` (panel frame). A pattern without a bottom
     opening is returned unchanged.
     """
-    from torch_diffavatar.pattern.mesher import mesh_pattern
-
     garment = mesh_pattern(pattern, spacing=spacing)
-    hem_sim = [loop.vertices for loop in garment.boundary_loops if loop.name in HEM_LOOPS]
+    hem_sim = [loop.vertices for loop in garment.boundary_loops if loop.name in HEM_OPENINGS]
     if not hem_sim:
         return copy.deepcopy(pattern)
     on_loop = torch.isin(garment.vert_to_sim, torch.cat(hem_sim))
