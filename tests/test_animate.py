@@ -169,3 +169,30 @@ def test_the_fit_report_walks_the_assets(small_dress_assets, anny_model, monkeyp
     (said,) = animation_warnings(small_dress_assets, 0.5, anny_model)
     assert said.startswith("the assets blew up in a 0.5 s walk (simulation blew up: Green strain 3.48")
     assert animation_warnings(small_dress_assets, 0.0, anny_model) == []
+
+
+def test_asset_strains_finds_the_drapes_most_strained_triangle(small_dress_assets, tmp_path, capsys):
+    """`scripts/asset_strains.py`: the drape's largest Green strain against the rest pattern, the same the
+    solver's blow-up test measures; a rest pattern shrunk by 2 in one panel shows there, a missing folder
+    is one line on stderr and exit code 2 while the others are still measured."""
+    import shutil
+
+    from helpers_scripts import load_script
+
+    script = load_script("asset_strains")
+    before = script.asset_strains(small_dress_assets)
+    assert before["max_strain"] < 0.5 and before["over_max_strain"] == 0
+    shrunk = tmp_path / "shrunk"
+    shutil.copytree(small_dress_assets, shrunk)
+    lines = (shrunk / "rest.obj").read_text().splitlines()
+    vt = [i for i, line in enumerate(lines) if line.startswith("vt ")]
+    for i in vt:  # every panel's rest coordinates halved: the drape is stretched ×2 (E = 1.5)
+        u, v = (float(c) for c in lines[i].split()[1:3])
+        lines[i] = f"vt {u / 2:.9g} {v / 2:.9g}"
+    (shrunk / "rest.obj").write_text("\n".join(lines) + "\n")
+    after = script.asset_strains(shrunk)
+    assert after["max_strain"] > 1.2 and after["over_1"] > after["triangles"] // 2
+    assert script.main([str(tmp_path / "missing"), str(small_dress_assets), "--json"]) == 2
+    out, err = capsys.readouterr()
+    assert "no such asset folder" in err
+    assert json.loads(out.splitlines()[-1])["triangles"] == before["triangles"]
