@@ -380,7 +380,7 @@ def test_rest_prox_solves_its_proximal_problem(skirt_problem):
 
     fitter.optimizer.step()
     target = handles.detach().clone()
-    rest_prox(fitter.optimizer, group, fitter.rest_loss, fitter.config.rest_prox_iterations)
+    rest_prox(fitter.optimizer, group, fitter.rest_loss, 50)  # from Adam's result: converged at 50
     c = handles.detach().clone().requires_grad_(True)
     st = fitter.optimizer.state[handles]
     vhat = st["exp_avg_sq"] / (1.0 - group["betas"][1] ** float(st["step"]))
@@ -393,6 +393,34 @@ def test_rest_prox_solves_its_proximal_problem(skirt_problem):
     assert r_prox < 0.7 * r_adam  # ... the proximal step takes part of it back (measured 1.42 -> 0.86)
     assert float(stationarity.abs().max()) < 1e-6 * float(metric.max() * group["lr"])
     assert not torch.equal(c.detach(), target)
+
+
+def test_rest_prox_starts_where_the_last_correction_went(skirt_problem):
+    """`rest_prox` returns its correction c − ĉ; given as ``shift`` it starts there when that is lower than
+    Adam's result itself: from the minimiser's own shift two L-BFGS iterations end where 50 did, a shift
+    that makes things worse is not taken (the same result as without one)."""
+    garment, state, _ = skirt_problem
+    fitter = _fitter(skirt_problem, _config(iterations=1, lr_cage=0.02), tensorboard=False)
+    handles = fitter.params.cage.handles
+    fitter._backward(fitter.evaluate(state), state)
+    group = fitter._prox_group()
+    fitter.optimizer.step()
+    target = handles.detach().clone()
+
+    def prox(iterations, shift=None):
+        with torch.no_grad():
+            handles.copy_(target)
+        out = rest_prox(fitter.optimizer, group, fitter.rest_loss, iterations, shift)
+        return handles.detach().clone(), out
+
+    cold, shift = prox(50)
+    torch.testing.assert_close(shift, cold - target, rtol=0, atol=0)
+    warm, _ = prox(2, shift)
+    assert float((warm - cold).abs().max()) < 1e-6 * float((cold - target).abs().max())
+    short, _ = prox(2)
+    assert float((short - cold).abs().max()) > 10 * float((warm - cold).abs().max())  # cold, 2 are too few
+    wrong, _ = prox(2, -10 * shift)
+    torch.testing.assert_close(wrong, short, rtol=0, atol=0)
 
 
 @pytest.mark.parametrize("keep_best", [True, False])

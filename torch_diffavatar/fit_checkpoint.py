@@ -37,6 +37,7 @@ PROGRESS = {
     "best": (None, None),
     "first_candidates": (list, []),
     "resewings": (list, []),
+    "prox_shift": (None, None),  # `fit.rest_prox`'s last correction, where the next one starts
     "seconds": (float, 0.0),
 }
 

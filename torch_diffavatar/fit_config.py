@@ -244,6 +244,8 @@ class FitConfig:
             metric [-]. 0: one Adam step on the whole loss. Adam's first step moves every handle by its
             learning rate, whatever its gradient; the curvature term, which has no gradient at the
             template, then rose 17× the whole loss on a T-shirt fit and stalled it (docs/RESULTS_HISTORY.md).
+            Each step starts where the last one's correction went (`fit.rest_prox`): 30 then do what 50
+            did from Adam's result (docs/BENCHMARKS.md, "The proximal step started where the last one went").
         keep_best: the fit's result is the iteration with the lowest loss (its drape reproduced from its
             own start), not the last one. ``max_loss_rise`` lets single steps raise the loss, and a drape
             can jump to another rest state on a small pattern change (measured: a T-shirt fit's loss
@@ -315,7 +317,7 @@ class FitConfig:
     max_retries: int = 3
     max_loss_rise: float = 0.1
     lr_final: float = 1.0
-    rest_prox_iterations: int = 50
+    rest_prox_iterations: int = 30
     keep_best: bool = True
     cage: bool = True
     tie_mirrored: bool = True
