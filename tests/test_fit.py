@@ -237,6 +237,20 @@ def test_checkpoint_resume_gives_the_same_state(skirt_problem, tmp_path):
     assert last["material/k_vv"] == pytest.approx(ClothMaterial().k_vv * last["material/stretch_scale"])
 
 
+def test_the_proximal_steps_start_survives_a_resume(skirt_problem, tmp_path):
+    """The last proximal correction (`Fitter.prox_shift`, where the next `rest_prox` starts) is in the
+    checkpoint: a fit stopped after two iterations resumes to the same third."""
+    config = _config(iterations=3)
+    fitter = _fitter(skirt_problem, config, out_dir=tmp_path / "a", tensorboard=False)
+    straight = fitter.run()
+    assert fitter.prox_shift is not None and float(fitter.prox_shift.abs().max()) > 0
+    _fitter(skirt_problem, config, out_dir=tmp_path / "b", tensorboard=False).run(iterations=2)
+    resumed_fitter = _fitter(skirt_problem, config, out_dir=tmp_path / "b", tensorboard=False)
+    resumed = resumed_fitter.run(resume=True)
+    torch.testing.assert_close(resumed.rest_uv, straight.rest_uv, rtol=0, atol=1e-12)
+    torch.testing.assert_close(resumed_fitter.prox_shift, fitter.prox_shift, rtol=0, atol=1e-12)
+
+
 def test_predicted_warm_starts_are_used_and_resume_exactly(skirt_problem, tmp_path):
     """With ``predict_warm_starts`` each drape starts at the equilibrium its predecessor's backward
     predicts; a resumed fit rebuilds that linearization from the checkpoint and ends bit for bit alike."""
