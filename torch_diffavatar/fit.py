@@ -163,8 +163,9 @@ def rest_prox(
 
     ``shift``: the last step's correction c − ĉ, (H, 2) [m]. The rest terms pull the handles much the same
     way from one iteration to the next, so L-BFGS starts from ĉ + ``shift`` when that is the lower of the
-    two: on the demo's fit it then reached in 25 iterations the objective that 50 reached from ĉ (to 1e-5,
-    from its tenth iteration on; docs/BENCHMARKS.md, "The proximal step started where the last one went").
+    two: on the demo's fit it then reached in 25 iterations the objective that 50 reached from ĉ (lower, or
+    within 3e-5 of it, from its tenth iteration on; docs/BENCHMARKS.md, "The proximal step started where the
+    last one went").
 
     Args:
         optimizer: the Adam that just stepped; group: its cage group (``params``: the (H, 2) handles [m]);
