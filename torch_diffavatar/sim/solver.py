@@ -77,7 +77,7 @@ class XPBDConfig:
             sit at E ≈ 1 in a sane drape), where it covers more than ``max_strain_area``.
         max_strain_area: rest area [m²] that triangles beyond ``max_strain`` may cover without a blow-up
             (5 cm²; one triangle is ~2.5 cm² at 3 cm spacing). GarmentCode's tops have 5.6 mm seam edges at
-            the shoulder tips, whose triangles (0.14–0.19 cm²) sat at E = 1.0–2.7 in 19 of 57 fitted drapes
+            the shoulder tips, whose triangles (0.14–0.19 cm²) sat at E = 1.0–2.7 in 18 of 54 fitted drapes
             and rose to 2.5 as the arms moved: a sliver stretched by the cloth around it, which more substeps
             do not change, is not a blow-up (docs/BENCHMARKS.md, "Slivers at the shoulder tips").
         use_extension: use the C++ ops when built (else the PyTorch reference kernels).
