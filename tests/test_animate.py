@@ -173,7 +173,7 @@ def test_the_fit_report_walks_the_assets(small_dress_assets, anny_model, monkeyp
 
 def test_asset_strains_finds_the_drapes_most_strained_triangle(small_dress_assets, tmp_path, capsys):
     """`scripts/asset_strains.py`: the drape's largest Green strain against the rest pattern, the same the
-    solver's blow-up test measures; a rest pattern shrunk by 2 in one panel shows there, a missing folder
+    solver's blow-up test measures; the rest pattern halved shows there (E = 1.5), a missing folder
     is one line on stderr and exit code 2 while the others are still measured."""
     import shutil
 
