@@ -3,9 +3,10 @@
 
 For each asset folder (`diffavatar fit` / `demo` / `export-template` output): the drape's per-triangle
 largest |Green strain| component against the rest pattern, on the seam-merged mesh the simulator steps
-(`XPBDSolver`'s blow-up test measures the same), the triangles over 1 and over ``XPBDConfig.max_strain``,
-the rest area [cm²] and drape position [m] of the worst one, and the area the triangles beyond
-``max_strain`` cover against ``max_strain_area`` (docs/BENCHMARKS.md, "Slivers at the shoulder tips").
+(`solver.strained_triangles`, what `XPBDSolver`'s blow-up test measures), the triangles over 1 and over
+``XPBDConfig.max_strain``, the rest area [cm²] and drape position [m] of the worst one, and the area the
+triangles beyond ``max_strain`` cover against ``max_strain_area`` (docs/BENCHMARKS.md, "Slivers at the
+shoulder tips").
 
     PYTHONPATH=. python scripts/asset_strains.py FIT_DIR [FIT_DIR ...] [--json]
 """
@@ -22,26 +23,24 @@ import torch
 def asset_strains(asset_dir) -> dict:
     """The strain summary of one asset folder (the module docstring)."""
     from torch_diffavatar.assets import load_assets
-    from torch_diffavatar.sim.constraints import green_strain
     from torch_diffavatar.sim.model import ClothModelBuilder
-    from torch_diffavatar.sim.solver import XPBDConfig
+    from torch_diffavatar.sim.solver import XPBDConfig, strained_triangles
 
     assets = load_assets(asset_dir)
     builder = ClothModelBuilder(assets.material).add_garment(assets.garment, merge_seams=True)
     model = builder.finalize(dtype=torch.float64)
     rest = model.rest_data(assets.rest_uv.double())
     x = assets.draped_x.double()
-    e = green_strain(x, model.tri_vertices, rest.tri_rest_inv).abs().amax(-1)
-    worst = int(e.argmax())
     limit = XPBDConfig()
-    over = e > limit.max_strain
+    e, over, area = strained_triangles(x, model, rest, limit.max_strain)
+    worst = int(e.argmax())
     return {
         "asset": str(asset_dir),
         "triangles": int(e.numel()),
         "max_strain": float(e[worst]),
         "over_1": int((e > 1).sum()),
         "over_max_strain": int(over.sum()),
-        "area_over_max_strain_cm2": 1e4 * float(rest.tri_area[over].sum()),
+        "area_over_max_strain_cm2": 1e4 * area,
         "worst_rest_area_cm2": 1e4 * float(rest.tri_area[worst]),
         "median_rest_area_cm2": 1e4 * float(rest.tri_area.median()),
         "worst_at_m": [round(float(c), 3) for c in x[model.tri_vertices[worst]].mean(0)],

@@ -206,7 +206,7 @@ def rest_prox(
         return None
     with torch.no_grad():
         handles.copy_(c.detach())
-    return (c.detach() - target).clone()
+    return c.detach() - target
 
 
 def sanitize_grads(groups: list[dict]) -> int:

@@ -331,9 +331,7 @@ class XPBDSolver:
         )
         if strain > cfg.max_strain:
             # which triangles (the op gives the largest strain only): slivers alone are no blow-up
-            e = green_strain(x, self.model.tri_vertices, rest.tri_rest_inv.detach()).abs().amax(-1)
-            over = e > cfg.max_strain
-            area = float(rest.tri_area.detach()[over].sum())
+            e, over, area = strained_triangles(x, self.model, rest, cfg.max_strain)
             if area <= cfg.max_strain_area:
                 return
             worst = _where(x[self.model.tri_vertices[int(e.argmax())]].mean(0))
@@ -342,6 +340,17 @@ class XPBDSolver:
                 f"{int(over.sum())} triangle(s) of {1e4 * area:.3g} cm², the worst at {worst} (reduce dt, "
                 "increase substeps/iterations, or check the rest shape)"
             )
+
+
+def strained_triangles(
+    x: torch.Tensor, model: ClothModel, rest: RestData, max_strain: float
+) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """What the blow-up test measures (`XPBDSolver`, ``XPBDConfig.max_strain_area``): per triangle of
+    ``model`` the largest |Green strain| component (F,) of ``x`` (Vs, 3) [m] against ``rest``, the mask (F,)
+    of those beyond ``max_strain``, and the rest area [m²] they cover."""
+    e = green_strain(x, model.tri_vertices, rest.tri_rest_inv.detach()).abs().amax(-1)
+    over = e > max_strain
+    return e, over, float(rest.tri_area.detach()[over].sum())
 
 
 def _where(p: torch.Tensor) -> str:
