@@ -622,6 +622,193 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> closest_point_among(const at::Ten
   return {tri, bary, dist};
 }
 
+
+// ------------------------------------------------------------------------------------ the contact cache
+
+// One frame of `collision.ContactCache` (see its docstring) for every point, in place on the cache's state:
+// last_x (N, 3) f64 where each point was last queried; lower (N,) f64 a lower bound of its distance to the
+// mesh from there; last_tri (N,) i64 its triangle (or the probe's, -1: none); cand_x (N, 3) f64 where its
+// candidates were collected; cand (N, K) i64 the candidates, -1 padded (cand[i, 0] < 0: none, also when
+// more than K lie within the radius). Returns (tri, bary) exactly as `closest_point_query` (points, band)
+// and counts (3,) i64: the points queried, of those the ones answered among their candidates, and the
+// longest candidate list that did not fit in K (0: none).
+template <typename T>
+void cache_one(const GridView& g, const T* verts, const int64_t* faces, int64_t nf, const T* pt, int64_t i,
+               double band, double probe, double margin, double max_radius, double* last_x, double* lower,
+               int64_t* last_tri, double* cand_x, int64_t* cand, int64_t k, std::vector<int64_t>& stamp,
+               std::vector<int64_t>& found, int64_t* tri_out, T* bary_out, int64_t& queried, int64_t& among,
+               int64_t& overflow) {
+  constexpr double kSlack = 1e-5;  // [m], as `collision._CACHE_SLACK`
+  const double p[3] = {static_cast<double>(pt[0]), static_cast<double>(pt[1]), static_cast<double>(pt[2])};
+  auto dist_from = [&](const double* q) {
+    const double d0 = p[0] - q[0], d1 = p[1] - q[1], d2 = p[2] - q[2];
+    return std::sqrt(d0 * d0 + d1 * d1 + d2 * d2);
+  };
+  // rounded as the point's dtype, as the query's output is
+  auto rounded = [](const Hit& h) { return static_cast<double>(static_cast<T>(std::sqrt(h.dist2))); };
+  if (lower[i] - dist_from(last_x + 3 * i) > band + kSlack) return;  // cannot be in the band (NaN: queried)
+  ++queried;
+  int64_t* row = cand + i * k;
+  Hit hit;
+  if (row[0] >= 0 && dist_from(cand_x + 3 * i) <= margin - kSlack) {
+    hit = closest_among(verts, faces, nf, p, band, row, k);
+    ++among;
+  } else {
+    hit = query(g, verts, faces, nf, p, band, stamp, 3 * i, last_tri[i]);
+    row[0] = -1;
+    if (hit.tri >= 0 && rounded(hit) + 2 * margin <= max_radius) {
+      found.clear();
+      collect(g, verts, faces, nf, p, rounded(hit) + 2 * margin, stamp, 3 * i + 1, found);
+      if (static_cast<int64_t>(found.size()) <= k) {
+        std::copy(found.begin(), found.end(), row);
+        std::fill(row + found.size(), row + k, int64_t{-1});
+        for (int a = 0; a < 3; ++a) cand_x[3 * i + a] = p[a];
+      } else {
+        overflow = std::max(overflow, static_cast<int64_t>(found.size()));
+      }
+    }
+  }
+  if (hit.tri >= 0) {
+    tri_out[i] = hit.tri;
+    for (int a = 0; a < 3; ++a) bary_out[3 * i + a] = static_cast<T>(hit.bary[a]);
+    lower[i] = rounded(hit);
+    last_tri[i] = hit.tri;
+  } else {  // probed farther: how far it is, and a hint for when it comes closer
+    const Hit far = query(g, verts, faces, nf, p, band + probe, stamp, 3 * i + 2);
+    lower[i] = far.tri >= 0 ? rounded(far) : band + probe;
+    last_tri[i] = far.tri;
+  }
+  for (int a = 0; a < 3; ++a) last_x[3 * i + a] = p[a];
+}
+
+// `cache_one` over every point, OpenMP over the points (pragmas cannot sit inside AT_DISPATCH's lambda).
+template <typename T>
+void cache_all(const GridView& g, const T* verts, const int64_t* faces, int64_t nf, const T* pp, int64_t n,
+               double band, double probe, double margin, double max_radius, double* last_x, double* lower,
+               int64_t* last_tri, double* cand_x, int64_t* cand, int64_t k, int64_t* tri_out, T* bary_out,
+               int64_t& queried, int64_t& among, int64_t& overflow) {
+  const int nt = num_threads();
+  int64_t q = 0, a = 0, o = 0;
+#pragma omp parallel if (n >= kParallelGrain / 8 && nt > 1) num_threads(nt) reduction(+ : q, a) reduction(max : o)
+  {
+    std::vector<int64_t> stamp(static_cast<size_t>(nf), -1), found;
+#pragma omp for schedule(dynamic, 64)
+    for (int64_t i = 0; i < n; ++i) {
+      cache_one<T>(g, verts, faces, nf, pp + 3 * i, i, band, probe, margin, max_radius, last_x, lower, last_tri,
+                   cand_x, cand, k, stamp, found, tri_out, bary_out, q, a, o);
+    }
+  }
+  queried = q, among = a, overflow = o;
+}
+
+void check_cache_state(const at::Tensor& t, const char* name, at::ScalarType dtype, at::IntArrayRef sizes) {
+  check_cpu_contiguous(t, name);
+  check_dtype(t, name, dtype);
+  check_shape(t, name, sizes);
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor> contact_cache_query_(
+    const at::Tensor& points, const at::Tensor& verts, const at::Tensor& faces, const at::Tensor& header,
+    const at::Tensor& cell_start, const at::Tensor& cell_items, at::Tensor last_x, at::Tensor lower,
+    at::Tensor last_tri, at::Tensor cand_x, at::Tensor cand, double band, double probe, double margin,
+    double max_radius) {
+  check_mesh(verts, faces);
+  check_points(points, verts, band);
+  TORCH_CHECK(probe >= 0 && margin >= 0 && max_radius >= 0, "diffavatar: probe, margin and max_radius must be >= 0");
+  const int64_t n = points.size(0), nf = faces.size(0);
+  check_cache_state(last_x, "last_x", at::kDouble, {n, 3});
+  check_cache_state(lower, "lower", at::kDouble, {n});
+  check_cache_state(last_tri, "last_tri", at::kLong, {n});
+  check_cache_state(cand_x, "cand_x", at::kDouble, {n, 3});
+  check_cache_state(cand, "cand", at::kLong, {n, -1});
+  TORCH_CHECK(cand.size(1) >= 1, "diffavatar: cand must have at least one column");
+  const GridView g = grid_view(faces, header, cell_start, cell_items);
+  auto [tri, bary, dist] = empty_result(points);
+  at::Tensor counts = at::zeros({3}, points.options().dtype(at::kLong));
+  if (n == 0 || nf == 0) return {tri, bary, counts};
+  const int64_t k = cand.size(1);
+  int64_t queried = 0, among = 0, overflow = 0;
+  AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "contact_cache_query_", [&] {
+    cache_all<scalar_t>(g, verts.data_ptr<scalar_t>(), faces.data_ptr<int64_t>(), nf, points.data_ptr<scalar_t>(),
+                        n, band, probe, margin, max_radius, last_x.data_ptr<double>(), lower.data_ptr<double>(),
+                        last_tri.data_ptr<int64_t>(), cand_x.data_ptr<double>(), cand.data_ptr<int64_t>(), k,
+                        tri.data_ptr<int64_t>(), bary.data_ptr<scalar_t>(), queried, among, overflow);
+  });
+  counts[0] = queried;
+  counts[1] = among;
+  counts[2] = overflow;
+  return {tri, bary, counts};
+}
+
+// -------------------------------------------------------------------------------- the outermost face
+
+// `collision._FeatureFaces.outermost`: a contact whose closest point lies on an edge (one zero barycentric)
+// or a vertex (two) of face tri[c] moves to the face sharing that feature (across (Fb, 3): the face across
+// the edge opposite each corner; ring (Vb, R): the faces around each vertex, -1 padded) whose plane is the
+// farthest from the point, when one is strictly farther than tri[c]'s (first of the farthest in candidate
+// order); its barycentrics move to the new face's corners. Planes in double. Returns new (tri, bary).
+std::tuple<at::Tensor, at::Tensor> contact_outermost(const at::Tensor& points, const at::Tensor& verts,
+                                                     const at::Tensor& faces, const at::Tensor& across,
+                                                     const at::Tensor& ring, const at::Tensor& tri,
+                                                     const at::Tensor& bary) {
+  check_mesh(verts, faces);
+  check_cpu_contiguous(points, "points");
+  check_shape(points, "points", {-1, 3});
+  const int64_t n = points.size(0), nf = faces.size(0), nv = verts.size(0);
+  TORCH_CHECK(points.scalar_type() == at::kFloat || points.scalar_type() == at::kDouble,
+              "diffavatar: points must be float32 or float64, got ", points.scalar_type());
+  check_dtype(verts, "verts", points.scalar_type());
+  check_cache_state(across, "across", at::kLong, {nf, 3});
+  check_cache_state(ring, "ring", at::kLong, {nv, -1});
+  check_cache_state(tri, "tri", at::kLong, {n});
+  check_cache_state(bary, "bary", points.scalar_type(), {n, 3});
+  check_index_range(tri, nf, "tri");
+  check_index_range(across, nf, "across");
+  const int64_t r = ring.size(1);
+  at::Tensor tri_out = tri.clone(), bary_out = bary.clone();
+  const int64_t *fp = faces.data_ptr<int64_t>(), *ap = across.data_ptr<int64_t>(), *rp = ring.data_ptr<int64_t>();
+  int64_t* to = tri_out.data_ptr<int64_t>();
+  AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "contact_outermost", [&] {
+    const scalar_t* pp = points.data_ptr<scalar_t>();
+    const scalar_t* vp = verts.data_ptr<scalar_t>();
+    scalar_t* bo = bary_out.data_ptr<scalar_t>();
+    auto plane_dist = [&](const V3& x, int64_t f) {
+      const V3 a = load3d(vp, fp[3 * f]), b = load3d(vp, fp[3 * f + 1]), c = load3d(vp, fp[3 * f + 2]);
+      V3 nrm = cross(b - a, c - a);
+      const double len = std::max(std::sqrt(dot(nrm, nrm)), 1e-20);
+      return dot(x - a, nrm) / len;
+    };
+    for (int64_t c = 0; c < n; ++c) {
+      const int64_t f0 = to[c];
+      const scalar_t* b = bo + 3 * c;
+      const int nz = (b[0] <= 0) + (b[1] <= 0) + (b[2] <= 0);
+      if (nz != 1 && nz != 2) continue;  // inside the face (or degenerate): keeps it
+      const V3 x = load3d(pp, c);
+      double best = plane_dist(x, f0);
+      int64_t pick = f0;
+      auto consider = [&](int64_t f) {
+        if (f < 0 || f >= nf) return;  // -1: the ring's padding
+        const double s = plane_dist(x, f);
+        if (s > best) best = s, pick = f;
+      };
+      if (nz == 1) {
+        consider(ap[3 * f0 + (b[0] <= 0 ? 0 : (b[1] <= 0 ? 1 : 2))]);
+      } else {
+        const int64_t u = fp[3 * f0 + (b[0] > 0 ? 0 : (b[1] > 0 ? 1 : 2))];
+        for (int64_t j = 0; j < r; ++j) consider(rp[u * r + j]);
+      }
+      if (pick == f0) continue;
+      scalar_t moved[3] = {0, 0, 0};
+      for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+          if (fp[3 * f0 + i] == fp[3 * pick + j]) moved[j] += b[i];
+      to[c] = pick;
+      for (int j = 0; j < 3; ++j) bo[3 * c + j] = moved[j];
+    }
+  });
+  return {tri_out, bary_out};
+}
+
 }  // namespace
 }  // namespace diffavatar
 
@@ -642,6 +829,14 @@ TORCH_LIBRARY_FRAGMENT(diffavatar, m) {
   m.def(
       "closest_point_among(Tensor points, Tensor verts, Tensor faces, Tensor cand, float max_dist) "
       "-> (Tensor tri, Tensor bary, Tensor dist)");
+  m.def(
+      "contact_cache_query_(Tensor points, Tensor verts, Tensor faces, Tensor header, Tensor cell_start, "
+      "Tensor cell_items, Tensor(a!) last_x, Tensor(b!) lower, Tensor(c!) last_tri, Tensor(d!) cand_x, "
+      "Tensor(e!) cand, float band, float probe, float margin, float max_radius) "
+      "-> (Tensor tri, Tensor bary, Tensor counts)");
+  m.def(
+      "contact_outermost(Tensor points, Tensor verts, Tensor faces, Tensor across, Tensor ring, Tensor tri, "
+      "Tensor bary) -> (Tensor tri, Tensor bary)");
 }
 
 TORCH_LIBRARY_IMPL(diffavatar, CPU, m) {
@@ -651,4 +846,6 @@ TORCH_LIBRARY_IMPL(diffavatar, CPU, m) {
   m.impl("closest_point_query_hinted", &diffavatar::closest_point_query_hinted);
   m.impl("closest_point_candidates", &diffavatar::closest_point_candidates);
   m.impl("closest_point_among", &diffavatar::closest_point_among);
+  m.impl("contact_cache_query_", &diffavatar::contact_cache_query_);
+  m.impl("contact_outermost", &diffavatar::contact_outermost);
 }

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from torch_diffavatar.sim import collision
+from torch_diffavatar.sim import collision, ops, reference
 from torch_diffavatar.sim.material import ClothMaterial
 from torch_diffavatar.sim.model import ClothModelBuilder
 from torch_diffavatar.sim.solver import XPBDConfig, XPBDSolver
@@ -110,3 +110,41 @@ def test_edge_ties_pick_the_farthest_plane():
     other = torch.tensor([[1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]], dtype=F64) / 2**0.5  # the other faces' normals
     assert bool((s > ((x[c.vert] - point) * other).sum(-1)).all())
     torch.testing.assert_close(c.bary.sum(-1), torch.ones(2, dtype=F64))
+
+
+@pytest.mark.skipif(
+    not ops.closest_point_index_available(torch.device("cpu")), reason="needs the C++ extension"
+)
+def test_outermost_op_matches_its_twin_on_edges_and_corners():
+    """`contact_outermost` (C++) against `reference.contact_outermost`: points above a bumpy sphere whose
+    contacts sit on an edge (one zero barycentric), a corner (two) or inside (none; kept)."""
+    trimesh = pytest.importorskip("trimesh")
+    s = trimesh.creation.icosphere(subdivisions=2, radius=0.3)
+    verts = torch.as_tensor(s.vertices, dtype=F64)
+    verts = verts * (1 + 0.05 * torch.sin(7 * verts[:, :1]))  # not convex everywhere
+    faces = torch.as_tensor(s.faces, dtype=torch.int64)
+    features = collision._feature_faces(faces, verts.shape[0])
+    gen = torch.Generator().manual_seed(2)
+    n = 300
+    tri = torch.randint(0, faces.shape[0], (n,), generator=gen)
+    bary = torch.rand(n, 3, generator=gen, dtype=F64)
+    bary[: n // 3, 0] = 0  # on the edge opposite corner 0
+    bary[n // 3 : 2 * n // 3, 1:] = 0  # on corner 0
+    bary = bary / bary.sum(-1, keepdim=True)
+    corners = verts[faces[tri]]
+    on = (bary[:, :, None] * corners).sum(1)
+    normal = torch.nn.functional.normalize(torch.randn(n, 3, generator=gen, dtype=F64), dim=-1)
+    x = on + 0.01 * normal * torch.rand(n, 1, generator=gen, dtype=F64)
+    for dtype in (torch.float32, F64):
+        args = (x.to(dtype), verts.to(dtype), faces, features.across, features.ring, tri, bary.to(dtype))
+        got = ops.contact_outermost(*args)
+        want = reference.contact_outermost(*args)
+        assert torch.equal(got[0], want[0])
+        torch.testing.assert_close(got[1], want[1], rtol=0, atol=0)
+        moved = got[0] != tri
+        assert 30 < int(moved.sum()) and not bool(moved[2 * n // 3 :].any())  # inside contacts stay
+        # the contact point is the same on the new face
+        new_point = (got[1].to(F64)[:, :, None] * verts[faces[got[0]]]).sum(1)
+        torch.testing.assert_close(new_point, on, rtol=0, atol=1e-6 if dtype == torch.float32 else 1e-12)
+    few = (args[0][:40], *args[1:5], args[5][:40], args[6][:40])
+    torch.library.opcheck(ops._index_op("contact_outermost").default, few)

@@ -94,7 +94,8 @@ def test_no_candidates_beyond_max_radius():
     for _ in range(3):
         got = collision.detect_contacts(x, verts, faces, 0.03, cache=cache)
     assert got.vert.tolist() == [0, 1]
-    assert cache.has_cand.tolist() == [True, False] and cache.among == 1 and cache.cand.shape[1] < 20
+    assert cache.has_cand.tolist() == [True, False] and cache.among == 1
+    assert int((cache.state[4][0] >= 0).sum()) < 20  # the near one's list is short
 
 
 def test_hints_never_change_the_query():
@@ -233,3 +234,62 @@ def test_skirt_sewn_and_draped_on_the_body_is_bit_identical_with_and_without_the
     plain, cached = results
     assert plain.diagnostics["contact_count"] > 20
     assert torch.equal(plain.x, cached.x) and torch.equal(plain.v, cached.v)
+
+
+def _cache_state(n, width, x):
+    x64 = x.to(F64)
+    return [x64.clone(), x64.new_zeros(n), torch.full((n,), -1), x64.clone(), torch.full((n, width), -1)]
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_cache_op_matches_its_twin_frame_after_frame(dtype):
+    """`contact_cache_query_` (C++) and `reference.contact_cache_query_` walk the same points: the same
+    contacts, counts and state every frame (candidate lists as sets: their order is the grid's); a width of
+    4 makes some lists too long, which both report alike."""
+    verts, faces = _sphere(subdivisions=2, dtype=dtype)
+    grid = ops.closest_point_index(verts, faces, 0.05)
+    gen = torch.Generator().manual_seed(8)
+    direction = torch.nn.functional.normalize(torch.randn(120, 3, generator=gen, dtype=F64), dim=-1)
+    x = (direction * (0.3 + 0.06 * torch.rand(120, 1, generator=gen, dtype=F64))).to(dtype)
+    for width in (4, 64):
+        op_state, twin_state = _cache_state(120, width, x), _cache_state(120, width, x)
+        overflowed = among = 0
+        for frame in range(24):
+            x = x + ([1e-4, 1e-3, 2e-2][frame % 3] * torch.randn(120, 3, generator=gen, dtype=F64)).to(dtype)
+            band = [0.02, 0.03][frame % 2]
+            got = ops.contact_cache_query_(x, verts, faces, grid, op_state, band, 0.02, 0.002, 0.05)
+            limits = (band, 0.02, 0.002, 0.05)
+            want = reference.contact_cache_query_(x, verts, faces, *grid, *twin_state, *limits)
+            full = ops.closest_point_query(x, verts, faces, grid, band)
+            # the full query's, bit for bit
+            assert torch.equal(got[0], full[0]) and torch.equal(got[1], full[1])
+            assert torch.equal(got[0], want[0]) and torch.equal(got[2], want[2])
+            torch.testing.assert_close(got[1], want[1], rtol=0, atol=1e-12)
+            for g, w in zip(op_state[:4], twin_state[:4], strict=True):
+                torch.testing.assert_close(g, w, rtol=0, atol=1e-12)
+            held = op_state[4][:, 0] >= 0  # rows without candidates (first -1) keep stale entries
+            assert torch.equal(held, twin_state[4][:, 0] >= 0)
+            assert torch.equal(op_state[4][held].sort(1).values, twin_state[4][held].sort(1).values)
+            overflowed += int(got[2][2] > 0)
+            among += int(got[2][1])
+        assert among > 100 and (overflowed > 0) == (width == 4)
+    torch.library.opcheck(
+        ops._index_op("contact_cache_query_").default,
+        (x[:20].contiguous(), verts, faces, *grid, *_cache_state(20, 8, x[:20]), 0.03, 0.02, 0.002, 0.05),
+    )
+
+
+def test_a_cache_whose_lists_do_not_fit_widens_and_keeps_the_full_query_contacts():
+    """Candidate rows of width 2 on a sphere: the first frame's lists do not fit; the cache widens its rows
+    (the same frame again) and the next frames are answered among the candidates."""
+    verts, faces = _sphere()
+    x = torch.tensor([[0.0, 0.0, 0.305], [0.0, 0.302, 0.0], [0.3, 0.3, 0.1]], dtype=F64)
+    cache = collision.ContactCache(collision.BodyIndex(verts, faces), width=2)
+    for frame in range(3):
+        got = collision.detect_contacts(x, verts, faces, 0.02, cache=cache)
+        _assert_same_contacts(got, collision.detect_contacts(x, verts, faces, 0.02))
+        assert cache.width > 2  # widened at the first frame
+        assert cache.among == 2 or frame == 0  # then both contacts among their candidates
+    assert cache.has_cand.tolist() == [True, True, False]
+    with pytest.raises(ValueError, match="width"):
+        collision.ContactCache(cache.index, width=0)

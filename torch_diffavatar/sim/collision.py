@@ -103,18 +103,20 @@ class ContactCache:
     Per vertex: its position at its last query, a lower bound of its distance to the body from there
     (the distance found, or the probe radius when nothing was closer) and the triangle found (-1: none);
     for a vertex found in the band, the triangles within (its distance + 2 ``margin``) of where it was
-    (its candidates). Each frame:
+    (its candidates, at most ``width``). Each frame:
 
     - a vertex whose lower bound minus how far it has moved since is beyond the band cannot be in contact:
       not queried;
     - a vertex within ``margin`` of where its candidates were collected: its closest triangle is among
       them (it is at most its old distance + ``margin`` from the body, and any triangle that close lies
-      within old distance + 2 ``margin`` of the old position), found by `ops.closest_point_among`;
-    - any other vertex: the grid query (`ops.closest_point_query`) in the full band, with last frame's
-      triangle as its first candidate; new candidates are collected for it when it is in the band.
+      within old distance + 2 ``margin`` of the old position);
+    - any other vertex: the grid query in the full band, with last frame's triangle as its first candidate;
+      new candidates are collected for it when it is in the band.
 
     All three give exactly the full query's result (the same distance test and tie-break), so the contacts
-    equal those of `detect_contacts` without a cache: only the speed depends on the cache.
+    equal those of `detect_contacts` without a cache: only the speed depends on the cache. One frame is one
+    C++ call (`ops.contact_cache_query_`; its twin `reference.contact_cache_query_` is the same rules in
+    PyTorch).
 
     Args:
         index: the `BodyIndex` of the body (the cache applies to it only; needs its C++ grid).
@@ -124,110 +126,62 @@ class ContactCache:
             lists that last longer).
         max_radius: no candidates for a vertex farther than ``max_radius - 2 margin`` [m] from the body:
             its list would be long (a wide band while sewing), and it is grid-queried instead.
+        width: the most candidates a vertex keeps at first (grown when a list does not fit).
     """
 
     def __init__(
-        self, index: BodyIndex, *, probe: float = 0.02, margin: float = 0.002, max_radius: float = 0.03
+        self,
+        index: BodyIndex,
+        *,
+        probe: float = 0.02,
+        margin: float = 0.002,
+        max_radius: float = 0.03,
+        width: int = 64,
     ):
         if index.grid is None:
             raise ValueError("ContactCache needs a BodyIndex with its C++ grid")
+        if width < 1:
+            raise ValueError(f"ContactCache width must be >= 1, got {width}")
         self.index = index
         self.probe = probe
         self.margin = margin
         self.max_radius = max_radius
-        self.x: torch.Tensor | None = None  # (Vs, 3) float64 [m], at the last query
-        self.lower: torch.Tensor | None = None  # (Vs,) float64 [m]
-        self.tri: torch.Tensor | None = None  # (Vs,) int64
-        self.x_cand: torch.Tensor | None = None  # (Vs, 3) float64 [m], where the candidates were collected
-        self.cand: torch.Tensor | None = None  # (Vs, K) int64, -1 padded
-        self.has_cand: torch.Tensor | None = None  # (Vs,) bool
+        self.width = width
+        # (last_x (Vs, 3) f64 [m], lower (Vs,) f64 [m], last_tri (Vs,) i64, cand_x (Vs, 3) f64 [m],
+        # cand (Vs, width) i64, -1 padded): the op's state, in place
+        self.state: tuple[torch.Tensor, ...] | None = None
         self.queried = 0  # vertices queried by the last `closest_point` (for benchmarks and tests)
         self.among = 0  # of which among their candidates
+
+    @property
+    def has_cand(self) -> torch.Tensor:
+        """(Vs,) bool: the vertices that hold candidates."""
+        return self.state[4][:, 0] >= 0
 
     def closest_point(self, x: torch.Tensor, band: float):
         """(tri (Vs,) int64, bary (Vs, 3)) of ``index.closest_point(x, band)``, bit for bit (-1 and zeros
         outside the band); x: (Vs, 3) [m]."""
-        x = x.detach()
-        x64 = x.to(torch.float64)
+        x = x.detach().contiguous()
         n = x.shape[0]
-        if self.x is None or self.x.shape != x64.shape or self.x.device != x.device:
-            self._reset(x64)
-        moved = (x64 - self.x).norm(dim=-1)
-        # the C++ query decides on double distances: 1e-5 m covers their rounding and float32 distances
-        # (NaN positions compare False: queried)
-        active = torch.nonzero(~(self.lower - moved > band + _CACHE_SLACK)).squeeze(1)
-        self.queried = int(active.numel())
-        sub_tri, sub_bary, sub_dist = self._query(x, x64, active, band)
-        tri = torch.full((n,), -1, dtype=torch.int64, device=x.device)
-        bary = x.new_zeros(n, 3)
-        tri[active], bary[active] = sub_tri, sub_bary
-        self._remember(x, x64, active, band, sub_tri, sub_dist)
-        return tri, bary
-
-    def _reset(self, x64):
-        n = x64.shape[0]
-        self.x, self.x_cand = x64.clone(), x64.clone()
-        self.lower = x64.new_zeros(n)
-        self.tri = torch.full((n,), -1, dtype=torch.int64, device=x64.device)
-        self.cand = torch.full((n, 1), -1, dtype=torch.int64, device=x64.device)
-        self.has_cand = torch.zeros(n, dtype=torch.bool, device=x64.device)
-
-    def _query(self, x, x64, active, band):
-        """(tri, bary, dist) of the ``active`` vertices: among their candidates where they still hold,
-        else the grid query (then new candidates for those in the band)."""
+        if self.state is None or self.state[0].shape[0] != n or self.state[0].device != x.device:
+            x64 = x.to(torch.float64)
+            never = torch.full((n,), -1, dtype=torch.int64, device=x.device)
+            cand = torch.full((n, self.width), -1, dtype=torch.int64, device=x.device)
+            self.state = (x64.clone(), x64.new_zeros(n), never, x64.clone(), cand)
         index = self.index
-        drift = (x64[active] - self.x_cand[active]).norm(dim=-1)
-        near = self.has_cand[active] & (drift <= self.margin - _CACHE_SLACK)
-        m = active.numel()
-        tri = torch.full((m,), -1, dtype=torch.int64, device=x.device)
-        bary, dist = x.new_zeros(m, 3), x.new_full((m,), torch.inf)
-        fast, slow = torch.nonzero(near).squeeze(1), torch.nonzero(~near).squeeze(1)
-        self.among = int(fast.numel())
-        if fast.numel():
-            ids = active[fast]
-            tri[fast], bary[fast], dist[fast] = ops.closest_point_among(
-                x[ids].contiguous(), index.verts, index.faces, self.cand[ids], band
-            )
-        if slow.numel():
-            ids = active[slow]
-            tri[slow], bary[slow], dist[slow] = index.closest_point(x[ids], band, self.tri[ids])
-            hit = (tri[slow] >= 0) & (dist[slow] + 2 * self.margin <= self.max_radius)
-            self.has_cand[ids] = hit
-            self._collect(x, x64, ids[hit], dist[slow][hit])
-        return tri, bary, dist
-
-    def _collect(self, x, x64, ids, dist):
-        """New candidates of vertices ``ids`` at distance ``dist`` [m] from the body."""
-        if ids.numel() == 0:
-            return
-        radius = dist.to(torch.float64) + 2 * self.margin
-        cand = ops.closest_point_candidates(
-            x[ids].contiguous(), self.index.verts, self.index.faces, self.index.grid, radius
-        )
-        width = max(cand.shape[1], self.cand.shape[1])
-        if self.cand.shape[1] < width:
-            self.cand = torch.nn.functional.pad(self.cand, (0, width - self.cand.shape[1]), value=-1)
-        self.cand[ids] = torch.nn.functional.pad(cand, (0, width - cand.shape[1]), value=-1)
-        self.x_cand[ids] = x64[ids]
-
-    def _remember(self, x, x64, active, band, sub_tri, sub_dist):
-        """Store the queried vertices' positions, distance bounds and triangles; probe the misses."""
-        lower = sub_dist.to(torch.float64)
-        miss = torch.nonzero(sub_tri < 0).squeeze(1)
-        if miss.numel():
-            reach = band + self.probe
-            far_tri, _, far_dist = self.index.closest_point(x[active[miss]], reach)
-            sub_tri = sub_tri.clone()
-            sub_tri[miss] = far_tri  # a hint for when the vertex comes closer
-            lower[miss] = torch.where(
-                far_tri >= 0, far_dist.to(torch.float64), torch.full_like(lower[miss], reach)
-            )
-        self.x[active] = x64[active]
-        self.lower[active] = lower
-        self.tri[active] = sub_tri
-
-
-_CACHE_SLACK = 1e-5  # [m]
+        query = (x, index.verts.to(x.dtype), index.faces, index.grid)
+        limits = (band, self.probe, self.margin, self.max_radius)
+        tri, bary, counts = ops.contact_cache_query_(*query, self.state, *limits)
+        if int(counts[2]) > self.width:
+            # lists too long for the rows: wider rows, and the frame again (the same result; those
+            # vertices, left without candidates, collect them anew)
+            self.width = max(2 * self.width, int(counts[2]))
+            cand = self.state[4]
+            cand = torch.nn.functional.pad(cand, (0, self.width - cand.shape[1]), value=-1)
+            self.state = (*self.state[:4], cand)
+            tri, bary, counts = ops.contact_cache_query_(*query, self.state, *limits)
+        self.queried, self.among = int(counts[0]), int(counts[1])
+        return tri, bary
 
 
 def detect_contacts(
@@ -280,7 +234,8 @@ def detect_contacts(
             )
         vert = torch.nonzero(tri >= 0).squeeze(1)
         features = index.features if index is not None else _feature_faces(body_faces, body_verts.shape[0])
-        tri, bary = features.outermost(x.detach()[vert], body_verts.detach(), tri[vert], bary[vert])
+        on = (x.detach()[vert], body_verts.detach(), tri[vert], bary[vert])
+        tri, bary = features.outermost(*on, use_extension=use_extension)
         first = vert
         if valley is not None and vert.numel():
             k, tri2, bary2 = features.valley_partners(
@@ -381,52 +336,16 @@ class _FeatureFaces:
         # `valley_candidates`' [key, body verts, partner rows (Fb, P), rows done (Fb,)] of the last body
         self._valley: list | None = None
 
-    def outermost(self, x, body_verts, tri, bary):
+    def outermost(self, x, body_verts, tri, bary, *, use_extension=True):
         """For contacts whose closest point is on an edge or vertex of face ``tri``: the face sharing that
-        feature whose plane is farthest from x, and the point's barycentrics on it. (C, 3), (C,), (C, 3)."""
-        zero = bary <= 0
-        nz = zero.sum(-1)
-        # only points on an edge or a vertex can change face: most contacts are inside their face
-        on_feature = torch.nonzero(nz > 0).squeeze(1)
-        if on_feature.numel() == 0:
+        feature whose plane is farthest from x, and the point's barycentrics on it. (C, 3), (C,), (C, 3).
+        Planes in float64 (`ops.contact_outermost`)."""
+        if tri.numel() == 0:
             return tri, bary
-        sub_tri, sub_bary = self._outermost(
-            x[on_feature], body_verts, tri[on_feature], bary[on_feature], zero[on_feature], nz[on_feature]
-        )
-        tri, bary = tri.clone(), bary.clone()
-        tri[on_feature], bary[on_feature] = sub_tri, sub_bary
-        return tri, bary
-
-    def _outermost(self, x, body_verts, tri, bary, zero, nz):
-        """`outermost` for contacts on an edge (nz = 1 zero barycentric) or a vertex (nz = 2)."""
-        cand = tri[:, None].expand(-1, self.ring.shape[1] + 1).clone()
-        cand[:, 1:] = -1
-        edge = nz == 1
-        if bool(edge.any()):
-            k = torch.argmax(zero[edge].to(torch.int8), dim=-1)
-            cand[edge, 1] = self.across[tri[edge], k]
-        corner = nz == 2
-        if bool(corner.any()):
-            k = torch.argmax((~zero[corner]).to(torch.int8), dim=-1)
-            cand[corner, 1:] = self.ring[self.faces[tri[corner], k]]
-        valid = cand >= 0
-        corners = body_verts[self.faces[cand.clamp_min(0)]].to(x.dtype)  # (C, K, 3, 3)
-        s = ((x[:, None, :] - corners[..., 0, :]) * unit_normals(corners)).sum(-1)
-        s = torch.where(valid, s, torch.full_like(s, -torch.inf))
-        best = torch.argmax(s, dim=-1)
-        # keep the query's face unless another one's plane is strictly farther
-        best = torch.where(s.gather(1, best[:, None])[:, 0] > s[:, 0], best, torch.zeros_like(best))
-        new = cand.gather(1, best[:, None])[:, 0]
-        moved = new != tri
-        if not bool(moved.any()):
-            return tri, bary
-        # the closest point is a shared edge / vertex point: move its weights to the new face's corners
-        old_c, new_c = self.faces[tri[moved]], self.faces[new[moved]]
-        same = (old_c[:, :, None] == new_c[:, None, :]).to(bary.dtype)  # (M, 3 old, 3 new)
-        # tri and bary are `outermost`'s own subsets: written in place
-        bary[moved] = (bary[moved][:, :, None] * same).sum(1)
-        tri[moved] = new[moved]
-        return tri, bary
+        return ops.contact_outermost(
+            x.contiguous(), body_verts.to(x.dtype).contiguous(), self.faces, self.across, self.ring,
+            tri.contiguous(), bary.contiguous(), use_extension=use_extension,
+        )  # fmt: skip
 
     def valley_partners(self, x, body_verts, tri, radius: float, *, use_extension=True):
         """Second contacts in valleys: for each contact (x (C, 3) on face ``tri`` (C,)), the closest of

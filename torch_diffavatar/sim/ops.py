@@ -29,6 +29,8 @@ __all__ = [
     "closest_point_query",
     "closest_point_candidates",
     "closest_point_among",
+    "contact_cache_query_",
+    "contact_outermost",
     "extension_op",
     "max_abs_green_strain",
     "stretch_hessians",
@@ -240,10 +242,20 @@ def _index_op(name: str):
         def fake_among(points, verts, faces, cand, max_dist):
             return fake_query(points, verts, faces, None, None, None, max_dist)
 
+        def fake_cache(points, *args):
+            return fake_query(points, None, None, None, None, None, 0.0)[:2] + (
+                points.new_empty((3,), dtype=torch.int64),
+            )
+
+        def fake_outermost(points, verts, faces, across, ring, tri, bary):
+            return torch.empty_like(tri), torch.empty_like(bary)
+
         fakes = {
             "closest_point_index": fake_index,
             "closest_point_candidates": fake_candidates,
             "closest_point_among": fake_among,
+            "contact_cache_query_": fake_cache,
+            "contact_outermost": fake_outermost,
         }
         fake = fakes.get(name, fake_query)
         try:
@@ -251,6 +263,12 @@ def _index_op(name: str):
         except RuntimeError:
             pass  # the extension already provides a fake/Meta kernel
     return extension_op(name)
+
+
+def _pick_index(name: str, x: torch.Tensor, use_extension: bool):
+    """`_pick` for the ops whose fake kernels `_index_op` registers."""
+    op = _index_op(name) if use_extension and x.device.type == "cpu" else None
+    return op if op is not None else getattr(reference, name)
 
 
 def closest_point_index_available(device: torch.device, use_extension: bool = True) -> bool:
@@ -344,6 +362,51 @@ def closest_point_among(
     if op is None:
         raise RuntimeError("closest_point_among needs the C++ extension")
     return op(points, verts, faces, cand, float(max_dist))
+
+
+def contact_cache_query_(
+    points: torch.Tensor,
+    verts: torch.Tensor,
+    faces: torch.Tensor,
+    grid: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+    state: tuple[torch.Tensor, ...],
+    band: float,
+    probe: float,
+    margin: float,
+    max_radius: float,
+    *,
+    use_extension: bool = True,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One frame of `collision.ContactCache` in one call (twin: `reference.contact_cache_query_`, which
+    ignores the grid), in place on ``state`` = (last_x (N, 3) f64, lower (N,) f64, last_tri (N,) i64, cand_x
+    (N, 3) f64, cand (N, K) i64).
+
+    Returns:
+        tri (N,) int64 and bary (N, 3), those of `closest_point_query` (points, band), bit for bit;
+        counts (3,) int64: the points queried, of those the ones answered among their candidates, and
+        the longest candidate list that did not fit in K (0: none; those points keep no candidates).
+    """
+    fn = _pick_index("contact_cache_query_", points, use_extension)
+    limits = (float(band), float(probe), float(margin), float(max_radius))
+    return fn(points, verts, faces, *grid, *state, *limits)
+
+
+def contact_outermost(
+    points: torch.Tensor,
+    verts: torch.Tensor,
+    faces: torch.Tensor,
+    across: torch.Tensor,
+    ring: torch.Tensor,
+    tri: torch.Tensor,
+    bary: torch.Tensor,
+    *,
+    use_extension: bool = True,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Contact ties broken to the outermost face (`collision._FeatureFaces.outermost`; twin:
+    `reference.contact_outermost`). points (C, 3), verts (Vb, 3) of the points' dtype, faces (Fb, 3), across
+    (Fb, 3), ring (Vb, R) int64, tri (C,), bary (C, 3). Returns the new (tri, bary)."""
+    fn = _pick_index("contact_outermost", points, use_extension)
+    return fn(points, verts, faces, across, ring, tri, bary)
 
 
 def xpbd_substeps_(

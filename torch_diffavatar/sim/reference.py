@@ -113,6 +113,106 @@ def closest_point_among(points, verts, faces, cand, max_dist):
     return tri, bary, dist
 
 
+def _closest_among_all(points, verts, faces, max_dist):
+    """The C++ grid query's (tri, bary, dist), brute force: `closest_point_among` over every face."""
+    n, nf = points.shape[0], faces.shape[0]
+    tri = torch.full((n,), -1, dtype=torch.int64, device=points.device)
+    bary, dist = points.new_zeros(n, 3), points.new_full((n,), float("inf"))
+    chunk = max(1, 2_000_000 // max(nf, 1))
+    for s in range(0, n, chunk):
+        every = torch.arange(nf, device=points.device).expand(min(chunk, n - s), nf)
+        tri[s : s + chunk], bary[s : s + chunk], dist[s : s + chunk] = closest_point_among(
+            points[s : s + chunk], verts, faces, every, max_dist
+        )
+    return tri, bary, dist
+
+
+_CACHE_SLACK = 1e-5  # [m]: the C++ cache's (its distances in double, the positions float32 or float64)
+
+
+def contact_cache_query_(
+    points, verts, faces, header, cell_start, cell_items, last_x, lower, last_tri, cand_x, cand, band, probe,
+    margin, max_radius,
+):  # fmt: skip
+    """Twin of the C++ ``contact_cache_query_`` (`collision.ContactCache`'s frame), brute force (the grid
+    arguments are not read): in place on the state (last_x (N, 3) f64, lower (N,) f64, last_tri (N,) i64,
+    cand_x (N, 3) f64, cand (N, K) i64, -1 padded); returns (tri (N,), bary (N, 3), counts (3,) i64: the
+    points queried, of those the ones answered among their candidates, the longest list that did not fit
+    in K)."""
+    n, width = points.shape[0], cand.shape[1]
+    p = points.to(torch.float64)
+    tri = torch.full((n,), -1, dtype=torch.int64, device=points.device)
+    bary = points.new_zeros(n, 3)
+    moved = ((p - last_x) ** 2).sum(-1).sqrt()
+    active = torch.nonzero(~(lower - moved > band + _CACHE_SLACK)).squeeze(1)
+    drift = ((p[active] - cand_x[active]) ** 2).sum(-1).sqrt()
+    near = (cand[active, 0] >= 0) & (drift <= margin - _CACHE_SLACK)
+    fast, slow = active[near], active[~near]
+    got_tri, got_bary, got_dist = (torch.cat(pair) for pair in zip(
+        closest_point_among(points[fast], verts, faces, cand[fast], band),
+        _closest_among_all(points[slow], verts, faces, band),
+        strict=True,
+    ))  # fmt: skip
+    ids = torch.cat((fast, slow))
+    cand[slow, 0] = -1
+    radius = got_dist[fast.numel() :].to(torch.float64) + 2 * margin
+    grow = (got_tri[fast.numel() :] >= 0) & (radius <= max_radius)
+    found = closest_point_candidates(points[slow[grow]], verts, faces, radius[grow])
+    count = (found >= 0).sum(1)
+    fits = count <= width
+    rows = slow[grow][fits]
+    pad = (0, max(width - found.shape[1], 0))
+    cand[rows] = torch.nn.functional.pad(found[fits][:, :width], pad, value=-1)
+    cand_x[rows] = p[rows]
+    hit = got_tri >= 0
+    tri[ids[hit]], bary[ids[hit]] = got_tri[hit], got_bary[hit]
+    lower[ids[hit]], last_tri[ids[hit]] = got_dist[hit].to(torch.float64), got_tri[hit]
+    miss = ids[~hit]
+    far_tri, _, far_dist = _closest_among_all(points[miss], verts, faces, band + probe)
+    reach = torch.full_like(lower[miss], band + probe)
+    lower[miss] = torch.where(far_tri >= 0, far_dist.to(torch.float64), reach)
+    last_tri[miss] = far_tri
+    last_x[active] = p[active]
+    overflow = int(count[~fits].max()) if bool((~fits).any()) else 0
+    return tri, bary, torch.tensor([active.numel(), fast.numel(), overflow], dtype=torch.int64)
+
+
+def contact_outermost(points, verts, faces, across, ring, tri, bary):
+    """Twin of the C++ ``contact_outermost`` (`collision._FeatureFaces.outermost`): for contacts of the
+    points (C, 3) whose closest point is on an edge or a vertex of face ``tri`` (C,), the face sharing that
+    feature (``across`` (Fb, 3), ``ring`` (Vb, R) -1 padded) whose plane is strictly farther from the point
+    (the first of the farthest), and the barycentrics ``bary`` (C, 3) moved to its corners. Planes in
+    float64. Returns new (tri, bary)."""
+    tri, bary = tri.clone(), bary.clone()
+    zero = bary <= 0
+    nz = zero.sum(-1)
+    on = torch.nonzero((nz == 1) | (nz == 2)).squeeze(1)
+    if on.numel() == 0:
+        return tri, bary
+    t, z = tri[on], zero[on]
+    cand = torch.full((on.numel(), ring.shape[1] + 1), -1, dtype=torch.int64, device=tri.device)
+    cand[:, 0] = t
+    edge, corner = nz[on] == 1, nz[on] == 2
+    cand[edge, 1] = across[t[edge], torch.argmax(z[edge].to(torch.int8), dim=-1)]
+    cand[corner, 1:] = ring[faces[t[corner], torch.argmax((~z[corner]).to(torch.int8), dim=-1)]]
+    corners = verts.to(torch.float64)[faces[cand.clamp_min(0)]]  # (C, K, 3, 3)
+    a = corners[..., 0, :]
+    normal = torch.linalg.cross(corners[..., 1, :] - a, corners[..., 2, :] - a)
+    s = ((points[on].to(torch.float64)[:, None] - a) * normal).sum(-1)
+    s = s / normal.norm(dim=-1).clamp_min(1e-20)
+    s = torch.where(cand >= 0, s, -torch.inf)
+    best = torch.argmax(s, dim=-1)
+    best = torch.where(s.gather(1, best[:, None])[:, 0] > s[:, 0], best, torch.zeros_like(best))
+    new = cand.gather(1, best[:, None])[:, 0]
+    moved = torch.nonzero(new != t).squeeze(1)
+    old_c, new_c = faces[t[moved]], faces[new[moved]]
+    same = (old_c[:, :, None] == new_c[:, None, :]).to(bary.dtype)  # (M, 3 old, 3 new)
+    rows = on[moved]
+    bary[rows] = (bary[rows][:, :, None] * same).sum(1)
+    tri[rows] = new[moved]
+    return tri, bary
+
+
 _BEND_EPS_LEN = 1e-12
 _BEND_EPS_N2 = 1e-24
 
