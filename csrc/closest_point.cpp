@@ -622,7 +622,6 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> closest_point_among(const at::Ten
   return {tri, bary, dist};
 }
 
-
 // ------------------------------------------------------------------------------------ the contact cache
 
 // One frame of `collision.ContactCache` (see its docstring) for every point, in place on the cache's state:
@@ -638,7 +637,7 @@ void cache_one(const GridView& g, const T* verts, const int64_t* faces, int64_t 
                int64_t* last_tri, double* cand_x, int64_t* cand, int64_t k, std::vector<int64_t>& stamp,
                std::vector<int64_t>& found, int64_t* tri_out, T* bary_out, int64_t& queried, int64_t& among,
                int64_t& overflow) {
-  constexpr double kSlack = 1e-5;  // [m], as `collision._CACHE_SLACK`
+  constexpr double kSlack = 1e-5;  // [m]: double distances vs float32 positions (`reference._CACHE_SLACK`)
   const double p[3] = {static_cast<double>(pt[0]), static_cast<double>(pt[1]), static_cast<double>(pt[2])};
   auto dist_from = [&](const double* q) {
     const double d0 = p[0] - q[0], d1 = p[1] - q[1], d2 = p[2] - q[2];
