@@ -293,3 +293,31 @@ def test_a_cache_whose_lists_do_not_fit_widens_and_keeps_the_full_query_contacts
     assert cache.has_cand.tolist() == [True, True, False]
     with pytest.raises(ValueError, match="width"):
         collision.ContactCache(cache.index, width=0)
+
+
+def test_cache_op_is_the_same_on_two_threads():
+    """The op splits the points over OpenMP threads: each point's answer and state depend on that point
+    alone, so two threads give what one gives, bit for bit."""
+    verts, faces = _sphere(subdivisions=3)
+    grid = ops.closest_point_index(verts, faces, 0.04)
+    gen = torch.Generator().manual_seed(9)
+    direction = torch.nn.functional.normalize(torch.randn(3000, 3, generator=gen, dtype=F64), dim=-1)
+    x = direction * (0.3 + 0.05 * torch.rand(3000, 1, generator=gen, dtype=F64))
+    threads = torch.get_num_threads()
+    runs = []
+    try:
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            state, y, out = _cache_state(3000, 16, x), x.clone(), []
+            for frame in range(6):
+                y = y + [1e-3, 1e-2][frame % 2] * torch.randn(
+                    3000, 3, generator=torch.Generator().manual_seed(frame)
+                )
+                out.append(ops.contact_cache_query_(y, verts, faces, grid, state, 0.03, 0.02, 0.002, 0.05))
+            runs.append((out, state))
+    finally:
+        torch.set_num_threads(threads)
+    for a, b in zip(runs[0][0], runs[1][0], strict=True):
+        assert all(torch.equal(p, q) for p, q in zip(a, b, strict=True))
+    assert all(torch.equal(p, q) for p, q in zip(runs[0][1], runs[1][1], strict=True))
+    assert sum(int(o[2][1]) for o in runs[0][0]) > 2000  # answered among candidates too
