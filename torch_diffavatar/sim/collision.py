@@ -343,8 +343,8 @@ class _FeatureFaces:
         if tri.numel() == 0:
             return tri, bary
         return ops.contact_outermost(
-            x.contiguous(), body_verts.to(x.dtype).contiguous(), self.faces, self.across, self.ring,
-            tri.contiguous(), bary.contiguous(), use_extension=use_extension,
+            x.contiguous(), body_verts.to(x.dtype).contiguous(), self.faces.contiguous(), self.across,
+            self.ring, tri.contiguous(), bary.contiguous(), use_extension=use_extension,
         )  # fmt: skip
 
     def valley_partners(self, x, body_verts, tri, radius: float, *, use_extension=True):

@@ -174,7 +174,8 @@ def contact_cache_query_(
     last_tri[miss] = far_tri
     last_x[active] = p[active]
     overflow = int(count[~fits].max()) if bool((~fits).any()) else 0
-    return tri, bary, torch.tensor([active.numel(), fast.numel(), overflow], dtype=torch.int64)
+    counts = torch.tensor([active.numel(), fast.numel(), overflow], dtype=torch.int64, device=points.device)
+    return tri, bary, counts
 
 
 def contact_outermost(points, verts, faces, across, ring, tri, bary):
