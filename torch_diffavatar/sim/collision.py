@@ -103,7 +103,7 @@ class ContactCache:
     Per vertex: its position at its last query, a lower bound of its distance to the body from there
     (the distance found, or the probe radius when nothing was closer) and the triangle found (-1: none);
     for a vertex found in the band, the triangles within (its distance + 2 ``margin``) of where it was
-    (its candidates, at most ``width``). Each frame:
+    (its candidates, in rows of ``width``, widened when a list does not fit). Each frame:
 
     - a vertex whose lower bound minus how far it has moved since is beyond the band cannot be in contact:
       not queried;
@@ -155,7 +155,9 @@ class ContactCache:
 
     @property
     def has_cand(self) -> torch.Tensor:
-        """(Vs,) bool: the vertices that hold candidates."""
+        """(Vs,) bool: the vertices that hold candidates (none before the first query)."""
+        if self.state is None:
+            return torch.zeros(0, dtype=torch.bool)
         return self.state[4][:, 0] >= 0
 
     def closest_point(self, x: torch.Tensor, band: float):
