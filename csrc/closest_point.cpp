@@ -773,9 +773,9 @@ std::tuple<at::Tensor, at::Tensor> contact_outermost(const at::Tensor& points, c
     scalar_t* bo = bary_out.data_ptr<scalar_t>();
     auto plane_dist = [&](const V3& x, int64_t f) {
       const V3 a = load3d(vp, fp[3 * f]), b = load3d(vp, fp[3 * f + 1]), c = load3d(vp, fp[3 * f + 2]);
-      V3 nrm = cross(b - a, c - a);
-      const double len = std::max(std::sqrt(dot(nrm, nrm)), 1e-20);
-      return dot(x - a, nrm) / len;
+      const V3 nrm = cross(b - a, c - a);
+      const double len = std::max(std::sqrt(dot(nrm, nrm)), 1e-20);  // as `contacts.unit_normals`
+      return dot(x - a, V3{nrm.x / len, nrm.y / len, nrm.z / len});
     };
     for (int64_t c = 0; c < n; ++c) {
       const int64_t f0 = to[c];

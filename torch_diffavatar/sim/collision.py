@@ -334,7 +334,7 @@ class _FeatureFaces:
         ring = ring.to(f.device)
         ring[corner_vert[order], slot] = order // 3
         self.ring = ring
-        self.faces = f
+        self.faces = f.contiguous()  # as the C++ ops take it
         # `valley_candidates`' [key, body verts, partner rows (Fb, P), rows done (Fb,)] of the last body
         self._valley: list | None = None
 
@@ -345,7 +345,7 @@ class _FeatureFaces:
         if tri.numel() == 0:
             return tri, bary
         return ops.contact_outermost(
-            x.contiguous(), body_verts.to(x.dtype).contiguous(), self.faces.contiguous(), self.across,
+            x.contiguous(), body_verts.to(x.dtype).contiguous(), self.faces, self.across,
             self.ring, tri.contiguous(), bary.contiguous(), use_extension=use_extension,
         )  # fmt: skip
 

@@ -67,7 +67,14 @@ from torch_diffavatar.geometry import (
     green_strain,
     triangle_green_strain,
 )
-from torch_diffavatar.sim.contacts import Contacts, apply_friction, contact_frames, damp_bounce, push_out
+from torch_diffavatar.sim.contacts import (
+    Contacts,
+    apply_friction,
+    contact_frames,
+    damp_bounce,
+    push_out,
+    unit_normals,
+)
 from torch_diffavatar.sim.substep import SubstepInputs
 
 
@@ -197,10 +204,7 @@ def contact_outermost(points, verts, faces, across, ring, tri, bary):
     cand[edge, 1] = across[t[edge], torch.argmax(z[edge].to(torch.int8), dim=-1)]
     cand[corner, 1:] = ring[faces[t[corner], torch.argmax((~z[corner]).to(torch.int8), dim=-1)]]
     corners = verts.to(torch.float64)[faces[cand.clamp_min(0)]]  # (C, K, 3, 3)
-    a = corners[..., 0, :]
-    normal = torch.linalg.cross(corners[..., 1, :] - a, corners[..., 2, :] - a)
-    s = ((points[on].to(torch.float64)[:, None] - a) * normal).sum(-1)
-    s = s / normal.norm(dim=-1).clamp_min(1e-20)
+    s = ((points[on].to(torch.float64)[:, None] - corners[..., 0, :]) * unit_normals(corners)).sum(-1)
     s = torch.where(cand >= 0, s, -torch.inf)
     best = torch.argmax(s, dim=-1)
     best = torch.where(s.gather(1, best[:, None])[:, 0] > s[:, 0], best, torch.zeros_like(best))
