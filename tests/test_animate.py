@@ -159,6 +159,7 @@ def test_the_fit_report_walks_the_assets(small_dress_assets, anny_model, monkeyp
     from torch_diffavatar import animate as animate_module
     from torch_diffavatar.errors import SimulationError
     from torch_diffavatar.fit_report import animation_warnings
+    from torch_diffavatar.sim import tangles
 
     assert animation_warnings(small_dress_assets, 0.25, anny_model) == []
 
@@ -168,7 +169,17 @@ def test_the_fit_report_walks_the_assets(small_dress_assets, anny_model, monkeyp
     monkeypatch.setattr(animate_module, "animate", blow_up)
     (said,) = animation_warnings(small_dress_assets, 0.5, anny_model)
     assert said.startswith("the assets blew up in a 0.5 s walk (simulation blew up: Green strain 3.48")
+    assert said.endswith("the fit probably went wrong (look at before_after.png)")  # no edge through the body
     assert animation_warnings(small_dress_assets, 0.0, anny_model) == []
+
+    # a drape with edges through the body (`sim.tangles`) is said to be the cause, with where they are
+    assets = load_assets(small_dress_assets)
+    lowest = torch.topk(-assets.draped_x[:, 1], 2).indices.sort().values  # the hem's two lowest vertices
+    monkeypatch.setattr(tangles, "edges_through_body", lambda *args: lowest[None])
+    (said,) = animation_warnings(small_dress_assets, 0.5, anny_model)
+    hem = round(float(assets.draped_x[lowest, 1].mean() - assets.body_verts[:, 1].min()) * 100)
+    assert f"simulation-ready as it is: 1 edge(s) of its drape pass through the body, {hem} cm above" in said
+    assert "fit probably went wrong" not in said
 
 
 def test_asset_strains_finds_the_drapes_most_strained_triangle(small_dress_assets, tmp_path, capsys):

@@ -254,16 +254,34 @@ def animation_warnings(assets_dir, seconds: float, anny_model=None) -> list[str]
     from torch_diffavatar.motion import WalkCycle
 
     walk = WalkCycle(seconds, ramp=seconds / 2)
+    assets = load_assets(assets_dir)
     try:
         summary = animate(
-            load_assets(assets_dir), walk, None, duration=seconds, gif=False, write_body=False,
-            anny_model=anny_model,
-        )  # fmt: skip
+            assets, walk, None, duration=seconds, gif=False, write_body=False, anny_model=anny_model
+        )
     except SimulationError as exc:
-        return [
-            f"the assets blew up in a {seconds:g} s walk ({exc}): the garment is not simulation-ready, and "
-            "the fit probably went wrong (look at before_after.png)"
-        ]
+        said = f"the assets blew up in a {seconds:g} s walk ({exc}): the garment is not simulation-ready"
+        return [said + _tangle_cause(assets)]
     if not summary["finite"]:
         return [f"the assets' cloth left the finite numbers in a {seconds:g} s walk: not simulation-ready"]
     return []
+
+
+def _tangle_cause(assets) -> str:
+    """What to say after a walk's blow-up: the drape's edges through the body (`sim.tangles`), where there
+    are some, else that the fit probably went wrong."""
+    from torch_diffavatar.sim.tangles import edges_through_body
+
+    tangled = edges_through_body(
+        assets.draped_x, assets.garment.sim_faces, assets.body_verts, assets.body_faces
+    )
+    if tangled.shape[0] == 0:
+        return ", and the fit probably went wrong (look at before_after.png)"
+    heights = assets.draped_x[tangled].mean(dim=1)[:, 1] - assets.body_verts[:, 1].min()
+    lo, hi = (round(float(h) * 100) for h in (heights.min(), heights.max()))
+    where = f"{lo} cm" if lo == hi else f"{lo}-{hi} cm"
+    return (
+        f" as it is: {tangled.shape[0]} edge(s) of its drape pass through the body, {where} above the soles "
+        "(a part thinner than the cloth's edges, such as the toes, pokes through the cloth; moving, it drags "
+        'them and tears the cloth: docs/BENCHMARKS.md, "Floor-length trousers in a walk")'
+    )
