@@ -19,15 +19,15 @@ def tshirt():
     return mesh_pattern(load_template("tshirt"), spacing=0.05)
 
 
-def _hem(garment):
-    (loop,) = [lp for lp in garment.boundary_loops if lp.name == "hem"]
+def _hem(garment, name: str = "hem"):
+    (loop,) = [lp for lp in garment.boundary_loops if lp.name == name]
     return loop
 
 
-def _ring(garment, x: torch.Tensor, up: float, scale: float) -> torch.Tensor:
-    """(k, 3) points along the hem of ``x`` raised by ``up`` [m] and scaled by ``scale`` about its axis,
-    4 per loop edge: what a scan's hem opening holds."""
-    loop = _hem(garment).vertices
+def _ring(garment, x: torch.Tensor, up: float, scale: float, name: str = "hem") -> torch.Tensor:
+    """(k, 3) points along the opening ``name`` of ``x`` raised by ``up`` [m] and scaled by ``scale``
+    about its axis, 4 per loop edge: what a scan's opening holds."""
+    loop = _hem(garment, name).vertices
     a, b = x[loop], x[torch.roll(loop, -1)]
     t = torch.linspace(0, 1, 5, dtype=x.dtype)[:-1, None, None]
     p = (a + t * (b - a)).reshape(-1, 3)
@@ -36,14 +36,18 @@ def _ring(garment, x: torch.Tensor, up: float, scale: float) -> torch.Tensor:
     return p + torch.tensor([0.0, up, 0.0], dtype=x.dtype)
 
 
-def _round_hem(garment) -> torch.Tensor:
-    """(Vs, 3) the garment with its hem loop on a horizontal circle as long as the rest hem."""
+def _round_hem(garment, openings=(("hem", 0.9),)) -> torch.Tensor:
+    """(Vs, 3) the garment with each of its ``openings`` (name, height [m]) on a horizontal circle as long
+    as the rest opening."""
     x = torch.zeros(garment.sim_vert_count, 3, dtype=torch.float64)
-    loop = _hem(garment).vertices
-    length = float(rest_loop_length(garment.vert_uv.double(), rest_loop_edges(garment, _hem(garment))))
-    angle = torch.linspace(0, 2 * math.pi, len(loop) + 1, dtype=torch.float64)[:-1]
-    radius = length / (2 * math.pi)
-    x[loop] = torch.stack([radius * angle.cos(), torch.full_like(angle, 0.9), radius * angle.sin()], 1)
+    for name, height in openings:
+        loop = _hem(garment, name).vertices
+        length = float(
+            rest_loop_length(garment.vert_uv.double(), rest_loop_edges(garment, _hem(garment, name)))
+        )
+        angle = torch.linspace(0, 2 * math.pi, len(loop) + 1, dtype=torch.float64)[:-1]
+        radius = length / (2 * math.pi)
+        x[loop] = torch.stack([radius * angle.cos(), torch.full_like(angle, height), radius * angle.sin()], 1)
     return x
 
 
@@ -56,6 +60,25 @@ def test_the_scan_hem_higher_and_wider_is_measured(tshirt):
     assert design.hem_widen == pytest.approx(0.10, abs=0.02)
     lower = hem_design(tshirt, x, {"hem": _ring(tshirt, x, -0.03, 1.0)})
     assert lower.hem_up == pytest.approx(-0.03, abs=1e-9) and abs(lower.hem_widen) < 0.02
+
+
+def test_a_waistband_worn_lower_does_not_lengthen_the_panels():
+    """A skirt hangs from its waistband: a scan whose waistband sits 3 cm lower (on the hips) has its hem 3 cm
+    lower with panels as long; only the hem's height above the waistband's says the panels' length. A top
+    has no waist: its hem's height is taken whole."""
+    skirt = mesh_pattern(load_template("skirt"), spacing=0.05)
+    x = _round_hem(skirt, (("hem", 0.5), ("waist", 1.0)))
+    hips = hem_design(
+        skirt, x, {"hem": _ring(skirt, x, -0.03, 1.0), "waist": _ring(skirt, x, -0.03, 1.0, "waist")}
+    )
+    assert hips.waist_up == pytest.approx(-0.03, abs=1e-9)
+    assert hips.hem_up == pytest.approx(0.0, abs=1e-9) and not hips.applied
+    longer = hem_design(
+        skirt, x, {"hem": _ring(skirt, x, -0.03, 1.0), "waist": _ring(skirt, x, 0.0, 1.0, "waist")}
+    )
+    assert longer.hem_up == pytest.approx(-0.03, abs=1e-9) and longer.waist_up == 0.0 and longer.applied
+    unseen = hem_design(skirt, x, {"hem": _ring(skirt, x, -0.03, 1.0)})  # no waistband in the scan
+    assert unseen.hem_up == pytest.approx(-0.03, abs=1e-9) and unseen.waist_up == 0.0
 
 
 def test_a_hem_within_the_tolerances_or_traced_short_is_left(tshirt):

@@ -10,6 +10,12 @@ draped once (`first_hem_drape`); the scan's hem points lie ``hem_up`` above the 
 of their heights, every hem loop pooled), and they trace a loop ``1 + hem_widen`` times as long as the
 template's hem (widened only: folds make a traced hem shorter than the cloth's, not longer). The fit then
 starts from `pattern.design.changed_pattern` of the template (`FitConfig.hem_from_scan`).
+
+A skirt or trousers hangs from its waistband, which a real one may wear on the hips: there the scan's hem is
+low by the waistband's drop, the panels no longer. So the height the scan's waistband lies above the first
+drape's (``waist_up``) is taken off ``hem_up``: Newton's trousers 386, waistband 3 cm lower than ours, had
+their hem measured 5.8 cm *down* without it and were lengthened (docs/BENCHMARKS.md, "The hem from the scan
+before the fit", "… from the waist down").
 """
 
 from __future__ import annotations
@@ -33,16 +39,19 @@ class HemDesign:
     """What the scan says of the template's hem (`hem_design`).
 
     Attributes:
-        hem_up: the scan's hem lies this far above the first drape's [m] (negative: below).
+        hem_up: the scan's hem lies this far above the first drape's [m] (negative: below), less
+            ``waist_up``: how much shorter the panels are to be.
         hem_widen: the scan's hem traces a loop this much longer than the template's hem [-] (>= 0).
         loops: the hem loops measured (names of `HEM_OPENINGS` that both the garment and the scan have).
         applied: the template was changed (either beyond `HEM_UP_TOLERANCE` / `HEM_WIDEN_TOLERANCE`).
+        waist_up: the scan's waistband lies this far above the first drape's [m] (0 without a waist).
     """
 
     hem_up: float
     hem_widen: float
     loops: tuple[str, ...]
     applied: bool
+    waist_up: float = 0.0
 
     def as_dict(self) -> dict:
         return asdict(self) | {"loops": list(self.loops)}
@@ -65,7 +74,8 @@ def hem_design(
         return None
     scan_y = torch.cat([boundaries[lp.name][:, 1].double() for lp in loops])
     drape_y = torch.cat([drape_x[lp.vertices, 1].double() for lp in loops])
-    hem_up = float(scan_y.median() - drape_y.median())
+    waist_up = _waist_up(garment, drape_x, boundaries)
+    hem_up = float(scan_y.median() - drape_y.median()) - waist_up
     traced, rest = 0.0, 0.0
     for lp in loops:
         length, _ = scan_loop_length(boundaries[lp.name], bin_length=bin_length)
@@ -74,7 +84,18 @@ def hem_design(
             rest += float(rest_loop_length(garment.vert_uv.double(), rest_loop_edges(garment, lp)))
     hem_widen = max(traced / rest - 1.0, 0.0) if rest > 0 else 0.0
     applied = abs(hem_up) > HEM_UP_TOLERANCE or hem_widen > HEM_WIDEN_TOLERANCE
-    return HemDesign(hem_up, hem_widen, tuple(lp.name for lp in loops), applied)
+    return HemDesign(hem_up, hem_widen, tuple(lp.name for lp in loops), applied, waist_up)
+
+
+def _waist_up(garment, drape_x: torch.Tensor, boundaries: dict[str, torch.Tensor]) -> float:
+    """How far the scan's waistband lies above the first drape's [m] (medians of their heights; negative:
+    below), or 0 for a garment or a scan without a waist. A skirt or trousers hangs from its waistband, and
+    a real one may sit on the hips: its hem is then low by as much, with the panels as long."""
+    loop = next((lp for lp in garment.boundary_loops if lp.name == "waist"), None)
+    scan = boundaries.get("waist")
+    if loop is None or scan is None or len(scan) == 0:
+        return 0.0
+    return float(scan[:, 1].double().median() - drape_x[loop.vertices, 1].double().median())
 
 
 @torch.no_grad()

@@ -310,10 +310,16 @@ def dress_template(pattern, mesh, body, body_out, loops: dict, config, spacing: 
     design = hem_design(dressed.garment, x, dressed.boundaries, config.opening_length_bin)
     if design is None or not design.applied:
         return replace(dressed, design=design)
-    where = f"{abs(100 * design.hem_up):.1f} cm {'above' if design.hem_up > 0 else 'below'}"
+
+    def where(up: float) -> str:
+        return f"{abs(100 * up):.1f} cm {'above' if up > 0 else 'below'}"
+
+    waist = f", its waistband {where(design.waist_up)} the drape's," if design.waist_up else ""
+    panels = f"{abs(100 * design.hem_up):.1f} cm {'shorter' if design.hem_up > 0 else 'longer'}"
     print(
-        f"diffavatar fit: the scan's hem lies {where} the template's first drape and traces a "
-        f"{100 * design.hem_widen:.1f} % longer loop: the fit starts from the template with its hem so",
+        f"diffavatar fit: the scan's hem lies {where(design.hem_up + design.waist_up)} the template's first "
+        f"drape{waist} and traces a {100 * design.hem_widen:.1f} % longer loop: the fit starts from the "
+        f"template with its panels {panels} and its hem so",
         file=sys.stderr,
     )
     changed = changed_pattern(pattern, design.hem_up, design.hem_widen, spacing=spacing)
