@@ -170,7 +170,8 @@ class FitConfig:
         animation_check_s: after the fit, its assets walk this long [s] (`fit_report.animation_warnings`:
             a warning in report.json when they blow up; ~2 CPU s for 0.5 s at 2k vertices). 0: no check.
         hem_from_scan: before the fit, the template is sewn and draped once and its hem raised or lowered to
-            the scan's hem height and widened to the loop the scan's hem traces (`fit_design`): a template
+            the scan's hem height (measured from the waistband, for a garment with one: it may sit on the
+            hips) and widened to the loop the scan's hem traces (`fit_design`): a template
             5 cm too long made the fit lift its hem by shrinking the neck (a T-shirt's 6.2 cm; from the hem
             set so, 1.6; docs/BENCHMARKS.md, "The hem from the scan before the fit"). False: the template
             as it is.
