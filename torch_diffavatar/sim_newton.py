@@ -42,8 +42,11 @@ lives in `sim.newton_units`, pure numpy, re-exported here; the asset export writ
 
 Waist-held garments (our ``attach_vertices``: skirts, trousers) slid off the body on contact and friction
 alone, and zero-length springs (or Newton's particle-body attachments) to fixed points did not hold them
-in Newton 1.8's VBD either, so their waist vertices are pinned (kinematic) on the body surface
-(`waist_anchors`).
+in Newton 1.8's VBD either, so their waist vertices are pinned (kinematic) where our drape, lowered onto
+the hips (`lower_onto_body`), has them: the waistband as long as its pattern makes it. Pinned on the body
+surface instead (the closest point of each), the band took the body's girth at that height: the true
+drapes' waistbands were 4.5-14.2 % shorter than their patterns', and the fits shrank the pattern's waist
+to match, by up to 20 cm (docs/BENCHMARKS.md, "Newton's waistbands as long as their patterns").
 
 Limitations: no self-collision (as ours); stiff cloth does not settle at the affordable substeps (see
 `STRETCH_FACTOR_RANGE`); Warp's CPU kernels run on one core (a 2 cm dress settles in 2-5 minutes here),
@@ -246,10 +249,10 @@ def lower_onto_body(
     """(Vs, 3) float64: ``x`` (Vs, 3) [m] moved down by ``drop`` [m] and kept above the floor (the body's
     lowest point plus ``thickness``: cloth below it is put on it), then every vertex that lands within
     ``thickness`` [m] of the body (or behind it) pushed out along its closest body triangle's normal. A
-    waist-held garment then starts lower on the hips (`waist_anchors` then pins its waist on the body
-    there). Our drape without a floor (`DrapeConfig.floor` off) lets trouser legs hang through it:
-    Newton's floor then met cloth 8 cm under it and blew up at the first frame (`make-scan pants --seed 305
-    --simulator newton --hem-up 0.1 --hem-widen 0.15`)."""
+    waist-held garment then starts lower on the hips (and its waist is pinned there). Our drape without a
+    floor (`DrapeConfig.floor` off) lets trouser legs hang through it: Newton's floor then met cloth 8 cm
+    under it and blew up at the first frame (`make-scan pants --seed 305 --simulator newton --hem-up 0.1
+    --hem-widen 0.15`)."""
     from torch_diffavatar.sim import collision
 
     xd = x.double().clone()
@@ -264,33 +267,6 @@ def lower_onto_body(
             xd, torch.ones(len(xd), dtype=xd.dtype), bv, bf, contacts, thickness
         )
     return xd
-
-
-def waist_anchors(
-    x: torch.Tensor,
-    attach_vertices: torch.Tensor,
-    body_verts: torch.Tensor,
-    body_faces: torch.Tensor,
-    thickness,
-) -> np.ndarray:
-    """(A, 3) float64 [m]: for each waist vertex ``attach_vertices`` (A,) of ``x`` (Vs, 3) [m], the closest
-    point of the body surface, ``thickness`` [m] out along its face normal: where `newton_drape` holds it.
-
-    Newton's contact and friction alone do not hold a skirt whose waistband is wider than the hips: the
-    template skirt (84 cm band) on the seed-1 body slid to the floor in 577 frames. The garment is then
-    pinned there (Newton 1.8's VBD springs to kinematic anchor particles did not hold it: the waist fell
-    as if they were absent; ours holds the waist at a height, away from the body)."""
-    from torch_diffavatar.sim import collision
-
-    xa = x.double()[attach_vertices.cpu()]
-    bv = body_verts.double()
-    contacts = collision.detect_contacts(xa, bv, body_faces, 1.0)
-    if contacts.count != len(xa):
-        raise SimulationError("a waist vertex is more than 1 m from the body: cannot hold it there")
-    point, normal = collision.contact_frames(bv, body_faces, contacts)
-    out = np.zeros((len(xa), 3))
-    out[contacts.vert.numpy()] = (point + float(thickness) * normal).numpy()
-    return out
 
 
 def newton_drape(
@@ -316,7 +292,7 @@ def newton_drape(
         material: Newton's parameters (``edge_ke`` one per edge of ``model``).
         config: stepping options.
         attach_vertices: (A,) int64 simulated vertices held fixed at ``attach_targets`` (A, 3) [m]
-            (`waist_anchors`: on the body surface); default none.
+            (a waistband where our lowered drape has it: `synthetic_scans`); default none.
 
     Raises:
         InputError: Newton is not installed. SimulationError: the settle blew up.

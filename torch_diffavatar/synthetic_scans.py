@@ -15,8 +15,8 @@ the meshed template: ``hem``, ``hem_left``, ``hem_right``): ``hem_up`` raises th
 With ``simulator="newton"`` the truth is not our simulator's: our drape (sewn and placed) is settled
 again by NVIDIA Newton's VBD cloth (`sim_newton`) with a random material drawn from the seed
 (`sim_newton.draw_material`), and ``truth/material.json`` holds that material in our units. A waist-held
-garment (skirt, trousers) starts ``waist_drop`` lower and its waist is pinned to the body surface there
-(`sim_newton.waist_anchors`).
+garment (skirt, trousers) starts ``waist_drop`` lower and its waist is pinned there, as long as its
+pattern makes it (`sim_newton`).
 
 ``diffavatar make-scan TEMPLATE --out DIR [--seed S] [--simulator newton] [...] --json`` is the command.
 """
@@ -250,7 +250,8 @@ def _final_drape(
     weight, length = sn.edge_geometry(model, uv)
     newton_material = sn.material_to_newton(material, weight, length)
     x0 = sn.lower_onto_body(result.x, waist_drop, body_verts, body_faces, material.thickness)
-    targets = sn.waist_anchors(x0, held, body_verts, body_faces, material.thickness) if len(held) else None
+    # the waistband pinned where the lowered drape has it, as long as the pattern makes it (`sim_newton`)
+    targets = x0[held.cpu()].numpy() if len(held) else None
     drape = sn.newton_drape(
         model, uv, x0, body_verts, body_faces, newton_material, attach_vertices=held, attach_targets=targets
     )
