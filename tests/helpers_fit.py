@@ -79,3 +79,30 @@ def write_truth_as_assets(scan, folder, **kw) -> None:
         report={"inverted_rest_triangles": 0},
         **kw,
     )
+
+
+def write_assets_on_default_body(
+    out, anny_model, default_body, *, pattern, garment, rest_uv, draped_x, material
+):
+    """An asset folder of ``garment`` draped (``draped_x`` (Vs, 3) [m]) on the `default_body` fixture's body
+    (verts, faces), whose parameters are Anny's defaults with the feet on y = 0 (as `animate` poses it)."""
+    from torch_diffavatar.assets import write_assets
+    from torch_diffavatar.body.model import BodyModel
+
+    bv, bf = default_body
+    body = BodyModel(anny_model)
+    with torch.no_grad():
+        body.translation[:, 1] = float(bv[:, 1].min() - body().vertices[0, :, 1].min())  # feet on y = 0
+    write_assets(
+        out,
+        pattern=pattern,
+        garment=garment,
+        rest_uv=rest_uv,
+        draped_x=draped_x,
+        body_verts=bv,
+        body_faces=bf,
+        body_params=body.parameters_dict(),
+        material=material,
+        report={},
+    )
+    return out

@@ -8,9 +8,10 @@ import math
 
 import pytest
 import torch
+from helpers_fit import write_assets_on_default_body
 
 from torch_diffavatar.animate import animate
-from torch_diffavatar.assets import load_assets, write_assets
+from torch_diffavatar.assets import load_assets
 from torch_diffavatar.body.model import POSE_BONES
 from torch_diffavatar.errors import InputError
 from torch_diffavatar.motion import Keyframe, KeyframeMotion, WalkCycle, keyframes_from_dict, load_motion
@@ -91,7 +92,6 @@ def test_moving_body_does_not_tunnel_where_a_static_step_does():
 @pytest.fixture(scope="module")
 def small_dress_assets(anny_model, default_body, tmp_path_factory):
     """A coarse dress (6 cm spacing) sewn on the default body and briefly draped, as an asset folder."""
-    from torch_diffavatar.body.model import BodyModel
     from torch_diffavatar.pattern import load_template, mesh_pattern
     from torch_diffavatar.sim.placement import place_garment
 
@@ -110,23 +110,10 @@ def small_dress_assets(anny_model, default_body, tmp_path_factory):
         state=model.initial_state(model.sim_positions(sewn.x)),
         config=DrapeConfig(max_steps=30),
     )
-    body = BodyModel(anny_model)
-    with torch.no_grad():
-        body.translation[:, 1] = float(bv[:, 1].min() - body().vertices[0, :, 1].min())  # feet on y = 0
-    out = tmp_path_factory.mktemp("dress_assets")
-    write_assets(
-        out,
-        pattern=pattern,
-        garment=garment,
-        rest_uv=garment.vert_uv,
-        draped_x=drape.x,
-        body_verts=bv,
-        body_faces=bf,
-        body_params=body.parameters_dict(),
-        material=model.material,
-        report={},
-    )
-    return out
+    return write_assets_on_default_body(
+        tmp_path_factory.mktemp("dress_assets"), anny_model, default_body, pattern=pattern, garment=garment,
+        rest_uv=garment.vert_uv, draped_x=drape.x, material=model.material,
+    )  # fmt: skip
 
 
 def test_keyframe_leg_kick_moves_the_skirt_without_penetration(small_dress_assets, anny_model, tmp_path):

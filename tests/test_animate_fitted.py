@@ -8,10 +8,10 @@ from dataclasses import replace
 
 import pytest
 import torch
+from helpers_fit import write_assets_on_default_body
 
 from torch_diffavatar.animate import animate
-from torch_diffavatar.assets import load_assets, write_assets
-from torch_diffavatar.body.model import BodyModel
+from torch_diffavatar.assets import load_assets
 from torch_diffavatar.errors import SimulationError
 from torch_diffavatar.fit import Fitter
 from torch_diffavatar.fit_config import load_config
@@ -56,22 +56,11 @@ def fitted_tshirt(anny_model, default_body, tmp_path_factory):
         tensorboard=False,
     )
     result = fitter.run()
-    body = BodyModel(anny_model)
-    with torch.no_grad():
-        body.translation[:, 1] = float(bv[:, 1].min() - body().vertices[0, :, 1].min())  # feet on y = 0
-    out = tmp_path_factory.mktemp("fitted_tshirt")
-    write_assets(
-        out,
-        pattern=pattern,
-        garment=garment,
-        rest_uv=result.rest_uv,
-        draped_x=result.x,
-        body_verts=bv,
-        body_faces=bf,
-        body_params=body.parameters_dict(),
-        material=fitter.objective.material_at(result.params.log_bend_stiffness.exp().detach(), 1.0),
-        report={},
-    )
+    material = fitter.objective.material_at(result.params.log_bend_stiffness.exp().detach(), 1.0)
+    out = write_assets_on_default_body(
+        tmp_path_factory.mktemp("fitted_tshirt"), anny_model, default_body, pattern=pattern, garment=garment,
+        rest_uv=result.rest_uv, draped_x=result.x, material=material,
+    )  # fmt: skip
     moved = float((result.rest_uv - garment.vert_uv.to(result.rest_uv.dtype)).abs().max())
     return out, result.report, moved
 
