@@ -3,9 +3,9 @@
 The contacts keep cloth *vertices* outside the body (`collision`); an edge whose two vertices lie on either
 side of a part thinner than the edge (toes, fingers) passes through that part unseen. Such a drape is
 tangled: when the part moves it drags the edge along, friction holds the vertices on either side, and the
-cloth tears there. The fit of a captured pair of trousers whose legs pooled over the feet carried 22 such
-edges through the toes from its first drape to its result, and blew up 0.27 s into a walk; without
-friction the same drape walked (docs/BENCHMARKS.md, "Floor-length trousers in a walk").
+cloth tears there. The fit of a captured pair of trousers whose legs pooled over the feet carried such
+edges through the toes from its first drape to its result (8 there), and blew up 0.27 s into a walk;
+without friction the same drape walked (docs/BENCHMARKS.md, "Floor-length trousers in a walk").
 """
 
 from __future__ import annotations
