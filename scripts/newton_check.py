@@ -18,12 +18,12 @@ body.obj as a static mesh, and the garment in one of two ways (``--seams``):
   (`assets_newton.unmerged_newton_export`). Newton's own VBD colouring leaves springs out, so the check
   colours the particles itself (`newton_units.vertex_coloring`).
 
-The waist of a skirt or trousers (``held_vertices``) is pinned on the body surface
-(`sim_newton.waist_anchors`). It then settles with `sim_newton.newton_drape` (the machinery of
-``make-scan --simulator newton``) from our drape (draped.obj), at rest: how far Newton's physics moves our
-equilibrium. (Not from the panels' 3D placement, rest.obj ``v``: on the merged mesh each seam vertex would
-start at the mean of its panel vertices, the triangles along the seams far from their rest shape, and the
-settle blew up at frame 1 at 10 and 40 substeps on a 3 cm dress.)
+The waist of a skirt or trousers (``held_vertices``) is pinned where our drape has it, the waistband as
+long as its pattern makes it. It then settles with `sim_newton.newton_drape` (the machinery of ``make-scan
+--simulator newton``, which pins a waist so too) from our drape (draped.obj), at rest: how far Newton's
+physics moves our equilibrium. (Not from the panels' 3D placement, rest.obj ``v``: on the merged mesh each
+seam vertex would start at the mean of its panel vertices, the triangles along the seams far from their
+rest shape, and the settle blew up at frame 1 at 10 and 40 substeps on a 3 cm dress.)
 
 Measured with our tools: penetration (cloth vertices behind their closest body triangle,
 `penetration_diagnostics`), the surface Chamfer distance to our drape (`chamfer.surface_chamfer_m`), the
@@ -143,8 +143,7 @@ def check_assets(
     x0 = assets.draped_x.double()
     x0 = x0 if seams == "welded" else x0[g.vert_to_sim]
     held = torch.from_numpy(export.held_vertices)
-    radius = export.material.particle_radius
-    targets = sn.waist_anchors(x0, held, assets.body_verts, assets.body_faces, radius) if len(held) else None
+    targets = x0[held].numpy() if len(held) else None  # the waist where our drape holds it
     cpu0 = time.process_time()
     drape = sn.newton_drape(
         export.cloth, None, x0, assets.body_verts, assets.body_faces, export.material, config,
