@@ -58,6 +58,45 @@ def test_scan_loop_length_is_short_where_the_scan_has_a_hole():
     assert holed < full  # a chord crosses the hole: a lower bound
 
 
+def _ring_loop(radius, n=200):
+    """(n, 3) a garment opening's vertices in loop order: a circle of ``radius`` [m] at height 0.9 m."""
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    return np.stack([radius * np.cos(t), np.full(n, 0.9), radius * np.sin(t)], 1)
+
+
+def test_scan_loop_length_bridges_a_hole_with_the_reference_curve():
+    """A hole over 120 degrees of a hem: the chord across it makes the trace short; with the garment's own
+    opening as the reference (a smaller ring: only its shape counts) the hole is bridged by an arc, and
+    the length is the loop's. Folds the hole hides are not guessed (the reference has none): between the
+    two. A whole loop keeps its trace."""
+    points, truth = _ring(0.19, noise=0.003, gap_deg=120)
+    chord, _ = scan_loop_length(points)
+    length, coverage = scan_loop_length(points, reference=_ring_loop(0.16))
+    assert coverage < 0.8
+    assert chord < 0.95 * truth
+    assert length == pytest.approx(truth, rel=0.01)
+    points, truth = _ring(0.19, noise=0.003, wave=(0.015, 8), gap_deg=120)
+    chord, _ = scan_loop_length(points)
+    assert chord < scan_loop_length(points, reference=_ring_loop(0.16))[0] < truth
+    whole = _ring(0.19, noise=0.003, wave=(0.015, 8))[0]
+    assert scan_loop_length(whole, reference=_ring_loop(0.16)) == scan_loop_length(whole)
+
+
+def test_scan_loop_length_with_a_reference_keeps_a_sparse_opening_with_a_gap():
+    """A waistband of 91 points (12 bins of 30 degrees) missing one bin: without a reference every bin
+    must hold points (nan); with one, its length. A reference is no licence to guess: a scan showing less
+    than ``min_seen`` of the loop (a front-only capture's half hem) keeps the chord's lower bound."""
+    points, truth = _ring(0.135, n=100, noise=0.003, gap_deg=40, seed=1)
+    assert math.isnan(scan_loop_length(points)[0])
+    assert scan_loop_length(points, reference=_ring_loop(0.14))[0] == pytest.approx(truth, rel=0.03)
+    half, truth = _ring(0.19, noise=0.003, gap_deg=180)
+    chord, _ = scan_loop_length(half)
+    assert chord < 0.85 * truth
+    assert scan_loop_length(half, reference=_ring_loop(0.19))[0] == chord
+    with pytest.raises(ValueError, match="reference"):
+        scan_loop_length(points, reference=np.zeros((10, 2)))
+
+
 def test_scan_loop_length_of_a_sparse_band_takes_longer_bins():
     """320 points of a hem band 5 cm tall that flares by 2 cm (a sparse scan's hem): 2 cm bins of a few
     points each jitter in radius and height from bin to bin (+12-22 % on five draws); bins of at least

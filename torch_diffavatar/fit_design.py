@@ -78,7 +78,9 @@ def hem_design(
     hem_up = float(scan_y.median() - drape_y.median()) - waist_up
     traced, rest = 0.0, 0.0
     for lp in loops:
-        length, _ = scan_loop_length(boundaries[lp.name], bin_length=bin_length)
+        length, _ = scan_loop_length(
+            boundaries[lp.name], bin_length=bin_length, reference=drape_x[lp.vertices]
+        )
         if math.isfinite(length):  # too few of the hem's points for a length: its height still counts
             traced += length
             rest += float(rest_loop_length(garment.vert_uv.double(), rest_loop_edges(garment, lp)))

@@ -411,16 +411,24 @@ class FitObjective(nn.Module):
 
     def _register_opening_lengths(self, target: ScanTarget, dtype: torch.dtype) -> None:
         """The K matched openings of ``config.opening_length_names`` with a length the scan's points trace
-        (`scan_loop_length`): ``opening_names``, ``opening_traced`` (K floats [m]), ``opening_edges`` (their
-        rest edges, `rest_loop_edges`) and the buffer ``opening_least`` (K,) [m], the traced lengths less
-        ``config.opening_length_tolerance``; ``opening_panels`` and ``opening_shares``, the panel of each
-        rest edge and the template's split of each opening between its panels (`rest_loop_shares`)."""
+        (`scan_loop_length`, the placed garment's opening its reference): ``opening_names``,
+        ``opening_traced`` (K floats [m]), ``opening_edges`` (their rest edges, `rest_loop_edges`) and the
+        buffer ``opening_least`` (K,) [m], the traced lengths less ``config.opening_length_tolerance``;
+        ``opening_panels`` and ``opening_shares``, the panel of each rest edge and the template's split
+        of each opening between its panels (`rest_loop_shares`)."""
         cfg = self.config
         self.opening_names, self.opening_traced, self.opening_edges = [], [], []
+        placed = self.garment.sim_positions().detach().double()
         for loop in self.loops:
             if loop.name not in cfg.opening_length_names:
                 continue
-            length, _ = scan_loop_length(target.boundaries[loop.name], bin_length=cfg.opening_length_bin)
+            # the placed garment's own opening: where the scan shows the loop in part (a hole over a hem),
+            # the part it shows stands for its share of the whole
+            length, _ = scan_loop_length(
+                target.boundaries[loop.name],
+                bin_length=cfg.opening_length_bin,
+                reference=placed[loop.vertices],
+            )
             if math.isfinite(length):
                 self.opening_names.append(loop.name)
                 self.opening_traced.append(length)
