@@ -268,3 +268,37 @@ def test_objective_holds_the_split_only_with_its_weight():
     )
     assert float(on.rest_terms(on.template_uv)["opening_split"]) == pytest.approx(0.0, abs=1e-20)
     assert len(on.opening_shares) == 1 and len(on.opening_shares[0]) == 2
+
+
+def test_a_partial_scan_holds_an_opening_no_shorter_than_the_template():
+    """A front-only capture shows half a hem: its chord traces it short, and the fits narrowed the half they
+    did not see (a dress's hem 28.7 cm short). On a partial scan (``seen_sides``) the hem is held no
+    shorter than the template's; a full scan of the same points holds it to their trace; a partial scan
+    whose hem traces no length still holds the template's (the report: no ``scan`` length, its ``least``)."""
+    from dataclasses import replace
+
+    from helpers_fit import fit_config
+
+    from torch_diffavatar import fit_report
+    from torch_diffavatar.fit_config import LossWeights
+    from torch_diffavatar.objective import FitObjective, ScanTarget
+    from torch_diffavatar.pattern import load_template, mesh_pattern
+
+    garment = mesh_pattern(load_template("skirt"), spacing=0.1)
+    hem = next(lp for lp in garment.boundary_loops if lp.name == "hem")
+    template = float(rest_loop_length(garment.vert_uv.double(), rest_loop_edges(garment, hem)))
+    half = torch.as_tensor(_ring(template / (2 * math.pi), n=1200, gap_deg=180)[0])  # the front half
+    cfg = fit_config(weights=replace(LossWeights(), opening_length=1000.0))
+    seen = torch.tensor([True] * 4 + [False] * 4)
+    full = FitObjective(garment, ScanTarget(half, {"hem": half}), cfg, dtype=torch.float64)
+    partial = FitObjective(
+        garment, ScanTarget(half, {"hem": half}, seen_sides=seen), cfg, dtype=torch.float64
+    )
+    assert float(full.opening_least[0]) < 0.85 * template
+    assert float(partial.opening_least[0]) == pytest.approx(template, rel=1e-9)
+    few = half[:10]  # too few points for a length
+    none = FitObjective(garment, ScanTarget(half, {"hem": few}, seen_sides=seen), cfg, dtype=torch.float64)
+    assert none.opening_names == ["hem"] and math.isnan(none.opening_traced[0])
+    lengths = fit_report.opening_lengths(none, none.template_uv, none.template_uv)
+    assert lengths["hem"]["scan"] is None and lengths["hem"]["least"] == pytest.approx(template, rel=1e-6)
+    assert FitObjective(garment, ScanTarget(half, {"hem": few}), cfg, dtype=torch.float64).opening_names == []

@@ -8,6 +8,8 @@ on the mesh's resolution; the boundary Chamfers are vertex-based mean nearest-ne
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from torch_diffavatar.chamfer import nearest_indices, surface_chamfer_m
@@ -144,14 +146,16 @@ def fit_report(first: dict, final: dict, objective: FitObjective, run: dict) -> 
 
 def opening_lengths(objective: FitObjective, first_uv: torch.Tensor, final_uv: torch.Tensor) -> dict:
     """Each held opening's length [m] (``config.opening_length_names``: the hems, a trouser waist) as the
-    scan's points trace it (``scan``: a lower bound, `torch_diffavatar.opening_lengths`), and as the
-    pattern's rest edges give it at the first (``initial``) and at the resulting rest coordinates
-    ``first_uv``, ``final_uv`` (V, 2) [m] (``final``): opening name -> those three."""
+    scan's points trace it (``scan``: a lower bound, `torch_diffavatar.opening_lengths`; None where they
+    trace none), the least the fit held it to (``least``: on a partial scan no less than the template's),
+    and as the pattern's rest edges give it at the first (``initial``) and at the resulting rest
+    coordinates ``first_uv``, ``final_uv`` (V, 2) [m] (``final``): opening name -> those four."""
     out = {}
     held = zip(objective.opening_names, objective.opening_traced, objective.opening_edges, strict=True)
-    for name, traced, edges in held:
+    for k, (name, traced, edges) in enumerate(held):
         out[name] = {
-            "scan": traced,
+            "scan": traced if math.isfinite(traced) else None,
+            "least": float(objective.opening_least[k]),
             "initial": float(rest_loop_length(first_uv.detach(), edges)),
             "final": float(rest_loop_length(final_uv.detach(), edges)),
         }

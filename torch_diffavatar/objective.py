@@ -43,6 +43,7 @@ from torch_diffavatar.opening_lengths import (
     opening_length_loss,
     opening_split_loss,
     rest_loop_edges,
+    rest_loop_length,
     rest_loop_panels,
     rest_loop_shares,
     scan_loop_length,
@@ -410,30 +411,40 @@ class FitObjective(nn.Module):
             self.register_buffer(f"scan_boundary_{k}", points.to(dtype))
 
     def _register_opening_lengths(self, target: ScanTarget, dtype: torch.dtype) -> None:
-        """The K matched openings of ``config.opening_length_names`` with a length the scan's points trace
-        (`scan_loop_length`, the placed garment's opening its reference): ``opening_names``,
-        ``opening_traced`` (K floats [m]), ``opening_edges`` (their rest edges, `rest_loop_edges`) and the
-        buffer ``opening_least`` (K,) [m], the traced lengths less ``config.opening_length_tolerance``;
-        ``opening_panels`` and ``opening_shares``, the panel of each rest edge and the template's split
-        of each opening between its panels (`rest_loop_shares`)."""
+        """The K matched openings of ``config.opening_length_names`` held no shorter than the scan shows
+        them: ``opening_names``, ``opening_traced`` (K floats [m]: the length the scan's points trace,
+        `scan_loop_length` with the placed garment's opening its reference; nan where they trace none),
+        ``opening_edges`` (their rest edges, `rest_loop_edges`) and the buffer ``opening_least`` (K,) [m],
+        the traced lengths less ``config.opening_length_tolerance``; on a partial scan (``seen_sides``) no
+        less than the template's either. ``opening_panels`` and ``opening_shares``: the panel of each rest
+        edge and the template's split of each opening between its panels (`rest_loop_shares`)."""
         cfg = self.config
         self.opening_names, self.opening_traced, self.opening_edges = [], [], []
         placed = self.garment.sim_positions().detach().double()
+        least = []
         for loop in self.loops:
             if loop.name not in cfg.opening_length_names:
                 continue
             # the placed garment's own opening: where the scan shows the loop in part (a hole over a hem),
-            # the part it shows stands for its share of the whole
+            # its curve bridges the gap
             length, _ = scan_loop_length(
                 target.boundaries[loop.name],
                 bin_length=cfg.opening_length_bin,
                 reference=placed[loop.vertices],
             )
-            if math.isfinite(length):
+            edges = rest_loop_edges(self.garment, loop)
+            bound = length * (1.0 - cfg.opening_length_tolerance)
+            if self.seen_sides is not None:
+                # A scan from one side shows half a hem at most, and the fits narrowed what it did not show
+                # (a front-only dress's hem 28.7 cm short, the template's 12.5): what the scan cannot show,
+                # the fit does not take in.
+                template = float(rest_loop_length(self.template_uv.double(), edges))
+                bound = max(bound, template) if math.isfinite(bound) else template
+            if math.isfinite(bound):
                 self.opening_names.append(loop.name)
                 self.opening_traced.append(length)
-                self.opening_edges.append(rest_loop_edges(self.garment, loop))
-        least = [length * (1.0 - cfg.opening_length_tolerance) for length in self.opening_traced]
+                self.opening_edges.append(edges)
+                least.append(bound)
         self.register_buffer("opening_least", torch.tensor(least, dtype=dtype).reshape(-1))
         # each opening's panels and the template's split of it between them (`opening_split_loss`)
         self.opening_panels = [rest_loop_panels(self.garment, e) for e in self.opening_edges]
