@@ -42,6 +42,15 @@ def test_a_partial_scan_is_said():
     assert scan_warnings(report, points, full) == []
     (partial,) = scan_warnings(report, points, {"sectors_seen": 4, "sectors": 8})
     assert partial.startswith("a partial scan: it sees 4 of 8 sides of the person")
+    # the held openings it shows too little of (no length, or one under the template's) are named
+    report["opening_lengths"] = {
+        "hem": {"scan": 0.9, "least": 1.24, "initial": 1.24, "final": 1.24},
+        "waist": {"scan": None, "least": 0.84, "initial": 0.84, "final": 0.85},
+        "hem_left": {"scan": 0.7, "least": 0.7, "initial": 0.66, "final": 0.7},
+    }
+    _, held = scan_warnings(report, points, {"sectors_seen": 4, "sectors": 8})
+    assert held.startswith("the partial scan shows too little of these openings to measure them: hem, waist;")
+    assert scan_warnings(report, points, full) == []
 
 
 def test_a_garment_that_reaches_the_floor_is_said():

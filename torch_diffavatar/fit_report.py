@@ -193,10 +193,11 @@ def result_warnings(
 
 def scan_warnings(report: dict, garment_points: torch.Tensor, coverage: dict | None = None) -> list[str]:
     """What a fit's result says about the scan it was fitted to (empty when nothing): the fit ends far
-    above the scan's own noise, an opening ends far from the scan's opening, or the scan is partial.
+    above the scan's own noise, an opening ends far from the scan's opening, or the scan is partial (and
+    which held openings it shows too little of to measure).
 
     Args:
-        report: `fit_report`'s (``chamfer_final``, ``boundary_chamfer_final``) [m].
+        report: `fit_report`'s (``chamfer_final``, ``boundary_chamfer_final`` [m], ``opening_lengths``).
         garment_points: (P, 3) the scan's garment points [m].
         coverage: the sides the scan sees (`scan_intake.coverage`), or None.
     """
@@ -220,6 +221,15 @@ def scan_warnings(report: dict, garment_points: torch.Tensor, coverage: dict | N
             f"a partial scan: it sees {coverage['sectors_seen']} of {coverage['sectors']} sides of the "
             "person; only the cloth on those sides was pulled toward it, the rest follows the simulation"
         )
+        # the openings the scan shows too little of to measure: held at the template's length at least
+        held = report.get("opening_lengths", {})
+        unmeasured = [n for n, v in held.items() if v["scan"] is None or v["scan"] < v["least"]]
+        if unmeasured:
+            names = ", ".join(unmeasured)
+            warnings.append(
+                f"the partial scan shows too little of these openings to measure them: {names}; each is "
+                "held no shorter than the template's, so its width is the template's, not the scan's"
+            )
     return warnings
 
 
