@@ -47,6 +47,7 @@ def test_a_partial_scan_is_said():
         "hem": {"scan": 0.9, "least": 1.24, "initial": 1.24, "final": 1.24},
         "waist": {"scan": None, "least": 0.84, "initial": 0.84, "final": 0.85},
         "hem_left": {"scan": 0.7, "least": 0.7, "initial": 0.66, "final": 0.7},
+        "hem_right": {"scan": 0.5, "least": 0.7, "held": False, "initial": 0.7, "final": 0.6},  # term off
     }
     _, held = scan_warnings(report, points, {"sectors_seen": 4, "sectors": 8})
     assert held.startswith("the partial scan shows too little of these openings to measure them: hem, waist;")

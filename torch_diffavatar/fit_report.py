@@ -147,15 +147,18 @@ def fit_report(first: dict, final: dict, objective: FitObjective, run: dict) -> 
 def opening_lengths(objective: FitObjective, first_uv: torch.Tensor, final_uv: torch.Tensor) -> dict:
     """Each held opening's length [m] (``config.opening_length_names``: the hems, a trouser waist) as the
     scan's points trace it (``scan``: a lower bound, `torch_diffavatar.opening_lengths`; None where they
-    trace none), the least the fit held it to (``least``: on a partial scan no less than the template's),
-    and as the pattern's rest edges give it at the first (``initial``) and at the resulting rest
-    coordinates ``first_uv``, ``final_uv`` (V, 2) [m] (``final``): opening name -> those four."""
+    trace none), the least the fit held it to (``least``: on a partial scan no less than the template's;
+    ``held``: whether the term was on, ``weights.opening_length`` > 0), and as the pattern's rest edges
+    give it at the first (``initial``) and at the resulting rest coordinates ``first_uv``, ``final_uv``
+    (V, 2) [m] (``final``): opening name -> those five."""
     out = {}
+    on = bool(objective.weight_opening_length > 0)
     held = zip(objective.opening_names, objective.opening_traced, objective.opening_edges, strict=True)
     for k, (name, traced, edges) in enumerate(held):
         out[name] = {
             "scan": traced if math.isfinite(traced) else None,
             "least": float(objective.opening_least[k]),
+            "held": on,
             "initial": float(rest_loop_length(first_uv.detach(), edges)),
             "final": float(rest_loop_length(final_uv.detach(), edges)),
         }
@@ -223,7 +226,11 @@ def scan_warnings(report: dict, garment_points: torch.Tensor, coverage: dict | N
         )
         # the openings the scan shows too little of to measure: held at the template's length at least
         held = report.get("opening_lengths", {})
-        unmeasured = [n for n, v in held.items() if v["scan"] is None or v["scan"] < v["least"]]
+        unmeasured = [
+            n
+            for n, v in held.items()
+            if v.get("held", True) and (v["scan"] is None or v["scan"] < v["least"])
+        ]
         if unmeasured:
             names = ", ".join(unmeasured)
             warnings.append(
