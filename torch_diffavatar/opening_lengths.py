@@ -79,8 +79,7 @@ def scan_loop_length(
     coverage = float(seen.mean())
     traced = math.nan
     if seen.sum() >= min_bins:
-        c = curve[seen]
-        traced = float(np.linalg.norm(np.roll(c, -1, 0) - c, axis=1).sum())
+        traced = float(_steps(curve[seen]).sum())
     if reference is None or coverage == 1.0:
         return traced, coverage
     kw = dict(bin_length=bin_length, min_bins=min_bins, points_per_bin=points_per_bin, min_seen=min_seen)
@@ -109,9 +108,10 @@ def _seen_loop_length(
     scan, ref = _binned_curve(p, centre, axes, bins), _binned_curve(dense, centre, axes, bins)
     if np.isnan(ref).any():  # a bin the reference does not pass through: not a loop around its centre
         return math.nan
-    held = np.flatnonzero(~np.isnan(scan[:, 0]))
+    has = ~np.isnan(scan[:, 0])
+    held = np.flatnonzero(has)
     ref_step = _steps(ref)
-    seen = np.isin(np.arange(bins), held) & np.isin((np.arange(bins) + 1) % bins, held)  # steps b -> b + 1
+    seen = has & np.roll(has, -1)  # the steps b -> b + 1 with scan points at both ends
     if seen.sum() < 3 or float(ref_step[seen].sum()) < min_seen * float(ref_step.sum()):
         return math.nan
     length = float(_steps(scan)[seen].sum())
