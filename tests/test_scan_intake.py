@@ -194,14 +194,15 @@ def test_level_arms_are_not_a_floor(tmp_path):
 
 @pytest.mark.parametrize("yaw", [0.0, 120.0, -75.0])
 def test_facing_from_hips_and_feet(yaw):
-    """The stand-in's feet point to +Z: its facing is found turned with it; cut above the feet, both
-    directions of the hips' axis are candidates."""
+    """The stand-in's feet point to +Z: its facing is found turned with it, first of the two opposite
+    candidates; cut above the feet, both directions of the hips' axis are candidates."""
     from torch_diffavatar.body.facing import facing_yaws
 
     points, _ = _standing(np.random.default_rng(9), floor=0, noise=0)
     turned = points @ yaw_rotation(yaw).T
-    (found,) = facing_yaws(turned)
+    found, back = facing_yaws(turned)
     assert abs((found - yaw + 180.0) % 360.0 - 180.0) < 5.0
+    assert abs((back - found) % 360.0 - 180.0) < 1e-6
     both = facing_yaws(turned[turned[:, 1] > 0.3])
     # (a round trunk over the stand-in's legs: its hips axis is looser than a body's)
     assert len(both) == 2 and min(abs((b - yaw + 180.0) % 360.0 - 180.0) for b in both) < 10.0

@@ -7,10 +7,12 @@ Two cues, both about the horizontal (x, z) plane of a Y-up scan:
 - front or back: the feet point forward. The mean of the feet slab (the lowest 6 cm) lies in front of the
   mean of the shins slab (15–35 cm up): toes reach about 18 cm before the ankle, heels 5 cm behind.
 
-The facing direction is the normal of the left-right axis on the side the feet point to; with a round
-hips slab (axis ratio under `MIN_ANISOTROPY`) the feet alone give it; without feet (a scan cut above
-them) both normals of the axis are candidates (`facing_yaws`). Limitations: feet crossed or turned out
-by more than 45° give a wrong sign.
+Neither cue says front from back for sure, so `facing_yaws` gives two opposite candidates, the feet's side
+first, and the body fit decides (`body.fit.fit_body` runs its coarse stages facing each way and goes on
+from the better fit by its final stage's measure): the normals of the left-right axis, or with a round
+hips slab (axis ratio under `MIN_ANISOTROPY`) the feet's direction and its opposite. The feet alone were
+wrong on a long dress captured from its side (seed 452: a 4.5 cm shift pointing backwards, its hem in the
+shins slab), and the body was fitted facing backwards (docs/BENCHMARKS.md, "Front or back").
 """
 
 from __future__ import annotations
@@ -50,15 +52,16 @@ def shows_feet(points: np.ndarray) -> bool:
 
 
 def facing_yaws(points: np.ndarray) -> list[float]:
-    """The person's facing direction as yaws [deg] about +Y (0: facing +Z, 90: facing +X).
+    """The person's facing direction, front or back unknown: two opposite yaws [deg] about +Y (0: facing
+    +Z, 90: facing +X).
 
     Args:
         points: (N, 3) scan points [m], Y up, the floor removed (the lowest points are the soles).
 
     Returns:
-        one yaw when the feet give the front (the feet slab's mean at least `MIN_FEET_SHIFT` before the
-        shins'); else the two opposite normals of the hips axis (front or back unknown), or [] when the
-        hips slab is round or nearly empty. Yaws in (-180, 180].
+        the two normals of the hips axis, the one the feet point to first (the feet slab's mean at least
+        `MIN_FEET_SHIFT` before the shins'; either first without feet); with a round hips slab the feet's
+        direction and its opposite; [] with neither. Yaws in (-180, 180].
     """
     y0, y1 = np.quantile(points[:, 1], [0.001, 0.999])
     height = y1 - y0
@@ -69,15 +72,13 @@ def facing_yaws(points: np.ndarray) -> list[float]:
         evals, evecs = np.linalg.eigh(np.cov((hips - hips.mean(0)).T))
         if math.sqrt(evals[1] / max(evals[0], 1e-12)) >= MIN_ANISOTROPY:
             normal = evecs[:, 0]  # the minor axis: front-back
-    if normal is not None and forward is not None:
-        directions = [normal if normal @ forward >= 0 else -normal]
+    if normal is not None:
+        front = normal if forward is None or normal @ forward >= 0 else -normal
     elif forward is not None:
-        directions = [forward]
-    elif normal is not None:
-        directions = [normal, -normal]
+        front = forward
     else:
         return []
-    return [math.degrees(math.atan2(d[0], d[1])) for d in directions]
+    return [math.degrees(math.atan2(d[0], d[1])) for d in (front, -front)]
 
 
 def body_facing_yaw(global_orient) -> float:

@@ -62,20 +62,23 @@ class BodyFitConfig:
 
     Attributes:
         max_scan_points: scan points used by the loss (a fixed random subset) [count].
-        yaw_candidates: initial rotations about the up axis tried in the placement stage [deg]. The
-            default trusts the world convention (the person faces +Z): a front/back choice by the
-            Chamfer loss alone proved unreliable on posed scans (the back of a body fits the front well).
+        yaw_candidates: initial rotations about the up axis [deg]; the coarse stages run from each (the
+            soles start) and the fit goes on from the one whose result the final stage's energy scores
+            lowest (`_coarse`); a start within ``facing_tolerance_deg`` of an earlier one is dropped
+            (`_yaw_starts`). A brief placement alone (rotation and translation, 12 steps) chose the
+            back on 4 of 10 randomly posed scans: the back of a body placed on the front fits it well
+            before the limbs move (docs/BENCHMARKS.md, "Front or back").
         yaw_from_scan: turn the ``yaw_candidates`` by the scan's own facing direction
             (`body.facing.facing_yaws`: hips axis and feet) when it lies farther than
             ``facing_tolerance_deg`` [deg] from 0, for a person facing any way (a capture turned 59° ended
             at 3.3 cm Chamfer from the 0° start, issue #29). A direction within the tolerance is taken as
-            0 (the estimate is ~2° on +Z scans, and the placement stage corrects that itself). Without
-            feet (trousers over them) the scan gives two opposite directions and both are tried; before,
-            one near 0 made the other be dropped, and trousers captures facing 165-199° were fitted
+            0 (the estimate is ~2° on +Z scans, and the placement stage corrects that itself). The scan
+            gives two opposite directions (front or back unknown) and both are tried: before, one near 0
+            made the other be dropped, and trousers captures facing 165-199° were fitted backwards; and
+            the feet's side alone, taken as the front, turned a long dress captured from its side
             backwards.
         upright_coarse: keep the pelvis upright (yaw only) in the coarse stages.
-        yaw_iters, placement_iters, pose_iters: Adam steps of the coarse stages (``yaw_iters``: of each
-            yaw's trial, which runs only when there are several yaws to choose from).
+        placement_iters, pose_iters: Adam steps of the coarse stages.
         final_rounds, final_iters: the final stage: ``final_rounds`` rounds of exact point-to-surface
             matches, each followed by up to ``final_iters`` L-BFGS iterations with them held fixed.
         lr_rotation [rad], lr_translation [m], lr_pose [rad]: Adam step sizes of the coarse stages.
@@ -99,7 +102,7 @@ class BodyFitConfig:
             Limitation: shoes, gloves, hats or long hair break this assumption.
         head_start: besides the start sized by the scan's height with the soles on its lowest point, run
             the coarse stages from a body of average height hung from the top of the head too, and go on
-            from the one whose pose-stage loss is lower (the coarse stages then take twice as long). A
+            from the one whose pose-stage loss is lower (the coarse stages run once more). A
             scan cut above the feet (a capture that misses them) makes the first start far too short.
             Measured on simulated dress scans cut 30 cm above their lowest point, seeds 0-2
             (``scripts/body_fit_seeds.py --missing-bottom 0.3``): height error -3.3 / -8.9 / -4.6 cm
@@ -123,7 +126,6 @@ class BodyFitConfig:
     yaw_from_scan: bool = True
     facing_tolerance_deg: float = 20.0
     upright_coarse: bool = True
-    yaw_iters: int = 12
     placement_iters: int = 25
     pose_iters: int = 60
     final_rounds: int = 10
@@ -439,13 +441,20 @@ def _scan_extent(scan: torch.Tensor) -> tuple[float, float]:
 
 def _yaw_starts(scan: torch.Tensor, cfg: BodyFitConfig) -> list[float]:
     """The yaws [deg] the placement stage starts from: ``cfg.yaw_candidates``, turned by each of the scan's
-    facing directions (`facing_yaws`: one, or two opposite ones when the scan shows no feet) when
-    ``cfg.yaw_from_scan``; a direction within ``cfg.facing_tolerance_deg`` of +Z turns them by 0."""
+    facing directions (`facing_yaws`: two opposite ones, the feet's side first) when ``cfg.yaw_from_scan``;
+    a direction within ``cfg.facing_tolerance_deg`` of +Z turns them by 0, and a start within that of an
+    earlier one is dropped."""
     facing = facing_yaws(scan.numpy()) if cfg.yaw_from_scan else []
     if not facing:
         return list(cfg.yaw_candidates)
-    facing = [0.0 if abs(f) <= cfg.facing_tolerance_deg else f for f in facing]  # +Z needs no turn
-    return [f + yaw for f in facing for yaw in cfg.yaw_candidates]
+    tol = cfg.facing_tolerance_deg
+    facing = [0.0 if abs(f) <= tol else f for f in facing]  # +Z needs no turn
+    starts = []
+    for yaw in (f + y for f in facing for y in cfg.yaw_candidates):
+        # one start for each way round: candidates 0 and 180 turned by both facing directions meet twice
+        if all(abs((yaw - s + 180.0) % 360.0 - 180.0) > tol for s in starts):
+            starts.append(yaw)
+    return starts
 
 
 @torch.no_grad()
@@ -483,21 +492,24 @@ def _initial_guess(body: BodyModel, scan: torch.Tensor, yaw_deg: float, start: s
     body.translation.copy_(shift[None])
 
 
-def _best_yaw(objective: _Objective, scan: torch.Tensor, placement: list[dict], yaws: list[float]) -> float:
-    """The yaw [deg] of ``yaws`` whose brief placement stage (Adam on the ``placement`` groups) on the
-    ``scan`` (N, 3) [m] ends at the lowest loss; 0 when there is none.
+def _coarse(objective: _Objective, yaw: float, start: str, placement: list[dict], pose: list[dict]) -> tuple:
+    """The coarse stages (placement, then placement and pose) from the starting body of ``yaw`` [deg] and
+    ``start`` (`_initial_guess`): ``(score, losses, yaw, start, state)``, the final stage's energy at their
+    end (its exact surface matches and clothing labels, before any of its steps), the stages' last losses
+    and the body's state dict.
 
-    A single yaw needs no trial: each start of the coarse stages begins afresh from the yaw
-    (`_initial_guess`), so that trial's only result was the yaw itself (issue #32).
-    """
-    if len(yaws) == 1:
-        return yaws[0]
-    best = (math.inf, 0.0)
-    for yaw in yaws:
-        _initial_guess(objective.body, scan, yaw)
-        loss = _run_stage(objective, placement, objective.cfg.yaw_iters)
-        best = min(best, (loss, yaw))
-    return best[1]
+    The score, not the pose stage's loss, tells front from back: on a randomly posed T-shirt scan the pose
+    stage ended lower facing backwards (0.235 against 0.240), the final energy 0.127 against 0.084."""
+    body = objective.body
+    _initial_guess(body, objective.scan, yaw, start)
+    losses = {"placement": _run_stage(objective, placement, objective.cfg.placement_iters)}
+    losses["pose"] = _run_stage(objective, placement + pose, objective.cfg.pose_iters)
+    objective.final = True
+    with torch.no_grad():
+        out = body()
+        score = float(objective.energy(out, objective.match(out.vertices[0], out.faces)))
+    objective.final = False
+    return score, losses, yaw, start, {k: v.detach().clone() for k, v in body.state_dict().items()}
 
 
 def fit_body(
@@ -545,20 +557,18 @@ def fit_body(
         {"params": [body.global_orient], "lr": cfg.lr_rotation},
         {"params": [body.translation], "lr": cfg.lr_translation},
     ]
-    yaw = _best_yaw(objective, scan, placement, _yaw_starts(scan, cfg))
     pose = [{"params": [body.pose], "lr": cfg.lr_pose}]
+    soles = [_coarse(objective, yaw, "soles", placement, pose) for yaw in _yaw_starts(scan, cfg)]
+    placed = [min(soles, key=lambda p: p[0])]  # the yaw whose coarse result scores lowest (`_coarse`)
     # a scan that shows the feet stands on its lowest point: the head start is for scans cut above them
-    # (it lost on 14 of 15 complete scans, docs/BENCHMARKS.md), and doubles the coarse stages' time
-    starts = ("soles", "head") if cfg.head_start and not shows_feet(scan.numpy()) else ("soles",)
-    placed = []
-    for start in starts:
-        _initial_guess(body, scan, yaw, start)
-        stage = {"placement": _run_stage(objective, placement, cfg.placement_iters)}
-        stage["pose"] = _run_stage(objective, placement + pose, cfg.pose_iters)
-        placed.append((stage, start, {k: v.detach().clone() for k, v in body.state_dict().items()}))
-    losses, start, state = min(placed, key=lambda p: p[0]["pose"])
+    # (it lost on 14 of 15 complete scans, docs/BENCHMARKS.md), at the yaw chosen, and chosen or not by
+    # the pose stage's loss as it was measured
+    if cfg.head_start and not shows_feet(scan.numpy()):
+        placed.append(_coarse(objective, placed[0][2], "head", placement, pose))
+    _, losses, yaw, start, state = min(placed, key=lambda p: p[1]["pose"])
     body.load_state_dict(state)
-    losses.update({f"pose_{s}": stage["pose"] for stage, s, _ in placed})
+    losses = dict(losses)
+    losses.update({f"pose_{s}": stage["pose"] for _, stage, _, s, _ in placed})
     objective.final = True
     params = [body.global_orient, body.translation, body.pose, body.phenotype_logits]
     losses["final"] = _run_icp(objective, params, cfg.final_rounds, cfg.final_iters)
