@@ -216,8 +216,8 @@ def test_coarse_stages_that_run(anny_model, monkeypatch):
 def test_feet_that_point_backwards_do_not_turn_the_body(anny_model, monkeypatch):
     """The feet's cue said the back of a long dress captured from its side was its front (a 4.5 cm shift
     of the feet slab pointing backwards, the dress's hem in the shins slab, seed 452), and the body was
-    fitted facing backwards (Chamfer 39.5 mm, 7.5 cm too tall). The yaw trial between the two directions of
-    the hips axis decides now: on the default body (facing +Z) with its feet's cue turned backwards, the
+    fitted facing backwards (Chamfer 39.5 mm, 7.5 cm too tall). Both directions of the hips axis are fitted
+    now and the better one kept: on the default body (facing +Z) with its feet's cue turned backwards, the
     body faces +Z."""
     from helpers_body import sampled_default_body
 
