@@ -567,7 +567,6 @@ def fit_body(
         placed.append(_coarse(objective, placed[0][2], "head", placement, pose))
     _, losses, yaw, start, state = min(placed, key=lambda p: p[1]["pose"])
     body.load_state_dict(state)
-    losses = dict(losses)
     losses.update({f"pose_{s}": stage["pose"] for _, stage, _, s, _ in placed})
     objective.final = True
     params = [body.global_orient, body.translation, body.pose, body.phenotype_logits]
