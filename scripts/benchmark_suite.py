@@ -77,10 +77,10 @@ SCAN_SETTINGS = ("seed", "hem_up", "hem_widen", "scan_spacing", "garment_points"
 def _fit_and_eval(scan_dir: Path, out: Path, config, anny) -> dict:
     from torch_diffavatar.evaluation import evaluate_assets
     from torch_diffavatar.fit_scan import fit_scan
-    from torch_diffavatar.fit_workers import usable_cores
+    from torch_diffavatar.forked import usable_cores
 
     t0 = time.perf_counter()
-    kw = dict(progress=False, anny_model=anny, force=True, race_workers=usable_cores())  # as `diffavatar fit`
+    kw = dict(progress=False, anny_model=anny, force=True, workers=usable_cores())  # as `diffavatar fit`
     report = fit_scan(scan_dir / "scan.ply", config, out, **kw)
     seconds = time.perf_counter() - t0
     ev = evaluate_assets(out, scan_dir)

@@ -239,11 +239,12 @@ def test_a_bad_config_is_refused(line, words, tmp_path, capsys):
     assert not out.exists()
 
 
+@pytest.mark.parametrize("option", ["--workers", "--race-workers"])  # the old spelling still taken
 @pytest.mark.parametrize("workers", ["0", "-2"])
-def test_race_workers_below_one_are_refused(workers, tmp_path, capsys):
+def test_workers_below_one_are_refused(option, workers, tmp_path, capsys):
     out = tmp_path / "fit"
-    argv = ["fit", str(DEMO_SCAN), "--garment", "skirt", "--out", str(out), f"--race-workers={workers}"]
-    _refused(argv, capsys, f"--race-workers must be >= 1, got {workers}")
+    argv = ["fit", str(DEMO_SCAN), "--garment", "skirt", "--out", str(out), f"{option}={workers}"]
+    _refused(argv, capsys, f"--workers must be >= 1, got {workers}")
     assert not out.exists()
 
 

@@ -192,7 +192,7 @@ def test_a_race_killed_for_real_resumes_to_the_uninterrupted_result(skirt_proble
 @pytest.fixture
 def one_thread():
     """torch on one intra-op thread, as `diffavatar fit` runs it: a fork is refused with more
-    (`fit_workers.can_fork`)."""
+    (`forked.can_fork`)."""
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     yield
@@ -225,7 +225,7 @@ def test_a_lost_race_worker_leaves_its_candidate_to_the_driver(
     """A worker that ends without its result (killed, out of memory): the driver fits that candidate
     itself, and the fit still ends where one after another ends."""
     from torch_diffavatar import fit_race
-    from torch_diffavatar.fit_workers import ForkedCall, WorkerLost
+    from torch_diffavatar.forked import ForkedCall, WorkerLost
 
     lost = []
 

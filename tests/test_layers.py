@@ -21,6 +21,7 @@ LAYERS = {
     "chamfer": (0, "base"),
     "json_io": (0, "base"),
     "atomic_file": (0, "base"),
+    "forked": (0, "base"),  # calls run in forked worker processes (the body fit's directions, the race)
     "pattern": (1, "pattern"),
     "mesh_io": (2, "io"),
     "scan": (2, "io"),

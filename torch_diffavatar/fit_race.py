@@ -19,7 +19,7 @@ import torch
 from torch_diffavatar.errors import InputError, SimulationError
 from torch_diffavatar.fit_checkpoint import CHECKPOINT, safe_load
 from torch_diffavatar.fit_start import Start
-from torch_diffavatar.fit_workers import ForkedCall, WorkerLost, WorkersBar, can_fork, wait_all
+from torch_diffavatar.forked import ForkedCall, WorkerLost, WorkersBar, can_fork, wait_all
 from torch_diffavatar.objective import unbounded_stretch
 from torch_diffavatar.sim.state import ClothState
 
@@ -127,7 +127,7 @@ def race(fitter, start: ClothState, bar=None, workers: int = 1) -> ClothState:
     loss goes to its candidate entry (``race_loss``; None when its first drape failed).
 
     ``workers`` > 1 runs up to that many candidates at a time: the driver runs one while forked copies of
-    it run the next ones (`fit_workers`; where `fit_workers.can_fork`), with the same results as one after
+    it run the next ones (`forked`; where `forked.can_fork`), with the same results as one after
     another, since each candidate starts from the same state and the fit is deterministic.
 
     ``fitter``: the `torch_diffavatar.fit.Fitter` that runs the iterations (its ``state_dict`` /
@@ -162,12 +162,15 @@ def race(fitter, start: ClothState, bar=None, workers: int = 1) -> ClothState:
 
 
 def _forked_candidates(fitter, state: dict, workers: int) -> list[ForkedCall]:
-    """Workers (`fit_workers.ForkedCall`) for the ``workers`` - 1 candidates after the one that runs next,
+    """Workers (`forked.ForkedCall`) for the ``workers`` - 1 candidates after the one that runs next,
     where forking is safe (none otherwise)."""
     following = range(state["index"] + 1, min(state["index"] + workers, len(state["starts"])))
     if not following or not can_fork():
         return []
-    return [ForkedCall(functools.partial(_candidate_alone, fitter, state, i)) for i in following]
+    # a candidate's state holds the fit's own data classes: `safe_load` reads them
+    return [
+        ForkedCall(functools.partial(_candidate_alone, fitter, state, i), load=safe_load) for i in following
+    ]
 
 
 def _candidate_alone(fitter, state: dict, index: int, bar) -> dict:

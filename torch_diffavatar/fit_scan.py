@@ -137,13 +137,18 @@ def resumed_setup(out: Path, fingerprint: dict) -> dict | None:
     return setup
 
 
-def new_setup(scan_path, config, out: Path, fingerprint: dict, *, anny_model, loaded_scan=None, **prepare_kw):
+def new_setup(
+    scan_path, config, out: Path, fingerprint: dict, *, anny_model, loaded_scan=None, workers=1, **prepare_kw
+):
     """`fit_setup.prepare` of the scan (``prepare_kw``: its options; ``loaded_scan``: the scan through the
-    intake already), saved as ``out/setup.pt`` with its ``fingerprint``."""
+    intake already; ``workers``: its body fit's, which change nothing in the set-up), saved as
+    ``out/setup.pt`` with its ``fingerprint``."""
     from torch_diffavatar.fit_checkpoint import SETUP, atomic_save
     from torch_diffavatar.fit_setup import prepare
 
-    setup = prepare(scan_path, config, anny_model=anny_model, loaded_scan=loaded_scan, **prepare_kw)
+    setup = prepare(
+        scan_path, config, anny_model=anny_model, loaded_scan=loaded_scan, workers=workers, **prepare_kw
+    )
     setup["fingerprint"] = fingerprint
     atomic_save(setup, out / SETUP)
     return setup
@@ -217,14 +222,15 @@ def fit_scan(
     pattern=None,
     garment_type=None,
     body_params=None,
-    race_workers=1,
+    workers=1,
 ) -> dict:
     """Run the whole job (see the module docstring); returns the report (also ``out_dir/report.json``).
 
     ``pattern``: start from this `Pattern` instead of ``config.template``; ``garment_type`` and
     ``body_params`` (start from this body instead of fitting one): see `fit_setup.prepare`. ``force``:
-    replace another fit in ``out_dir`` (else that is an error, `prepare_out_folder`). ``race_workers``:
-    candidates of the race of first drapes fitted at a time (`Fitter.run`)."""
+    replace another fit in ``out_dir`` (else that is an error, `prepare_out_folder`). ``workers``:
+    processes run side by side, one core each: the body fit's starting directions (`body.fit.fit_body`)
+    and the candidates of the race of first drapes (`Fitter.run`); the same result for any number."""
     from torch_diffavatar.body.anny_model import load_anny
     from torch_diffavatar.body.model import BodyModel
     from torch_diffavatar.fit import Fitter
@@ -246,7 +252,14 @@ def fit_scan(
     anny_model = load_anny(dtype=torch.float32) if anny_model is None else anny_model
     if setup is None:
         setup = new_setup(
-            scan_path, config, out, fingerprint, anny_model=anny_model, loaded_scan=loaded_scan, **prepare_kw
+            scan_path,
+            config,
+            out,
+            fingerprint,
+            anny_model=anny_model,
+            loaded_scan=loaded_scan,
+            workers=workers,
+            **prepare_kw,
         )
     spacing = setup.get("spacing", config.spacing)
     if spacing != config.spacing:  # meshed finer for arms held low: the resolved config says so
@@ -265,7 +278,7 @@ def fit_scan(
         progress=progress,
     )
     try:
-        result = fitter.run(resume=resume, race_workers=race_workers)
+        result = fitter.run(resume=resume, race_workers=workers)
     except SimulationError as exc:
         if fitter.first is not None:  # failed after the fit had started: the message says where
             raise

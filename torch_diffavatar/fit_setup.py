@@ -202,11 +202,11 @@ def load_fit_scan(scan_path, *, units: str | None = "m", up: str | None = "y"):
     return scan, report
 
 
-def initial_body(body, scan, mesh, body_params: dict | None = None) -> float | None:
+def initial_body(body, scan, mesh, body_params: dict | None = None, workers: int = 1) -> float | None:
     """Set ``body`` (a `BodyModel`) to the fit's initial body: ``body_params`` (`BodyModel.parameters_dict`)
-    when given, else fitted to the ``scan`` (`body.fit.fit_body`; not to the head's points when the garment
-    ``mesh``, as `mesh_pattern` lays it out, covers it: `covers_head`). Returns the body fit's residual [m]
-    (None with ``body_params``).
+    when given, else fitted to the ``scan`` (`body.fit.fit_body` with ``workers``; not to the head's points
+    when the garment ``mesh``, as `mesh_pattern` lays it out, covers it: `covers_head`). Returns the body
+    fit's residual [m] (None with ``body_params``).
 
     Raises:
         InputError: ``body_params`` do not fit this body model.
@@ -217,7 +217,7 @@ def initial_body(body, scan, mesh, body_params: dict | None = None) -> float | N
         body_config = BodyFitConfig()
         if covers_head(mesh):  # a hood: the head's scan points are cloth, not skin
             body_config.skin_parts = tuple(p for p in body_config.skin_parts if p != "head")
-        return fit_body(scan.points, body, config=body_config).chamfer_m
+        return fit_body(scan.points, body, config=body_config, workers=workers).chamfer_m
     try:
         body.load_parameters_dict(body_params)
     except (KeyError, ValueError, TypeError, RuntimeError) as exc:
@@ -337,6 +337,7 @@ def prepare(
     garment_type=None,
     body_params=None,
     loaded_scan=None,
+    workers=1,
 ) -> dict:
     """The slow set-up of a fit: scan, body fit, segmentation, openings, meshed and placed template.
 
@@ -347,7 +348,8 @@ def prepare(
     `BodyModel.parameters_dict`, e.g. the ``body.json`` of ``diffavatar fit-body`` or of an earlier fit, in
     the scan's world frame) is the body to start from instead of fitting one to the scan.
 
-    ``loaded_scan``: the scan through the intake already (`load_fit_scan`'s). The pattern is meshed at
+    ``loaded_scan``: the scan through the intake already (`load_fit_scan`'s). ``workers``: the body fit's
+    (`initial_body`; the same set-up for any number). The pattern is meshed at
     ``config.spacing``, or at ``config.arms_low_spacing`` when the body holds an arm low (`arms_spacing`).
 
     Returns:
@@ -370,7 +372,7 @@ def prepare(
     body = BodyModel(anny_model=anny_model)
     pattern = resolve_pattern(config.template) if pattern is None else pattern
     mesh = mesh_pattern(pattern, spacing=config.spacing)
-    body_fit_chamfer_m = initial_body(body, scan, mesh, body_params)
+    body_fit_chamfer_m = initial_body(body, scan, mesh, body_params, workers)
     with torch.no_grad():
         body_out = body()
         body_verts = body_out.vertices[0].double()

@@ -232,6 +232,50 @@ def test_feet_that_point_backwards_do_not_turn_the_body(anny_model, monkeypatch)
     assert abs((result.yaw_deg + 180.0) % 360.0 - 180.0) < 5.0, result.yaw_deg
 
 
+def test_both_ways_round_side_by_side_fit_the_same_body(anny_model, monkeypatch):
+    """With ``workers=2`` the second direction's coarse stages run in a forked copy of the driver while
+    the driver runs the first (issue #32: the demo's set-up); the body, the yaw and every loss are those of
+    one after another, bit for bit, and a worker lost (killed) leaves its direction to the driver."""
+    from helpers_body import sampled_default_body
+
+    import torch_diffavatar.body.fit as body_fit
+    from torch_diffavatar.forked import ForkedCall
+
+    points = sampled_default_body(anny_model, count=3000).points
+    config = body_fit.BodyFitConfig(placement_iters=3, pose_iters=2, final_rounds=1, final_iters=2)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # forking needs one intra-op thread (`forked.can_fork`)
+    forked, lost = [], []
+
+    class Counted(ForkedCall):
+        def __init__(self, fn):
+            super().__init__(fn)
+            forked.append(self)
+
+    class Lost(ForkedCall):
+        def result(self):
+            self._process.kill()
+            lost.append(self)
+            return super().result()
+
+    try:
+        results = {}
+        for name, call, workers in (("one after another", Counted, 1), ("side by side", Counted, 2)):
+            monkeypatch.setattr(body_fit, "ForkedCall", call)
+            results[name] = body_fit.fit_body(points, anny_model=anny_model, config=config, workers=workers)
+        assert len(forked) == 1  # the second direction, in a worker
+        monkeypatch.setattr(body_fit, "ForkedCall", Lost)
+        results["worker lost"] = body_fit.fit_body(points, anny_model=anny_model, config=config, workers=2)
+        assert len(lost) == 1
+    finally:
+        torch.set_num_threads(threads)
+    first = results.pop("one after another")
+    for name, other in results.items():
+        assert other.yaw_deg == first.yaw_deg and other.losses == first.losses, name
+        state, expected = other.body.state_dict(), first.body.state_dict()
+        assert all(torch.equal(state[k], expected[k]) for k in expected), name
+
+
 def test_yaw_starts_try_both_directions_when_the_scan_cannot_tell_front_from_back(monkeypatch):
     """Trousers over the feet leave `facing_yaws` two opposite directions; one near +Z made the other be
     dropped, and trousers captures facing 165-199 degrees were fitted backwards (docs/BENCHMARKS.md)."""

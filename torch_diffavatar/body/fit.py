@@ -36,6 +36,7 @@ self-penetration proxy (forearms/hands vs torso/hips/thighs, shin vs shin; see
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from dataclasses import dataclass, field
@@ -51,6 +52,7 @@ from torch_diffavatar.body.parts import PART_NAMES
 from torch_diffavatar.body.priors import joint_limit_penalty, pose_prior, self_penetration_penalty
 from torch_diffavatar.chamfer import nearest_indices
 from torch_diffavatar.errors import ScanError
+from torch_diffavatar.forked import ForkedCall, WorkerLost, can_fork
 from torch_diffavatar.geometry import closest_point_on_mesh
 
 SOLE_DEPTH = 0.01  # [m] a foot's vertices this close to its lowest in the rest pose: the sole, heel to toe
@@ -512,6 +514,35 @@ def _coarse(objective: _Objective, yaw: float, start: str, placement: list[dict]
     return score, losses, yaw, start, {k: v.detach().clone() for k, v in body.state_dict().items()}
 
 
+def _coarse_starts(objective: _Objective, yaws: list[float], placement, pose, workers: int) -> list[tuple]:
+    """`_coarse` from the soles at each of ``yaws`` [deg], in order, up to ``workers`` at a time: the driver
+    fits one while forked copies of it fit the next (`forked.ForkedCall`, where `forked.can_fork`), with the
+    same results as one after another, since a start sets everything its stages train (`_initial_guess`).
+    A start whose worker is lost (killed, out of memory) is fitted by the driver."""
+    results = []
+    while len(results) < len(yaws):
+        done = len(results)
+        following = yaws[done + 1 : done + workers] if can_fork() else []
+        alone = functools.partial(_coarse_alone, objective, placement=placement, pose=pose)
+        calls = [ForkedCall(functools.partial(alone, y)) for y in following]
+        try:
+            results.append(_coarse(objective, yaws[done], "soles", placement, pose))
+            for call in calls:
+                try:
+                    results.append(tuple(call.result()))
+                except WorkerLost:
+                    break
+        finally:
+            for call in calls:
+                call.close()
+    return results
+
+
+def _coarse_alone(objective: _Objective, yaw: float, _progress, *, placement, pose) -> tuple:
+    """In a worker: `_coarse` from the soles at ``yaw`` (``_progress``: the worker's counter, unused)."""
+    return _coarse(objective, yaw, "soles", placement, pose)
+
+
 def fit_body(
     scan_points: torch.Tensor | np.ndarray,
     body: BodyModel | None = None,
@@ -519,6 +550,7 @@ def fit_body(
     anny_model=None,
     config: BodyFitConfig | None = None,
     floor_y: float | None = None,
+    workers: int = 1,
 ) -> BodyFitResult:
     """Fit Anny's shape, pose and placement to a full (possibly clothed) scan.
 
@@ -530,6 +562,8 @@ def fit_body(
         config: a `BodyFitConfig`.
         floor_y: the height [m] of the floor the person stands on (the intake puts the floor it removed at
             y = 0): the soles are held on it (``config.floor_weight``); None when the scan had none.
+        workers: starting directions fitted at a time, in forked processes (`forked`; one core each); the
+            same result for any number.
 
     Returns:
         a `BodyFitResult` with the fitted body and its residual.
@@ -558,7 +592,7 @@ def fit_body(
         {"params": [body.translation], "lr": cfg.lr_translation},
     ]
     pose = [{"params": [body.pose], "lr": cfg.lr_pose}]
-    soles = [_coarse(objective, yaw, "soles", placement, pose) for yaw in _yaw_starts(scan, cfg)]
+    soles = _coarse_starts(objective, _yaw_starts(scan, cfg), placement, pose, workers)
     placed = [min(soles, key=lambda p: p[0])]  # the yaw whose coarse result scores lowest (`_coarse`)
     # a scan that shows the feet stands on its lowest point: the head start is for scans cut above them
     # (it lost on 14 of 15 complete scans, docs/BENCHMARKS.md), at the yaw chosen, and chosen or not by

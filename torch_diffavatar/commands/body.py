@@ -77,6 +77,22 @@ def _scan_args(parser) -> None:
         help="points of the scan used at most, a seeded random subset of a bigger scan (a PLY is thinned as "
         "it is read; default 2,000,000)",
     )
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="processes of the body fit side by side, one core each (its two ways round); the same result "
+        "for any number (default: the cores this process may use)",
+    )
+
+
+def _workers(args) -> int:
+    """``--workers``, checked; the usable cores when not given."""
+    from torch_diffavatar.forked import usable_cores
+
+    if args.workers is not None and args.workers < 1:
+        raise InputError(f"--workers must be >= 1, got {args.workers}")
+    return usable_cores() if args.workers is None else args.workers
 
 
 def _load_clean_scan(args):
@@ -126,8 +142,9 @@ def fit_body_command(args) -> dict:
 
     out = Path(args.out)
     check_out_folder(out)
+    workers = _workers(args)
     scan = _load_clean_scan(args)
-    result = fit_body(scan.points, floor_y=_floor_y(args))
+    result = fit_body(scan.points, floor_y=_floor_y(args), workers=workers)
     body = result.body
     verts = body().vertices[0].detach().cpu().numpy()
     phenotypes = dict(zip(body.phenotype_labels, body.phenotypes[0].detach().tolist()))
@@ -176,6 +193,7 @@ def segment_command(args) -> dict:
     check_out_folder(Path(args.out).parent)
     if Path(args.out).is_dir():
         raise InputError(f"--out {args.out} is a folder; give the PLY file to write")
+    workers = _workers(args)
     _single_thread()
     import torch
 
@@ -201,7 +219,7 @@ def segment_command(args) -> dict:
     if not args.body:
         from torch_diffavatar.body.fit import fit_body
 
-        body = fit_body(scan.points, anny_model=anny_model, floor_y=_floor_y(args)).body
+        body = fit_body(scan.points, anny_model=anny_model, floor_y=_floor_y(args), workers=workers).body
     waist = None
     if body is not None:
         with torch.no_grad():

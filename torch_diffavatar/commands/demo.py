@@ -54,6 +54,7 @@ def run_demo(args) -> dict:
     from torch_diffavatar.errors import InputError
     from torch_diffavatar.fit import load_config
     from torch_diffavatar.fit_scan import fit_scan
+    from torch_diffavatar.forked import usable_cores
 
     if not DEMO_SCAN.is_file():
         raise InputError(f"the bundled scan {DEMO_SCAN} is missing (run scripts/make_demo_scan.py)")
@@ -62,7 +63,13 @@ def run_demo(args) -> dict:
     config = load_config(garment="dress", iterations=args.iters)
     with contextlib.redirect_stdout(sys.stderr):
         report = fit_scan(
-            DEMO_SCAN, config, args.out, resume=args.resume, force=args.force, progress=not args.no_progress
+            DEMO_SCAN,
+            config,
+            args.out,
+            resume=args.resume,
+            force=args.force,
+            progress=not args.no_progress,
+            workers=usable_cores(),  # as `diffavatar fit`: the same result on any number of cores
         )
     truth = json.loads(DEMO_TRUTH.read_text()) if DEMO_TRUTH.is_file() else {}
     if DEMO_TRUTH_PATTERN.is_file():

@@ -23,7 +23,7 @@ from torch_diffavatar.commands.out_paths import check_out_folder
 from torch_diffavatar.errors import InputError, read_json_file
 from torch_diffavatar.fit_scan import fit_scan
 from torch_diffavatar.fit_setup import SEGMENT_TYPES, TYPE_CONFIGS, infer_garment_type
-from torch_diffavatar.fit_workers import usable_cores
+from torch_diffavatar.forked import usable_cores
 
 
 def register(subparsers) -> None:
@@ -71,11 +71,14 @@ def register(subparsers) -> None:
         help="segment an unlabelled scan by geometry alone, not by its colours too",
     )
     p.add_argument(
+        "--workers",
         "--race-workers",
+        dest="workers",
         type=int,
         default=None,
-        help="candidates of the race of first drapes (the tops' configs) fitted at a time, each in its own "
-        "process on one core; the same result for any number (default: the cores this process may use)",
+        help="processes run side by side, one core each: the body fit's two ways round and the race of "
+        "first drapes (the tops' configs); the same result for any number (default: the cores this process "
+        "may use)",
     )
     p.add_argument("--resume", action="store_true", help="continue from --out's checkpoint")
     p.add_argument("--force", action="store_true", help="replace another fit in --out (its files only)")
@@ -90,9 +93,9 @@ def fit_command(args) -> dict:
 
     if args.iters is not None and args.iters < 0:
         raise InputError(f"--iters must be >= 0, got {args.iters}")
-    race_workers = args.race_workers
-    if race_workers is not None and race_workers < 1:
-        raise InputError(f"--race-workers must be >= 1, got {race_workers}")
+    workers = args.workers
+    if workers is not None and workers < 1:
+        raise InputError(f"--workers must be >= 1, got {workers}")
     if args.spacing is not None and not args.spacing > 0:
         raise InputError(f"--spacing must be a positive length in metres, got {args.spacing}")
     template, garment_type, pattern = args.garment, args.garment_type, None
@@ -131,7 +134,7 @@ def fit_command(args) -> dict:
             pattern=pattern,
             garment_type=garment_type,
             body_params=body_params,
-            race_workers=usable_cores() if race_workers is None else race_workers,
+            workers=usable_cores() if workers is None else workers,
         )
     if not args.json:
         for key in (

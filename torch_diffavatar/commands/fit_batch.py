@@ -144,7 +144,7 @@ def _fit_in_folder(job: BatchJob, folder: Path, resume: bool, iters, spacing) ->
         spacing=spacing,
         no_colour=False,
         resume=resume,
-        race_workers=1,  # the task's one core: no fits inside it side by side
+        workers=1,  # the task's one core: no fits inside it side by side
         force=False,
         units=job.units,
         up=job.up,

@@ -1,10 +1,11 @@
-"""Calls run in forked worker processes, for the race of first drapes (`fit_race`): each worker is a copy of
-the driver at the fork, the fitter and its body model included, so nothing is rebuilt or sent to it; only
-its result comes back, through a pipe, as a ``torch.save`` of plain data read with ``weights_only``.
+"""Calls run in forked worker processes, for work that splits into independent runs (the body fit's
+starting directions, `body.fit`; the race of first drapes, `fit_race`): each worker is a copy of the driver
+at the fork, its models included, so nothing is rebuilt or sent to it; only its result comes back, through
+a pipe, as a ``torch.save`` of plain data read with ``weights_only``.
 
 A fork is safe only while torch's intra-op pool has one thread (an OpenMP pool does not survive a fork: the
-worker would hang in its first parallel loop), so `can_fork` says no otherwise and the race runs its
-candidates one after another. A worker dies with its driver (Linux: ``PR_SET_PDEATHSIG``), so a killed fit
+worker would hang in its first parallel loop), so `can_fork` says no otherwise and the caller runs its
+calls one after another. A worker dies with its driver (Linux: ``PR_SET_PDEATHSIG``), so a killed fit
 leaves none running.
 """
 
@@ -22,7 +23,6 @@ import traceback
 import torch
 
 from torch_diffavatar.errors import InputError, SimulationError
-from torch_diffavatar.fit_checkpoint import safe_load
 
 _PR_SET_PDEATHSIG = 1  # linux/prctl.h
 _ERRORS = {"SimulationError": SimulationError, "InputError": InputError}
@@ -30,6 +30,10 @@ _ERRORS = {"SimulationError": SimulationError, "InputError": InputError}
 
 class WorkerLost(RuntimeError):
     """A worker process ended without sending its result (killed, out of memory)."""
+
+
+def _load_plain(stream: io.BytesIO):
+    return torch.load(stream, weights_only=True)
 
 
 def usable_cores() -> int:
@@ -50,12 +54,13 @@ class ForkedCall:
     """``fn(counter)`` run in a forked worker process.
 
     ``counter``: a `ProgressCounter` that ``fn`` may update as a progress bar; it counts in ``progress`` (a
-    shared integer). ``fn``'s return value must be plain data that ``torch.save`` writes and a
-    ``weights_only`` load reads (tensors, containers, numbers, strings).
+    shared integer). ``fn``'s return value must be data that ``torch.save`` writes and ``load`` reads back
+    from a stream: by default a ``weights_only`` ``torch.load`` (tensors, containers, numbers, strings).
     """
 
-    def __init__(self, fn):
+    def __init__(self, fn, load=_load_plain):
         ctx = mp.get_context("fork")
+        self._load = load
         self.progress = ctx.Value("i", 0)
         self.connection, send = ctx.Pipe(duplex=False)
         for stream in (sys.stdout, sys.stderr):  # a worker flushes its copy of the buffers when it ends
@@ -77,9 +82,9 @@ class ForkedCall:
         except EOFError:
             self._process.join()
             code = self._process.exitcode
-            raise WorkerLost(f"a race worker ended with exit code {code} and no result") from None
+            raise WorkerLost(f"a worker process ended with exit code {code} and no result") from None
         self._process.join()
-        payload = safe_load(io.BytesIO(data))
+        payload = self._load(io.BytesIO(data))
         if "error" in payload:
             kind, message = payload["error"]
             raise _ERRORS.get(kind, RuntimeError)(message if kind in _ERRORS else f"{kind}: {message}")

@@ -1,4 +1,4 @@
-"""Forked workers (`fit_workers`): a worker's value, error or death reaches the driver; its progress counts
+"""Forked workers (`forked`): a worker's value, error or death reaches the driver; its progress counts
 on the driver's bar; no worker outlives its driver."""
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from torch_diffavatar.errors import SimulationError
-from torch_diffavatar.fit_workers import ForkedCall, WorkerLost, WorkersBar, can_fork, usable_cores, wait_all
+from torch_diffavatar.forked import ForkedCall, WorkerLost, WorkersBar, can_fork, usable_cores, wait_all
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -111,7 +111,7 @@ def test_forking_needs_one_thread():
 
 ORPHAN = """
 import sys, time
-from torch_diffavatar.fit_workers import ForkedCall
+from torch_diffavatar.forked import ForkedCall
 
 def sleep(bar):
     time.sleep(60)
