@@ -166,7 +166,7 @@ def test_the_body_fit_takes_a_hoods_points_on_the_head_for_cloth(anny_model, tmp
 
     seen = []
 
-    def record(points, body, config=None):
+    def record(points, body, config=None, workers=1):
         seen.append(config.skin_parts)
         raise Fitted
 
