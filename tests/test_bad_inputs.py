@@ -239,6 +239,15 @@ def test_a_bad_config_is_refused(line, words, tmp_path, capsys):
     assert not out.exists()
 
 
+@pytest.mark.parametrize("command", ["fit-body", "segment"])
+def test_body_fit_workers_below_one_are_refused(command, tmp_path, capsys):
+    out = tmp_path / ("b" if command == "fit-body" else "g.ply")
+    extra = ["--garment", "tshirt"] if command == "segment" else []
+    argv = [command, str(DEMO_SCAN), *extra, "--out", str(out), "--workers", "0"]
+    _refused(argv, capsys, "--workers must be >= 1, got 0")
+    assert not out.exists()
+
+
 @pytest.mark.parametrize("option", ["--workers", "--race-workers"])  # the old spelling still taken
 @pytest.mark.parametrize("workers", ["0", "-2"])
 def test_workers_below_one_are_refused(option, workers, tmp_path, capsys):
