@@ -30,15 +30,29 @@ SURFACE_TARGET_M = 0.01
 FRONT_HEIGHT_TARGET_M = 0.02  # #29's front-only captures: the height alone, within 2 cm
 
 
-def _run(args: list[str], log: Path) -> str:
-    """Run ``python -m torch_diffavatar.cli ARGS``; its stdout (stderr appended to ``log``)."""
+def _run(args: list[str], log: Path, check: bool = True) -> str | None:
+    """Run ``python -m torch_diffavatar.cli ARGS``; its stdout (stderr appended to ``log``). A failed
+    command ends the script, or with ``check`` False returns None."""
     with open(log, "a") as err:
         command = [sys.executable, "-m", "torch_diffavatar.cli", *args]
         done = subprocess.run(command, stdout=subprocess.PIPE, stderr=err, text=True)
+    if done.returncode != 0 and not check:
+        return None
     if done.returncode != 0:
         name = " ".join(args[:2])
-        raise SystemExit(f"capture_body_seeds: {name} failed (exit {done.returncode}); see {log}")
+        raise SystemExit(f"{Path(sys.argv[0]).stem}: {name} failed (exit {done.returncode}); see {log}")
     return done.stdout
+
+
+def make_capture(folder: Path, garment: str, seed: int, capture: str = "ring") -> Path:
+    """``folder/scan``: the capture of ``garment`` and ``seed`` (``capture``: ``ring`` or ``front``, the
+    `make-scan --capture` choices; random yaw, cm, Y down), made unless it is there."""
+    scan = folder / "scan"
+    folder.mkdir(parents=True, exist_ok=True)
+    if not (scan / "scan.ply").is_file():
+        capture = ["--capture", capture, "--yaw", "random", "--scan-units", "cm", "--scan-up", "-y"]
+        _run(["make-scan", garment, "--out", str(scan), "--seed", str(seed), *capture], folder / "log.txt")
+    return scan
 
 
 def one_scan(work: Path, garment: str, seed: int, capture: str = "ring") -> dict:
@@ -48,11 +62,8 @@ def one_scan(work: Path, garment: str, seed: int, capture: str = "ring") -> dict
     from torch_diffavatar.mesh_io import read_obj
 
     folder = work / f"{garment}_{seed}"
-    scan, body, log = folder / "scan", folder / "body", folder / "log.txt"
-    folder.mkdir(parents=True, exist_ok=True)
-    if not (scan / "scan.ply").is_file():
-        capture = ["--capture", capture, "--yaw", "random", "--scan-units", "cm", "--scan-up", "-y"]
-        _run(["make-scan", garment, "--out", str(scan), "--seed", str(seed), *capture], log)
+    scan = make_capture(folder, garment, seed, capture)
+    body, log = folder / "body", folder / "log.txt"
     if not (body / "fit.json").is_file():
         line = _run(["fit-body", str(scan / "scan.ply"), "--out", str(body), "--json"], log).strip()
         (body / "fit.json").write_text(line.splitlines()[-1] + "\n")
