@@ -295,6 +295,8 @@ def test_a_partial_scan_holds_an_opening_no_shorter_than_the_template():
         garment, ScanTarget(half, {"hem": half}, seen_sides=seen), cfg, dtype=torch.float64
     )
     assert float(full.opening_least[0]) < 0.85 * template
+    # the share of the loop the half shows: its angular bins about its own centre (more than half of them)
+    assert fit_report.opening_lengths(full, full.template_uv, full.template_uv)["hem"]["seen"] < 0.8
     assert float(partial.opening_least[0]) == pytest.approx(template, rel=1e-9)
     few = half[:10]  # too few points for a length
     none = FitObjective(garment, ScanTarget(half, {"hem": few}, seen_sides=seen), cfg, dtype=torch.float64)

@@ -414,12 +414,13 @@ class FitObjective(nn.Module):
         """The K matched openings of ``config.opening_length_names`` held no shorter than the scan shows
         them: ``opening_names``, ``opening_traced`` (K floats [m]: the length the scan's points trace,
         `scan_loop_length` with the placed garment's opening its reference; nan where they trace none),
+        ``opening_seen`` (K floats: the share of the loop's angular bins that hold scan points),
         ``opening_edges`` (their rest edges, `rest_loop_edges`) and the buffer ``opening_least`` (K,) [m],
         the traced lengths less ``config.opening_length_tolerance``; on a partial scan (``seen_sides``) no
         less than the template's either. ``opening_panels`` and ``opening_shares``: the panel of each rest
         edge and the template's split of each opening between its panels (`rest_loop_shares`)."""
         cfg = self.config
-        self.opening_names, self.opening_traced, self.opening_edges = [], [], []
+        self.opening_names, self.opening_traced, self.opening_seen, self.opening_edges = [], [], [], []
         placed = self.garment.sim_positions().detach().double()
         least = []
         for loop in self.loops:
@@ -427,7 +428,7 @@ class FitObjective(nn.Module):
                 continue
             # the placed garment's own opening: where the scan shows the loop in part (a hole over a hem),
             # its curve bridges the gap
-            length, _ = scan_loop_length(
+            length, seen = scan_loop_length(
                 target.boundaries[loop.name],
                 bin_length=cfg.opening_length_bin,
                 reference=placed[loop.vertices],
@@ -443,6 +444,7 @@ class FitObjective(nn.Module):
             if math.isfinite(bound):
                 self.opening_names.append(loop.name)
                 self.opening_traced.append(length)
+                self.opening_seen.append(seen)
                 self.opening_edges.append(edges)
                 least.append(bound)
         self.register_buffer("opening_least", torch.tensor(least, dtype=dtype).reshape(-1))
