@@ -253,7 +253,7 @@ def gapped_opening_warnings(held: dict) -> list[str]:
     shows with a gap (``seen`` < 1, as a report written before ``seen`` existed never says): the length
     the scan's points trace is a lower bound, and the fitted opening follows it, short by whatever the
     hidden part holds. Measured on ring captures of 20 tops (docs/BENCHMARKS.md, "End to end on ten
-    seeds"): the 8 hems traced whole were fitted within 0.8 cm of the truth; of the 12 with a gap (a fold
+    seeds"): the 7 hems traced whole were fitted within 0.8 cm of the truth; of the 13 with a gap (a fold
     lifted by a hand, out of the cameras' view), 9 were fitted 3.0-9.3 cm short."""
     gapped = [
         (n, v)
