@@ -69,7 +69,9 @@ def test_an_opening_a_full_scan_shows_with_a_gap_is_said():
         "neck": {"scan": 0.7, "least": 0.7, "initial": 0.7, "final": 0.7},  # written before `seen`
     }
     (gapped,) = scan_warnings(report, points, {"sectors_seen": 8, "sectors": 8})
-    assert gapped.startswith("the scan shows part of an opening only: the hem (98 % of it, 107.0 cm traced);")
+    assert gapped.startswith(
+        "the scan shows part of an opening only: the hem (98.0 % of it, 107.0 cm traced);"
+    )
     assert scan_warnings(report, points) == [gapped]  # no coverage known: a full scan
     # a partial scan says what it shows too little of instead
     assert all(

@@ -263,7 +263,7 @@ def gapped_opening_warnings(held: dict) -> list[str]:
     if not gapped:
         return []
     each = ", ".join(
-        f"the {n} ({100 * v['seen']:.0f} % of it, {100 * v['scan']:.1f} cm traced)" for n, v in gapped
+        f"the {n} ({100 * v['seen']:.1f} % of it, {100 * v['scan']:.1f} cm traced)" for n, v in gapped
     )
     return [
         f"the scan shows part of an opening only: {each}; a traced length is a lower bound and the fitted "
