@@ -279,7 +279,9 @@ def floor_warnings(floor: dict | None, garment_points) -> list[str]:
     through the floor were cut off there, and their fits shrank the body by 3.7-6.1 cm and the legs by 7 cm
     (docs/BENCHMARKS.md, "Trousers through the floor"); trousers piled on the floor, fitted on a floor
     (`FitConfig.drape_floor`), kept 2.6-5.3 cm of the template's extra leg in the pile ("A floor under the
-    body")."""
+    body"); of 40 ring-captured garments four trousers reached the floor, and the three whose lowest points
+    lay 1.5 cm above it (cut with the floor) ended with their leg openings 3.8-6.5 cm off, the fourth (2.9
+    cm) and the six other trousers within 0.8 cm ("End to end on ten seeds")."""
     if floor is None or len(garment_points) == 0:
         return []
     low = float(garment_points[:, 1].min())
@@ -287,9 +289,9 @@ def floor_warnings(floor: dict | None, garment_points) -> list[str]:
         return []
     return [
         f"the garment reaches the floor (its lowest scan points {100 * low:.1f} cm above it): where it "
-        "pools or was cut off with the floor, the scan does not show where the pattern ends; the fitted "
-        "length may be off by the cloth that pools (or, without the fit's floor, come out short with the "
-        "body's height)"
+        "pools or was cut off with the floor, the scan does not show where the pattern ends nor how wide its "
+        "hem is; the fitted length and hem may be off by the cloth that pools (or, without the fit's floor, "
+        "the length come out short with the body's height)"
     ]
 
 
