@@ -102,6 +102,24 @@ def test_a_worker_that_dies_is_reported_lost():
     call.close()
 
 
+def test_a_worker_killed_while_it_sends_is_lost(monkeypatch):
+    """A worker killed in the middle of sending its result leaves a partial message: the pipe raises
+    OSError ("got end of file during message"), not EOFError, and the body fit's lost-worker test met it
+    once in CI. It is a lost worker too."""
+    call = ForkedCall(_count)
+    try:
+        call._process.join()
+
+        def partial():
+            raise OSError("got end of file during message")
+
+        monkeypatch.setattr(call.connection, "recv_bytes", partial)
+        with pytest.raises(WorkerLost, match="exit code 0 and no result"):
+            call.result()
+    finally:
+        call.close()
+
+
 def test_forking_needs_one_thread():
     assert can_fork()
     torch.set_num_threads(2)

@@ -75,11 +75,11 @@ class ForkedCall:
         Raises:
             SimulationError, InputError: ``fn`` raised one (its message).
             RuntimeError: ``fn`` raised another exception (its type, message and the worker's traceback).
-            WorkerLost: the worker ended without a result.
+            WorkerLost: the worker ended without a result, or while it sent it (a partial message).
         """
         try:
             data = self.connection.recv_bytes()
-        except EOFError:
+        except (EOFError, OSError):  # OSError: "got end of file during message", killed while it sent
             self._process.join()
             code = self._process.exitcode
             raise WorkerLost(f"a worker process ended with exit code {code} and no result") from None
