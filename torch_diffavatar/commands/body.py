@@ -86,8 +86,8 @@ def _scan_args(parser) -> None:
     )
 
 
-def _workers(args) -> int:
-    """``--workers``, checked; the usable cores when not given."""
+def workers_option(args) -> int:
+    """``--workers`` (of `fit-body`, `segment` and `fit`), checked; the usable cores when not given."""
     from torch_diffavatar.forked import usable_cores
 
     if args.workers is not None and args.workers < 1:
@@ -142,7 +142,7 @@ def fit_body_command(args) -> dict:
 
     out = Path(args.out)
     check_out_folder(out)
-    workers = _workers(args)
+    workers = workers_option(args)
     scan = _load_clean_scan(args)
     result = fit_body(scan.points, floor_y=_floor_y(args), workers=workers)
     body = result.body
@@ -193,7 +193,7 @@ def segment_command(args) -> dict:
     check_out_folder(Path(args.out).parent)
     if Path(args.out).is_dir():
         raise InputError(f"--out {args.out} is a folder; give the PLY file to write")
-    workers = _workers(args)
+    workers = workers_option(args)
     _single_thread()
     import torch
 

@@ -18,12 +18,11 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
-from torch_diffavatar.commands.body import add_frame_args
+from torch_diffavatar.commands.body import add_frame_args, workers_option
 from torch_diffavatar.commands.out_paths import check_out_folder
 from torch_diffavatar.errors import InputError, read_json_file
 from torch_diffavatar.fit_scan import fit_scan
 from torch_diffavatar.fit_setup import SEGMENT_TYPES, TYPE_CONFIGS, infer_garment_type
-from torch_diffavatar.forked import usable_cores
 
 
 def register(subparsers) -> None:
@@ -93,9 +92,7 @@ def fit_command(args) -> dict:
 
     if args.iters is not None and args.iters < 0:
         raise InputError(f"--iters must be >= 0, got {args.iters}")
-    workers = args.workers
-    if workers is not None and workers < 1:
-        raise InputError(f"--workers must be >= 1, got {workers}")
+    workers = workers_option(args)
     if args.spacing is not None and not args.spacing > 0:
         raise InputError(f"--spacing must be a positive length in metres, got {args.spacing}")
     template, garment_type, pattern = args.garment, args.garment_type, None
@@ -134,7 +131,7 @@ def fit_command(args) -> dict:
             pattern=pattern,
             garment_type=garment_type,
             body_params=body_params,
-            workers=usable_cores() if workers is None else workers,
+            workers=workers,
         )
     if not args.json:
         for key in (
