@@ -640,8 +640,8 @@ def _lifted_rim(
     [m] across more than ``drop`` [m] below them (a hole's rim has the cloth under the hole below it), and
     joined to the rim by steps shorter than ``link`` [m] through one another. On 20 ring-captured tops
     (docs/BENCHMARKS.md, "Hems lifted out of the envelope"), the 13 hems the envelope traced with a gap,
-    up to 13.7 cm short, came within 1.1 cm of the true hem on 10 (one 1.9 cm short, two long sleeves 4.8
-    and 9.9); the 7 traced whole stayed within 0.5 cm.
+    up to 13.3 cm short, came within 1.1 cm of the true hem on 10 (one 1.9 cm short, two long sleeves 3.3
+    and 9.5); the 7 traced whole stayed within 0.6 cm of it.
     """
     near = cand[g[cand, 1] <= g[rim, 1].max() + rise]
     edge = np.setdiff1d(np.flatnonzero(_opening_rim(g, others, near) > 0), rim)
