@@ -153,7 +153,7 @@ def test_lower_rim_takes_a_hem_lifted_outward():
     traced, _ = scan_loop_length(g[rim])
     # The envelope's trace is 9.6 cm short; with the lifted edge, 4.8: the trace's bins take the median of
     # the edge's points and of the fold's beside them (on the captured tops, whose fold is a few points in
-    # a sector, the trace came within 1.1 cm of the true hem on 11 of 13 hems traced with a gap).
+    # a sector, the trace came within 1.1 cm of the true hem on 10 of 13 hems traced with a gap).
     assert true_length - short > 0.08
     assert true_length - traced < 0.6 * (true_length - short) and traced < true_length
 

@@ -574,9 +574,10 @@ def _lower_rim(
 def _beside_rim(radius: np.ndarray, sector: np.ndarray, keep: np.ndarray, sectors: int, out: float = 0.03):
     """(C,) bool: the candidates (their ``radius`` (C,) [m] about the axis and ``sector`` (C,)) where a
     lifted hem may lie: in a sector that holds the envelope's rim (``keep`` (C,) bool), or in one the
-    envelope skipped as a hole but more than ``out`` [m] farther out than the rim in the nearest sectors
-    either side hold (a flap lifted away from the body rises like a hole's edge; a hole's edge lies on
-    the garment's surface, as far out as the rim beside it)."""
+    envelope skipped as a hole but more than ``out`` [m] farther out than the rim (its median radius) of
+    the nearest holding sector on either side, the farther of the two (a flap lifted away from the body
+    rises like a hole's edge; a hole's edge lies on the garment's surface, as far out as the rim beside
+    it)."""
     held = np.zeros(sectors, dtype=bool)
     held[sector[keep]] = True
     rim_radius = np.full(sectors, np.nan)
