@@ -558,16 +558,15 @@ def _lower_rim(
     p = g[idx]
     axis = p[:, [0, 2]].mean(0)
     angle = np.arctan2(p[:, 2] - axis[1], p[:, 0] - axis[0])
-    arc = 2 * np.pi * float(np.median(np.hypot(p[:, 0] - axis[0], p[:, 2] - axis[1]))) / sectors
+    radius = np.hypot(p[:, 0] - axis[0], p[:, 2] - axis[1])
+    arc = 2 * np.pi * float(np.median(radius)) / sectors
     # the lowest: farthest down
     keep = _sector_envelope(-p[:, 1], angle, sectors, band, max_rise + max_slope * arc, cliffs=True)
     if not keep.any():
         return sel
     if others is None:
         return idx[keep]
-    sector = np.minimum(((angle + np.pi) / (2 * np.pi) * sectors).astype(np.int64), sectors - 1)
-    radius = np.hypot(p[:, 0] - axis[0], p[:, 2] - axis[1])
-    beside = _beside_rim(radius, sector, keep, sectors)
+    beside = _beside_rim(radius, _sector_index(angle, sectors), keep, sectors)
     return _lifted_rim(g, idx[keep], idx[beside], others, link=0.03 if link is None else link)
 
 
@@ -584,8 +583,8 @@ def _beside_rim(radius: np.ndarray, sector: np.ndarray, keep: np.ndarray, sector
     for k in np.flatnonzero(held):
         rim_radius[k] = np.median(radius[keep & (sector == k)])
     reach = np.full(sectors, np.inf)
+    steps = np.arange(1, sectors)
     for k in np.flatnonzero(~held):
-        steps = np.arange(1, sectors)
         ahead, behind = held[(k + steps) % sectors], held[(k - steps) % sectors]
         if ahead.any() and behind.any():
             a, b = (k + steps[ahead.argmax()]) % sectors, (k - steps[behind.argmax()]) % sectors
@@ -657,6 +656,11 @@ def _lifted_rim(
     return both[np.isin(pieces, pieces[np.isin(both, rim)])]
 
 
+def _sector_index(angle: np.ndarray, sectors: int) -> np.ndarray:
+    """(n,) int64: the one of ``sectors`` equal sectors of [−π, π] each ``angle`` (n,) [rad] falls in."""
+    return np.minimum(((angle + np.pi) / (2 * np.pi) * sectors).astype(np.int64), sectors - 1)
+
+
 def _sector_envelope(
     t: np.ndarray,
     angle: np.ndarray,
@@ -670,7 +674,7 @@ def _sector_envelope(
     not the rim: whose largest ``t`` falls more than ``max_drop`` [m] short of the median sector's, or,
     with ``cliffs``, those behind a cliff of ``max_drop`` (`_cliff_holes`: a rim may fall away gradually,
     a hole's edge falls at once)."""
-    sector = np.minimum(((angle + np.pi) / (2 * np.pi) * sectors).astype(np.int64), sectors - 1)
+    sector = _sector_index(angle, sectors)
     far = np.full(sectors, -np.inf)
     np.maximum.at(far, sector, t)
     seen = np.isfinite(far)
