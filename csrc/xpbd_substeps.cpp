@@ -11,7 +11,8 @@
 // then repacked once per call into colour-ordered structure-of-arrays with per-constraint constants
 // (int32 vertex ids, w-weighted rest coefficients, alpha / dt^2), so the hot loops stream memory.
 //
-// Gauss-Seidel colours are processed in blocks of kBlock constraints: gather the block's vertices,
+// The positions are padded to 4 numbers per vertex inside the op (kStride; copied in and out once per
+// call). Gauss-Seidel colours are processed in blocks of kBlock constraints: gather the block's vertices,
 // compute all corrections in a `#pragma omp simd` loop (branch-free; the dihedral angle uses a
 // branch-free atan2 accurate to 1 ulp), scatter. A colour's constraints share no vertex, so the order
 // inside a colour does not matter and the result equals the reference's (vectorised per colour) up to
@@ -25,10 +26,14 @@
 // then if-convert the branch-free SIMD loops below. Set before the includes so that the headers'
 // inline functions (std::fabs, ...) share the attribute and still inline.
 #pragma GCC optimize("no-trapping-math")
+// V4<double> (below) is 32 bytes: without AVX its ABI as a return value differs, which does not matter for
+// helpers that are always inlined
+#pragma GCC diagnostic ignored "-Wpsabi"
 #endif
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <limits>
 #include <vector>
 
@@ -36,7 +41,8 @@
 
 // The block kernels are inlined into per-dtype entry points that GCC compiles twice on x86-64 Linux:
 // for AVX2 (8 float / 4 double lanes) and for the baseline ISA (SSE2), picked once at load time by the
-// CPU's features (ifunc). Elsewhere the baseline build alone.
+// CPU's features (ifunc). Elsewhere the baseline build alone. (An x86-64-v4 clone, AVX-512, was 8 %
+// faster still on the 2-core AMD EPYC but rounds differently from the AVX2 build: not taken.)
 #if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__linux__)
 #define DIFFAVATAR_SIMD_CLONES __attribute__((target_clones("avx2", "default")))
 #else
@@ -230,27 +236,103 @@ BendPack<T> pack_bend(const at::Tensor& quads, const at::Tensor& rest_angle, con
   return p;
 }
 
-// ------------------------------------------------------------------------------------ block kernels
+// ------------------------------------------------------------------------------ gather and scatter
 
-// Where a block's corrections go: added to x (Gauss-Seidel) or summed per vertex with a count (Jacobi).
+// Inside the op the positions are padded to 4 per vertex (x, y, z, unused; `kStride`), so that a vertex
+// is one 4-lane vector: a block gathers 4 vertices with 4 loads and a 4x4 transpose into its rows, and
+// scatters with a 3x4 transpose and 4 load-add-stores. Per element that is about half the instructions
+// of scalar loads and stores, which were 60-70 % of the block kernels' time (perf; docs/BENCHMARKS.md,
+// "The substep op's gathers and scatters").
+constexpr int kStride = 4;
+
+template <typename T>
+struct Lanes4 {
+  typedef T type __attribute__((vector_size(4 * sizeof(T))));
+};
+template <typename T>
+using V4 = typename Lanes4<T>::type;
+
+template <typename T>
+DIFFAVATAR_INLINE V4<T> load4(const T* p) {
+  V4<T> r;
+  std::memcpy(&r, p, sizeof r);
+  return r;
+}
+
+template <typename T>
+DIFFAVATAR_INLINE void store4(T* p, V4<T> a) {
+  std::memcpy(p, &a, sizeof a);
+}
+
+// Rows rx, ry, rz [l] = the coordinates of vertex idx[l] of the padded positions xp, l < n.
+template <typename T>
+DIFFAVATAR_INLINE void gather_rows(const T* xp, const int32_t* idx, int n, T* rx, T* ry, T* rz) {
+  int l = 0;
+  for (; l + 4 <= n; l += 4) {
+    const V4<T> a = load4(xp + kStride * static_cast<int64_t>(idx[l]));
+    const V4<T> b = load4(xp + kStride * static_cast<int64_t>(idx[l + 1]));
+    const V4<T> c = load4(xp + kStride * static_cast<int64_t>(idx[l + 2]));
+    const V4<T> d = load4(xp + kStride * static_cast<int64_t>(idx[l + 3]));
+    const V4<T> ab = __builtin_shufflevector(a, b, 0, 4, 1, 5);  // ax bx ay by
+    const V4<T> cd = __builtin_shufflevector(c, d, 0, 4, 1, 5);  // cx dx cy dy
+    const V4<T> abz = __builtin_shufflevector(a, b, 2, 6, 3, 7);
+    const V4<T> cdz = __builtin_shufflevector(c, d, 2, 6, 3, 7);
+    store4(rx + l, __builtin_shufflevector(ab, cd, 0, 1, 4, 5));
+    store4(ry + l, __builtin_shufflevector(ab, cd, 2, 3, 6, 7));
+    store4(rz + l, __builtin_shufflevector(abz, cdz, 0, 1, 4, 5));
+  }
+  for (; l < n; ++l) {
+    const T* a = xp + kStride * static_cast<int64_t>(idx[l]);
+    rx[l] = a[0], ry[l] = a[1], rz[l] = a[2];
+  }
+}
+
+// Where a block's corrections go: added to the padded positions x (Gauss-Seidel: the vertices of a
+// block are distinct) or summed per vertex with a count (Jacobi: they are not).
 template <typename T>
 struct Sink {
   T* x;
-  T* acc;    // (V, 3) or nullptr
+  T* acc;    // (V, kStride) or nullptr
   T* count;  // (V,) or nullptr
-  DIFFAVATAR_INLINE void add(int32_t v, T dx, T dy, T dz, bool active) const {
-    if (acc == nullptr) {
-      x[3 * v] += dx;
-      x[3 * v + 1] += dy;
-      x[3 * v + 2] += dz;
-    } else if (active) {
-      acc[3 * v] += dx;
-      acc[3 * v + 1] += dy;
-      acc[3 * v + 2] += dz;
-      count[v] += T(1);
+
+  // Adds (dx, dy, dz)[l] to vertex idx[l], l < n; ``active`` (may be nullptr: all) says which count for
+  // Jacobi (Gauss-Seidel adds every row: an inactive row's corrections are zero).
+  DIFFAVATAR_INLINE void add_rows(const int32_t* idx, int n, const T* dx, const T* dy, const T* dz,
+                                  const T* active) const {
+    if (acc != nullptr) {
+      for (int l = 0; l < n; ++l) {
+        if (active != nullptr && active[l] == T(0)) continue;
+        T* a = acc + kStride * static_cast<int64_t>(idx[l]);
+        a[0] += dx[l], a[1] += dy[l], a[2] += dz[l];
+        count[idx[l]] += T(1);
+      }
+      return;
+    }
+    const V4<T> zero = {T(0), T(0), T(0), T(0)};
+    int l = 0;
+    for (; l + 4 <= n; l += 4) {
+      const V4<T> vx = load4(dx + l), vy = load4(dy + l), vz = load4(dz + l);
+      const V4<T> xy01 = __builtin_shufflevector(vx, vy, 0, 4, 1, 5);  // x0 y0 x1 y1
+      const V4<T> xy23 = __builtin_shufflevector(vx, vy, 2, 6, 3, 7);
+      const V4<T> z01 = __builtin_shufflevector(vz, zero, 0, 4, 1, 5);  // z0 0 z1 0
+      const V4<T> z23 = __builtin_shufflevector(vz, zero, 2, 6, 3, 7);
+      const V4<T> r[4] = {__builtin_shufflevector(xy01, z01, 0, 1, 4, 5),
+                          __builtin_shufflevector(xy01, z01, 2, 3, 6, 7),
+                          __builtin_shufflevector(xy23, z23, 0, 1, 4, 5),
+                          __builtin_shufflevector(xy23, z23, 2, 3, 6, 7)};
+      for (int k = 0; k < 4; ++k) {
+        T* p = x + kStride * static_cast<int64_t>(idx[l + k]);
+        store4(p, load4(p) + r[k]);
+      }
+    }
+    for (; l < n; ++l) {
+      T* p = x + kStride * static_cast<int64_t>(idx[l]);
+      p[0] += dx[l], p[1] += dy[l], p[2] += dz[l];
     }
   }
 };
+
+// ------------------------------------------------------------------------------------ block kernels
 
 // Stretch constraints [s, s + n) (n <= kBlock) of the pack, evaluated at x, corrections into `sink`.
 template <typename T>
@@ -260,14 +342,9 @@ DIFFAVATAR_INLINE void stretch_block(StretchPack<T>& p, int64_t s, int n, const 
   const int32_t* v0 = p.v0.data() + s;
   const int32_t* v1 = p.v1.data() + s;
   const int32_t* v2 = p.v2.data() + s;
-  for (int l = 0; l < n; ++l) {
-    const T* a = x + 3 * static_cast<int64_t>(v0[l]);
-    const T* b = x + 3 * static_cast<int64_t>(v1[l]);
-    const T* c = x + 3 * static_cast<int64_t>(v2[l]);
-    X[0][l] = a[0], X[1][l] = a[1], X[2][l] = a[2];
-    X[3][l] = b[0], X[4][l] = b[1], X[5][l] = b[2];
-    X[6][l] = c[0], X[7][l] = c[1], X[8][l] = c[2];
-  }
+  gather_rows(x, v0, n, X[0], X[1], X[2]);
+  gather_rows(x, v1, n, X[3], X[4], X[5]);
+  gather_rows(x, v2, n, X[6], X[7], X[8]);
   const T* __restrict ra = p.ra.data() + s;
   const T* __restrict rb = p.rb.data() + s;
   const T* __restrict rc = p.rc.data() + s;
@@ -338,11 +415,9 @@ DIFFAVATAR_INLINE void stretch_block(StretchPack<T>& p, int64_t s, int n, const 
     D[3][l] = g1 * f0x + k1 * f1x, D[4][l] = g1 * f0y + k1 * f1y, D[5][l] = g1 * f0z + k1 * f1z;
     D[6][l] = g2 * f0x + k2 * f1x, D[7][l] = g2 * f0y + k2 * f1y, D[8][l] = g2 * f0z + k2 * f1z;
   }
-  for (int l = 0; l < n; ++l) {
-    sink.add(v0[l], D[0][l], D[1][l], D[2][l], true);
-    sink.add(v1[l], D[3][l], D[4][l], D[5][l], true);
-    sink.add(v2[l], D[6][l], D[7][l], D[8][l], true);
-  }
+  sink.add_rows(v0, n, D[0], D[1], D[2], nullptr);
+  sink.add_rows(v1, n, D[3], D[4], D[5], nullptr);
+  sink.add_rows(v2, n, D[6], D[7], D[8], nullptr);
 }
 
 constexpr double kBendEpsLen = 1e-12;  // |e| below this: degenerate quad, skipped (as bend_project_)
@@ -355,12 +430,7 @@ DIFFAVATAR_INLINE void bend_block(BendPack<T>& p, int64_t s, int n, const T* x, 
   alignas(64) T D[12][kBlock];
   alignas(64) T OK[kBlock];  // 1 where the constraint was applied
   const int32_t* q[4] = {p.q0.data() + s, p.q1.data() + s, p.q2.data() + s, p.q3.data() + s};
-  for (int l = 0; l < n; ++l) {
-    for (int i = 0; i < 4; ++i) {
-      const T* a = x + 3 * static_cast<int64_t>(q[i][l]);
-      X[3 * i][l] = a[0], X[3 * i + 1][l] = a[1], X[3 * i + 2][l] = a[2];
-    }
-  }
+  for (int i = 0; i < 4; ++i) gather_rows(x, q[i], n, X[3 * i], X[3 * i + 1], X[3 * i + 2]);
   const T* __restrict w0 = p.w0.data() + s;
   const T* __restrict w1 = p.w1.data() + s;
   const T* __restrict w2 = p.w2.data() + s;
@@ -370,15 +440,6 @@ DIFFAVATAR_INLINE void bend_block(BendPack<T>& p, int64_t s, int n, const T* x, 
   T* __restrict lam = p.lam.data() + s;
   const T eps_len = static_cast<T>(kBendEpsLen), eps_n2 = static_cast<T>(kBendEpsN2);
   const T tiny = static_cast<T>(sizeof(T) == 4 ? 1e-30 : 1e-300);
-  // |e| in a scalar loop: GCC does not vectorise sqrt while errno is on (the optimize pragma cannot
-  // turn it off for builtins), and 32 scalar square roots are cheap next to the rest.
-  alignas(64) T EL[kBlock];
-#pragma omp simd
-  for (int l = 0; l < n; ++l) {
-    const T ex = X[3][l] - X[0][l], ey = X[4][l] - X[1][l], ez = X[5][l] - X[2][l];
-    EL[l] = ex * ex + ey * ey + ez * ez;
-  }
-  for (int l = 0; l < n; ++l) EL[l] = std::sqrt(EL[l]);
 #pragma omp simd
   for (int l = 0; l < n; ++l) {
     const T x0 = X[0][l], y0 = X[1][l], z0 = X[2][l];
@@ -388,7 +449,9 @@ DIFFAVATAR_INLINE void bend_block(BendPack<T>& p, int64_t s, int n, const T* x, 
     // n1 = e x a, n2 = (x0 - x1) x b = b x e
     const T n1x = ey * az - ez * ay, n1y = ez * ax - ex * az, n1z = ex * ay - ey * ax;
     const T n2x = by * ez - bz * ey, n2y = bz * ex - bx * ez, n2z = bx * ey - by * ex;
-    const T e_len = EL[l];
+    // vectorised only without errno (setup.py builds with -fno-math-errno; with errno on GCC calls sqrtf
+    // per lane)
+    const T e_len = std::sqrt(ex * ex + ey * ey + ez * ez);
     const T n1_sq = n1x * n1x + n1y * n1y + n1z * n1z;
     const T n2_sq = n2x * n2x + n2y * n2y + n2z * n2z;
     // 1 when the quad is not degenerate (masks as T: bool lanes keep GCC from vectorising)
@@ -422,9 +485,7 @@ DIFFAVATAR_INLINE void bend_block(BendPack<T>& p, int64_t s, int n, const T* x, 
     D[9][l] = s3 * g3x, D[10][l] = s3 * g3y, D[11][l] = s3 * g3z;
     OK[l] = mask;
   }
-  for (int l = 0; l < n; ++l) {
-    for (int i = 0; i < 4; ++i) sink.add(q[i][l], D[3 * i][l], D[3 * i + 1][l], D[3 * i + 2][l], OK[l] != T(0));
-  }
+  for (int i = 0; i < 4; ++i) sink.add_rows(q[i], n, D[3 * i], D[3 * i + 1], D[3 * i + 2], OK);
 }
 
 // Entry points (one per dtype, so that target_clones applies to plain functions).
@@ -486,13 +547,15 @@ StitchPack<T> pack_stitches(const at::Tensor& pairs, int64_t nv) {
 }
 
 template <typename T>
-void project_stitches(StitchPack<T>& p, T* x, const T* w, T alpha_t, T max_move, T snap) {
+void project_stitches(StitchPack<T>& p, T* x, const T* w, T alpha_t, T max_move, T snap) {  // x padded
   std::fill(p.acc.begin(), p.acc.end(), T(0));
   const size_t n = p.a.size();
   for (size_t k = 0; k < n; ++k) {
     const int64_t a = p.a[k], b = p.b[k];
     const T wa = w[a], wb = w[b];
-    const T c[3] = {x[3 * a] - x[3 * b], x[3 * a + 1] - x[3 * b + 1], x[3 * a + 2] - x[3 * b + 2]};
+    const T* xa = x + kStride * a;
+    const T* xb = x + kStride * b;
+    const T c[3] = {xa[0] - xb[0], xa[1] - xb[1], xa[2] - xb[2]};
     const T denom = wa + wb + alpha_t;
     T dl[3];
     for (int i = 0; i < 3; ++i) dl[i] = (-c[i] - alpha_t * p.lam[3 * k + i]) / denom;
@@ -511,7 +574,7 @@ void project_stitches(StitchPack<T>& p, T* x, const T* w, T alpha_t, T max_move,
   }
   for (size_t u = 0; u < p.verts.size(); ++u) {
     const int64_t v = p.verts[u];
-    for (int i = 0; i < 3; ++i) x[3 * v + i] += p.acc[3 * u + i] * p.inv_count[u];
+    for (int i = 0; i < 3; ++i) x[kStride * v + i] += p.acc[3 * u + i] * p.inv_count[u];
   }
 }
 
@@ -637,7 +700,7 @@ Options unpack_options(at::ArrayRef<double> c, int64_t substeps, int64_t iterati
 
 template <typename T>
 void run_substeps(at::Tensor& x_t, at::Tensor& v_t, const at::Tensor& w_t, const FrameTensors& t, const Options& o) {
-  T* x = x_t.data_ptr<T>();
+  T* x_out = x_t.data_ptr<T>();
   T* v = v_t.data_ptr<T>();
   const T* w = w_t.data_ptr<T>();
   const int64_t nv = x_t.size(0);
@@ -664,11 +727,15 @@ void run_substeps(at::Tensor& x_t, at::Tensor& v_t, const at::Tensor& w_t, const
   const T thickness = static_cast<T>(o.thickness), mu = static_cast<T>(o.friction);
   const T bounce_cut = cp.vert.empty() ? T(0) : static_cast<T>(1.0 - o.bounce);
   const bool friction = mu > T(0) && !cp.vert.empty();
-  std::vector<T> x_start(static_cast<size_t>(3 * nv));
+  // positions padded to kStride per vertex for the substeps (see gather_rows), copied back at the end
+  std::vector<T> x_pad(static_cast<size_t>(kStride * nv), T(0));
+  for (int64_t i = 0; i < nv; ++i) std::copy(x_out + 3 * i, x_out + 3 * i + 3, x_pad.data() + kStride * i);
+  T* x = x_pad.data();
+  std::vector<T> x_start(static_cast<size_t>(kStride * nv));
   // Jacobi accumulators
   std::vector<T> acc, count;
   if (o.jacobi) {
-    acc.assign(static_cast<size_t>(3 * nv), T(0));
+    acc.assign(static_cast<size_t>(kStride * nv), T(0));
     count.assign(static_cast<size_t>(nv), T(0));
   }
   const Sink<T> gs_sink{x, nullptr, nullptr};
@@ -679,7 +746,7 @@ void run_substeps(at::Tensor& x_t, at::Tensor& v_t, const at::Tensor& w_t, const
     for (int64_t i = 0; i < nv; ++i) {
       if (count[i] > T(0)) {
         const T s = omega / count[i];
-        for (int k = 0; k < 3; ++k) x[3 * i + k] += s * acc[3 * i + k];
+        for (int k = 0; k < 3; ++k) x[kStride * i + k] += s * acc[kStride * i + k];
       }
     }
     std::fill(acc.begin(), acc.end(), T(0));
@@ -693,11 +760,11 @@ void run_substeps(at::Tensor& x_t, at::Tensor& v_t, const at::Tensor& w_t, const
     for (int64_t i = 0; i < nv; ++i) {
       const T m = w[i] > T(0) ? T(1) : T(0);
       for (int k = 0; k < 3; ++k) {
-        const int64_t j = 3 * i + k;
-        x_start[j] = x[j];
+        const int64_t j = 3 * i + k, jp = kStride * i + k;
+        x_start[jp] = x[jp];
         const T vel = (v[j] * decay + gh[k]) * m;
         v[j] = vel;
-        x[j] += vel * h;
+        x[jp] += vel * h;
       }
     }
 #pragma omp single
@@ -737,14 +804,14 @@ void run_substeps(at::Tensor& x_t, at::Tensor& v_t, const at::Tensor& w_t, const
           const int64_t i = attach_v[k];
           const T wi = w[i];
           if (!(wi > T(0))) continue;
-          const T dl = (-(x[3 * i + 1] - attach_y[k]) - attach_at * attach_lam[k]) / (wi + attach_at);
+          const T dl = (-(x[kStride * i + 1] - attach_y[k]) - attach_at * attach_lam[k]) / (wi + attach_at);
           attach_lam[k] += dl;
-          x[3 * i + 1] += wi * dl;
+          x[kStride * i + 1] += wi * dl;
         }
         // body contacts: push to `thickness` outside along the contact normal
         const size_t nc = cp.vert.size();
         for (size_t k = 0; k < nc; ++k) {
-          T* xi = x + 3 * static_cast<int64_t>(cp.vert[k]);
+          T* xi = x + kStride * static_cast<int64_t>(cp.vert[k]);
           const T* pt = cp.point.data() + 3 * k;
           const T* nn = cp.normal.data() + 3 * k;
           const T sd = (xi[0] - pt[0]) * nn[0] + (xi[1] - pt[1]) * nn[1] + (xi[2] - pt[2]) * nn[2] - thickness;
@@ -767,17 +834,19 @@ void run_substeps(at::Tensor& x_t, at::Tensor& v_t, const at::Tensor& w_t, const
         const int64_t i = cp.vert[k];
         const T* nn = cp.normal.data() + 3 * k;
         T d[3];
-        for (int j = 0; j < 3; ++j) d[j] = x[3 * i + j] - x_start[3 * i + j];
+        for (int j = 0; j < 3; ++j) d[j] = x[kStride * i + j] - x_start[kStride * i + j];
         const T dn = d[0] * nn[0] + d[1] * nn[1] + d[2] * nn[2];
         for (int j = 0; j < 3; ++j) d[j] -= dn * nn[j];
         const T length = std::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
         const T limit = mu * depth;
         const T scale = length <= limit ? T(1) : limit / std::max(length, static_cast<T>(1e-20));
-        for (int j = 0; j < 3; ++j) x[3 * i + j] -= d[j] * scale;
+        for (int j = 0; j < 3; ++j) x[kStride * i + j] -= d[j] * scale;
       }
     }
 #pragma omp for schedule(static)
-    for (int64_t j = 0; j < 3 * nv; ++j) v[j] = (x[j] - x_start[j]) * inv_h;
+    for (int64_t i = 0; i < nv; ++i) {
+      for (int k = 0; k < 3; ++k) v[3 * i + k] = (x[kStride * i + k] - x_start[kStride * i + k]) * inv_h;
+    }
 #pragma omp single
     if (bounce_cut > T(0)) {
       // a contact pushed out in this substep keeps only `bounce` of its outward normal velocity (the push
@@ -793,6 +862,7 @@ void run_substeps(at::Tensor& x_t, at::Tensor& v_t, const at::Tensor& w_t, const
       }
     }
   }
+  for (int64_t i = 0; i < nv; ++i) std::copy(x + kStride * i, x + kStride * i + 3, x_out + 3 * i);
 }
 
 void check_frame(const at::Tensor& x, const at::Tensor& v, const at::Tensor& vert_inv_mass, const FrameTensors& t,
