@@ -6,7 +6,8 @@ widened ``--hem-widen``, bending stiffness 2e-5 N·m, on a random moderate Anny 
 (`fit_scan.fit_scan` with ``configs/<garment>.yaml``) and `evaluation.evaluate_assets`; for the
 ``--ablation-garments`` also the fit without the cage, without the seam-length term, without the
 curvature term, without the cage's seam ties with and without the seam-length term, without the
-hem-length term, and without the symmetric-panel tie. Writes
+hem-length term, the symmetric-panel tie, the gap rule, the hem split, the hem from the scan and the
+waist's height (each only where the garment's config has it: the skirt's waist, the dress's ties). Writes
 ``docs/RESULTS.md`` (tables like the paper's Tables 1 and 2, with the command and date) and pictures in
 ``docs/results/`` (first, fitted and true drapes; pattern overlays of template, result and truth); a
 hand-written part of RESULTS.md after the line `DISCUSSION_MARKER` is kept across reruns.
@@ -66,6 +67,9 @@ ABLATIONS = {
     # issues #29/#30: the template's hem set to the scan's height and traced length before the fit
     # (docs/BENCHMARKS.md, "The hem from the scan before the fit")
     "w/o hem from scan": {"hem_from_scan": False},
+    # issue #30: the waist's height a fitted degree of freedom (the skirt config's; docs/BENCHMARKS.md, "The
+    # waist's height: a fitted degree of freedom")
+    "w/o waist height": {"lr_waist_shift": 0.0},
 }
 
 
