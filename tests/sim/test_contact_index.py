@@ -126,7 +126,12 @@ def test_detect_contacts_with_index():
     assert index.matches(verts, faces) and not index.matches(moved, faces)
     with pytest.raises(ValueError, match="another body"):
         collision.detect_contacts(x, moved, faces, 0.05, index=index)
+    original = verts.clone()
     verts[0, 0] += 1e-3  # in place: the index kept its own copy, so it no longer matches
+    assert not index.matches(verts, faces)
+    verts.copy_(original)  # back: equal again, found by comparing (the tensors' versions moved on)
+    assert index.matches(verts, faces) and index.matches(verts, faces)
+    faces[0, :2] = faces[0, [1, 0]].clone()  # faces edited in place after a match are seen too
     assert not index.matches(verts, faces)
 
 

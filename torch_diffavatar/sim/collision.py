@@ -26,6 +26,8 @@ a vertex within ``valley`` [m] of a triangle around its contact triangle that ri
 
 from __future__ import annotations
 
+import weakref
+
 import torch
 
 from torch_diffavatar.sim import ops, reference
@@ -66,6 +68,9 @@ class BodyIndex:
         self.verts = body_verts.detach().clone().contiguous()
         self.faces = body_faces.detach().clone().contiguous()
         self.use_extension = use_extension
+        # the tensors last found equal to the mesh, with their version counters: a drape passes the same
+        # two every frame, and comparing the body twice a frame was a fifth of its contact detection
+        self._matched: tuple | None = None
         self.grid = None
         self.features = _feature_faces(self.faces, self.verts.shape[0])  # shared: its tables outlive us
         if ops.closest_point_index_available(self.verts.device, use_extension):
@@ -74,8 +79,13 @@ class BodyIndex:
             )
 
     def matches(self, body_verts: torch.Tensor, body_faces: torch.Tensor) -> bool:
-        """True when (body_verts, body_faces) equal the mesh this index was built from."""
-        return (
+        """True when (body_verts, body_faces) equal the mesh this index was built from (compared once per
+        pair of tensors while neither is modified in place: their version counters say so)."""
+        versions = (body_verts._version, body_faces._version)
+        last = self._matched  # weak references: the index must not keep a body (and its graph) alive
+        if last is not None and last[0]() is body_verts and last[1]() is body_faces and last[2] == versions:
+            return True
+        ok = (
             body_verts.shape == self.verts.shape
             and body_faces.shape == self.faces.shape
             and body_verts.dtype == self.verts.dtype
@@ -83,6 +93,9 @@ class BodyIndex:
             and torch.equal(body_faces, self.faces)
             and torch.equal(body_verts.detach(), self.verts)
         )
+        if ok:
+            self._matched = (weakref.ref(body_verts), weakref.ref(body_faces), versions)
+        return ok
 
     def closest_point(self, points: torch.Tensor, max_dist: float, hint: torch.Tensor | None = None):
         """(tri, bary, dist) of `ops.closest_point_on_mesh` (points, verts, faces, max_dist). ``hint``: (N,)
