@@ -133,6 +133,9 @@ def test_detect_contacts_with_index():
     assert index.matches(verts, faces) and index.matches(verts, faces)
     faces[0, :2] = faces[0, [1, 0]].clone()  # faces edited in place after a match are seen too
     assert not index.matches(verts, faces)
+    with torch.inference_mode():  # tensors without a version counter: compared every time
+        inference = original.clone()
+    assert index.matches(inference, index.faces) and index.matches(inference, index.faces)
 
 
 def test_index_ops_opcheck():

@@ -81,9 +81,10 @@ class BodyIndex:
     def matches(self, body_verts: torch.Tensor, body_faces: torch.Tensor) -> bool:
         """True when (body_verts, body_faces) equal the mesh this index was built from (compared once per
         pair of tensors while neither is modified in place: their version counters say so)."""
-        versions = (body_verts._version, body_faces._version)
+        inference = body_verts.is_inference() or body_faces.is_inference()  # no version counter: compared
+        versions = None if inference else (body_verts._version, body_faces._version)
         last = self._matched  # weak references: the index must not keep a body (and its graph) alive
-        if last is not None and last[0]() is body_verts and last[1]() is body_faces and last[2] == versions:
+        if versions and last and last[0]() is body_verts and last[1]() is body_faces and last[2] == versions:
             return True
         ok = (
             body_verts.shape == self.verts.shape
@@ -93,7 +94,7 @@ class BodyIndex:
             and torch.equal(body_faces, self.faces)
             and torch.equal(body_verts.detach(), self.verts)
         )
-        if ok:
+        if ok and versions:
             self._matched = (weakref.ref(body_verts), weakref.ref(body_faces), versions)
         return ok
 
