@@ -31,6 +31,7 @@ LAYERS = {
     "cage": (3, "terms"),  # the pattern's control cage and the loss terms (which use its seam segments)
     "losses": (3, "terms"),
     "opening_lengths": (3, "terms"),  # a hem's length, from the scan's points and from the rest pattern
+    "rest_terms": (3, "terms"),  # the rest terms' C++ kernels as one autograd node
     "assets": (3, "assets"),
     "assets_newton": (3, "assets"),  # the asset's material in Newton's units (pure numpy)
     "motion": (3, "motion"),

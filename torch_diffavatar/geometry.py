@@ -20,10 +20,21 @@ __all__ = [
     "closest_point_on_mesh",
     "closest_point_on_mesh_torch",
     "closest_point_on_triangles",
+    "gather_rows",
     "green_strain",
     "merge_pairs",
     "triangle_green_strain",
 ]
+
+
+def gather_rows(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """(…, *index.shape, D) the rows ``x[..., index, :]`` of ``x`` (…, N, D) at the int64 ``index``.
+
+    The same values as advanced indexing, through ``index_select``, whose backward (``index_add``) costs a
+    third of advanced indexing's (``index_put`` with accumulation) and sums in the same order, so the
+    gradient is the same bit for bit. The rest terms gather this way ~60 times a fit iteration.
+    """
+    return x.index_select(-2, index.reshape(-1).to(x.device)).unflatten(-2, index.shape)
 
 
 # ------------------------------------------------------------------------------------- closest point

@@ -17,13 +17,18 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
+from typing import NamedTuple
 
 import torch
 
 from torch_diffavatar.cage import seam_segments
 from torch_diffavatar.chamfer import REDUCTIONS, chamfer_distance, one_sided_chamfer, robust_penalty
-from torch_diffavatar.geometry import closest_point_on_mesh
+from torch_diffavatar.geometry import closest_point_on_mesh, gather_rows
 from torch_diffavatar.pattern.garment_mesh import BoundaryLoop, GarmentMesh
+
+# the thresholds of the rest triangles' hinges: `rest_area_loss` (area ratio) and `rest_distortion_loss`
+REST_AREA_THRESHOLD = 0.5
+REST_DISTORTION_THRESHOLD = 0.25
 
 
 def _check_reduction(reduction: str) -> None:
@@ -460,7 +465,7 @@ def seam_length_loss(
         return (
             rest_uv.sum((-2, -1)) * 0.0 if reduction != "none" else rest_uv.new_zeros(*rest_uv.shape[:-2], 0)
         )
-    p = rest_uv[..., seg, :]  # (…, K, 4, 2)
+    p = gather_rows(rest_uv, seg)  # (…, K, 4, 2)
     len_a = ((p[..., 1, :] - p[..., 0, :]) ** 2).sum(-1)
     len_b = ((p[..., 3, :] - p[..., 2, :]) ** 2).sum(-1)
     return _reduce((len_a - len_b) ** 2, weights, reduction)
@@ -476,6 +481,29 @@ def boundary_triplets(garment: GarmentMesh) -> torch.Tensor:
     return torch.cat(parts) if parts else torch.zeros(0, 3, dtype=torch.int64)
 
 
+class CurvatureFrames(NamedTuple):
+    """`curvature_frames`: ``triplets`` (Nb, 3) int64 (`boundary_triplets`); the template's two edges at
+    each boundary vertex ``edges`` (Nb, 2, 2) [m], the same turned by 90° ``edges_perp`` (Nb, 2, 2) [m], and
+    their summed squared lengths ``norm`` (Nb,) [m²]."""
+
+    triplets: torch.Tensor
+    edges: torch.Tensor
+    edges_perp: torch.Tensor
+    norm: torch.Tensor
+
+
+def curvature_frames(template_uv: torch.Tensor, garment: GarmentMesh) -> CurvatureFrames:
+    """The template's side of `curvature_loss`, which does not change during a fit: computed once by a caller
+    that evaluates the term many times (a fit's proximal step, ~60 times an iteration).
+    ``template_uv``: (V, 2) template rest coordinates [m]."""
+    tri = boundary_triplets(garment).to(template_uv.device)
+    q = template_uv[tri]  # (Nb, 3, 2)
+    t = torch.stack([q[..., 2, :] - q[..., 1, :], q[..., 0, :] - q[..., 1, :]], dim=-2)  # (Nb, 2, 2)
+    t_perp = torch.stack([-t[..., 1], t[..., 0]], dim=-1)
+    norm = (t**2).sum((-2, -1)).clamp_min(torch.finfo(t.dtype).tiny)  # (Nb,)
+    return CurvatureFrames(tri, t, t_perp, norm)
+
+
 def curvature_loss(
     rest_uv: torch.Tensor,
     template_uv: torch.Tensor,
@@ -483,6 +511,7 @@ def curvature_loss(
     *,
     weights: torch.Tensor | None = None,
     reduction: str = "mean",
+    frames: CurvatureFrames | None = None,
 ) -> torch.Tensor:
     """Boundary curvature regularizer (paper eq. 8): the outline keeps its template shape locally.
 
@@ -504,6 +533,7 @@ def curvature_loss(
         weights: optional (Nb,) per-boundary-vertex weights ``w_i`` (default 1), in the order of
             `boundary_triplets` (panels in order, each loop in order).
         reduction: ``"mean"`` / ``"sum"`` over boundary vertices, or ``"none"`` → (…, Nb).
+        frames: `curvature_frames` of ``template_uv`` and ``garment``, when already computed.
 
     Returns:
         () or (B,) [m²] (or (…, Nb) for ``"none"``).
@@ -514,13 +544,12 @@ def curvature_loss(
         raise ValueError(
             f"template_uv must have shape ({garment.vert_count}, 2), got {tuple(template_uv.shape)}"
         )
-    tri = boundary_triplets(garment).to(rest_uv.device)
-    p = rest_uv[..., tri, :]  # (…, Nb, 3, 2)
-    q = template_uv.to(rest_uv)[tri]  # (Nb, 3, 2)
+    if frames is None:
+        frames = curvature_frames(template_uv.to(rest_uv), garment)
+    tri, t, t_perp, norm = (f.to(rest_uv.device) for f in frames)
+    t, t_perp, norm = t.to(rest_uv.dtype), t_perp.to(rest_uv.dtype), norm.to(rest_uv.dtype)
+    p = gather_rows(rest_uv, tri)  # (…, Nb, 3, 2)
     e = torch.stack([p[..., 2, :] - p[..., 1, :], p[..., 0, :] - p[..., 1, :]], dim=-2)  # (…, Nb, 2, 2)
-    t = torch.stack([q[..., 2, :] - q[..., 1, :], q[..., 0, :] - q[..., 1, :]], dim=-2)  # (Nb, 2, 2)
-    t_perp = torch.stack([-t[..., 1], t[..., 0]], dim=-1)
-    norm = (t**2).sum((-2, -1)).clamp_min(torch.finfo(t.dtype).tiny)  # (Nb,)
     a = (e * t).sum((-2, -1)) / norm  # (…, Nb)
     b = (e * t_perp).sum((-2, -1)) / norm
     fitted = a[..., None, None] * t + b[..., None, None] * t_perp  # T ē_k, (…, Nb, 2, 2)
@@ -533,7 +562,7 @@ def rest_area_loss(
     template_uv: torch.Tensor,
     tri_vertices: torch.Tensor,
     *,
-    threshold: float = 0.5,
+    threshold: float = REST_AREA_THRESHOLD,
     reduction: str = "sum",
     template_area: torch.Tensor | None = None,
 ) -> torch.Tensor:
@@ -632,7 +661,7 @@ def rest_distortion_loss(
     template_uv: torch.Tensor,
     tri_vertices: torch.Tensor,
     *,
-    threshold: float = 0.25,
+    threshold: float = REST_DISTORTION_THRESHOLD,
     reduction: str = "sum",
     template_inverse: torch.Tensor | None = None,
 ) -> torch.Tensor:
@@ -662,7 +691,7 @@ def rest_distortion_loss(
         template_inverse = template_edge_inverse(template_uv.to(rest_uv), tri_vertices)
 
     def penalty(tri, inverse):
-        p = rest_uv[..., tri, :]  # (…, F, 3, 2)
+        p = gather_rows(rest_uv, tri)  # (…, F, 3, 2)
         e = torch.stack([p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :]], dim=-1)  # columns
         jac = e @ inverse.to(rest_uv)  # (…, F, 2, 2)
         det = jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]
@@ -729,7 +758,7 @@ def dart_triangles(garment: GarmentMesh, min_area: float = 1e-10) -> torch.Tenso
 
 def signed_rest_areas(rest_uv: torch.Tensor, tri_vertices: torch.Tensor) -> torch.Tensor:
     """(…, F) signed areas [m²] of the rest triangles in their panel frames ((…, V, 2) coords, (F, 3) ids)."""
-    p = rest_uv[..., tri_vertices, :]  # (…, F, 3, 2)
+    p = gather_rows(rest_uv, tri_vertices)  # (…, F, 3, 2)
     e1, e2 = p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :]
     return 0.5 * (e1[..., 0] * e2[..., 1] - e1[..., 1] * e2[..., 0])
 

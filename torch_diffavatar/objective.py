@@ -24,7 +24,11 @@ from torch import nn
 from torch_diffavatar.cage import ControlCage, FreeVertices, seam_segments
 from torch_diffavatar.fit_config import FitConfig, LossWeights, adjoint_options, drape_config
 from torch_diffavatar.losses import (
+    REST_AREA_THRESHOLD,
+    REST_DISTORTION_THRESHOLD,
+    CurvatureFrames,
     boundary_loss,
+    curvature_frames,
     curvature_loss,
     dart_triangles,
     design_modes,
@@ -49,6 +53,7 @@ from torch_diffavatar.opening_lengths import (
     scan_loop_length,
 )
 from torch_diffavatar.pattern.garment_mesh import BoundaryLoop, GarmentMesh
+from torch_diffavatar.rest_terms import RestKernelCall, fused_rest_terms, rest_kernels_available
 from torch_diffavatar.sim.material import ClothMaterial
 from torch_diffavatar.sim.model import ClothModel, ClothModelBuilder
 from torch_diffavatar.sim.state import ClothState
@@ -385,6 +390,8 @@ class FitObjective(nn.Module):
         self.register_buffer("template_area", signed_rest_areas(template_uv, tri), persistent=False)
         self.register_buffer("template_inverse", template_edge_inverse(template_uv, tri), persistent=False)
         self.register_buffer("design_modes", design_modes(template_uv, garment.vert_panel), persistent=False)
+        for name, value in curvature_frames(template_uv, garment)._asdict().items():
+            self.register_buffer(f"curvature_{name}", value, persistent=False)
         # triangles across the darts, held above `DART_KEEP` of their opening by the rest-area term
         self.register_buffer("dart_tri", dart_triangles(garment), persistent=False)
         self.register_buffer("dart_area", signed_rest_areas(template_uv, self.dart_tri), persistent=False)
@@ -463,6 +470,11 @@ class FitObjective(nn.Module):
         return {name: getattr(self, f"scan_boundary_{k}") for k, name in enumerate(self.boundary_names)}
 
     @property
+    def curvature_frames(self) -> CurvatureFrames:
+        """The template's `curvature_frames` (the ``curvature_*`` buffers)."""
+        return CurvatureFrames(*(getattr(self, f"curvature_{name}") for name in CurvatureFrames._fields))
+
+    @property
     def weights(self) -> LossWeights:
         """The loss weights of the ``weight_*`` buffers."""
         return LossWeights(**{name: float(self.weight(name)) for name in TERM_NAMES})
@@ -496,10 +508,12 @@ class FitObjective(nn.Module):
     def rest_terms(self, rest_uv: torch.Tensor) -> dict[str, torch.Tensor]:
         """The loss terms of the rest pattern alone, unweighted: seam length, curvature, and rest area (the
         mesh's triangles, and those across its darts: `dart_triangles`) and rest shape when their weights
-        are positive. ``rest_uv``: (V, 2) [m]."""
+        are positive; then `opening_rest_terms`. ``rest_uv``: (V, 2) [m]."""
         terms = {
             "seam_length": seam_length_loss(rest_uv, self.garment, segments=self.seam_segments),
-            "curvature": curvature_loss(rest_uv, self.template_uv, self.garment),
+            "curvature": curvature_loss(
+                rest_uv, self.template_uv, self.garment, frames=self.curvature_frames
+            ),
         }
         tri = self.garment.tri_vertices
         if self.weight_rest_area > 0:
@@ -518,6 +532,13 @@ class FitObjective(nn.Module):
             terms["rest_shape"] = rest_distortion_loss(
                 rest_uv, self.template_uv, tri, template_inverse=self.template_inverse
             )
+        terms.update(self.opening_rest_terms(rest_uv))
+        return terms
+
+    def opening_rest_terms(self, rest_uv: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The rest terms beyond the mesh's own, unweighted, when their weights are positive: pattern change
+        (the design prior) and the openings' length and split. ``rest_uv``: (V, 2) [m]."""
+        terms = {}
         if self.weight_pattern_change > 0:
             terms["pattern_change"] = pattern_change_loss(
                 rest_uv, self.template_uv, self.garment.vert_panel, modes=self.design_modes
@@ -531,8 +552,41 @@ class FitObjective(nn.Module):
         return terms
 
     def rest_loss(self, rest_uv: torch.Tensor) -> torch.Tensor:
-        """() the weighted sum of `rest_terms` at ``rest_uv`` (V, 2) [m]."""
-        return self.weighted_sum(self.rest_terms(rest_uv))
+        """() the weighted sum of `rest_terms` at ``rest_uv`` (V, 2) [m]. Where `rest_kernels_available`,
+        the seam length, curvature, rest area and rest shape come from the C++ kernels as one autograd node
+        (`fused_rest_terms`: the same value and gradient to rounding at a tenth of the cost; a fit's
+        proximal step evaluates this ~40 times an iteration), the others as in `rest_terms`."""
+        if not rest_kernels_available(rest_uv):
+            return self.weighted_sum(self.rest_terms(rest_uv))
+        fused = fused_rest_terms(rest_uv, self._rest_kernel_calls(rest_uv.dtype))
+        others = self.opening_rest_terms(rest_uv)
+        return fused + self.weighted_sum(others) if others else fused
+
+    def _rest_kernel_calls(self, dtype: torch.dtype) -> list[RestKernelCall]:
+        """The `rest_terms` of the mesh as `fused_rest_terms`' kernel calls (weights and means folded in)."""
+
+        def cpu(t: torch.Tensor, floating: bool = True) -> torch.Tensor:
+            return t.to(device="cpu", dtype=dtype if floating else torch.int64).contiguous()
+
+        seg, frames = self.seam_segments, self.curvature_frames
+        calls = []
+        if len(seg):
+            calls.append(("rest_seam_length", (cpu(seg, False), float(self.weight_seam_length) / len(seg))))
+        if len(frames.triplets):
+            tables = (cpu(frames.edges), cpu(frames.edges_perp), cpu(frames.norm))
+            weight = float(self.weight_curvature) / len(frames.triplets)
+            calls.append(("rest_curvature", (cpu(frames.triplets, False), *tables, weight)))
+        w_area, w_shape = max(float(self.weight_rest_area), 0.0), max(float(self.weight_rest_shape), 0.0)
+        no_shape = torch.zeros(0, 2, 2, dtype=dtype)
+        if w_area > 0 or w_shape > 0:
+            inverse = cpu(self.template_inverse) if w_shape > 0 else no_shape
+            area = (cpu(self.template_area), REST_AREA_THRESHOLD, w_area)
+            shape = (inverse, REST_DISTORTION_THRESHOLD, w_shape)
+            calls.append(("rest_triangle_hinges", (cpu(self.garment.tri_vertices, False), *area, *shape)))
+        if w_area > 0 and len(self.dart_tri):
+            darts = (cpu(self.dart_tri, False), cpu(self.dart_area), DART_KEEP, w_area, no_shape, 0.0, 0.0)
+            calls.append(("rest_triangle_hinges", darts))
+        return calls
 
     def drape(
         self,

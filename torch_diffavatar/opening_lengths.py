@@ -28,6 +28,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
+from torch_diffavatar.geometry import gather_rows
 from torch_diffavatar.pattern.garment_mesh import BoundaryLoop, GarmentMesh
 
 
@@ -209,7 +210,7 @@ def rest_loop_length(rest_uv: torch.Tensor, edges: torch.Tensor) -> torch.Tensor
 def _edge_lengths(rest_uv: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
     """(L,) [m] the lengths of the (L, 2) panel-vertex ``edges`` at ``rest_uv`` (V, 2) [m]."""
     e = edges.to(rest_uv.device)
-    return (rest_uv[e[:, 1]] - rest_uv[e[:, 0]]).norm(dim=-1)
+    return (gather_rows(rest_uv, e[:, 1]) - gather_rows(rest_uv, e[:, 0])).norm(dim=-1)
 
 
 def opening_length_loss(

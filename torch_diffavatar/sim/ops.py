@@ -96,6 +96,9 @@ def _register_fake(name: str) -> None:
     def fake_cholesky_apply(l_row, l_val, perm, l_colptr, b):
         return torch.empty_like(b)
 
+    def fake_value_grad(uv, *args):
+        return uv.new_empty(()), torch.empty_like(uv)
+
     fake = {
         "closest_point_on_mesh": fake_closest,
         "max_abs_green_strain": fake_scalar,
@@ -105,6 +108,9 @@ def _register_fake(name: str) -> None:
         "block_cholesky_solve": fake_cholesky_solve,
         "block_cholesky_factor": fake_cholesky_factor,
         "block_cholesky_apply": fake_cholesky_apply,
+        "rest_seam_length": fake_value_grad,
+        "rest_curvature": fake_value_grad,
+        "rest_triangle_hinges": fake_value_grad,
     }.get(name, fake_inplace)
     try:
         torch.library.register_fake(f"diffavatar::{name}")(fake)

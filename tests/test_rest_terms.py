@@ -1,0 +1,148 @@
+"""The rest terms' C++ kernels (`torch_diffavatar.rest_terms`) against their PyTorch twins, the loss functions
+of `torch_diffavatar.losses`: values and gradients, gradcheck of the fused node, opcheck of each kernel,
+bad input refused, and `FitObjective.rest_loss` through them equal to its terms' weighted sum."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from torch_diffavatar._ext import has_extension
+from torch_diffavatar.cage import seam_segments
+from torch_diffavatar.losses import (
+    REST_AREA_THRESHOLD,
+    REST_DISTORTION_THRESHOLD,
+    curvature_frames,
+    curvature_loss,
+    rest_area_loss,
+    rest_distortion_loss,
+    seam_length_loss,
+    signed_rest_areas,
+    template_edge_inverse,
+)
+from torch_diffavatar.pattern import load_template, mesh_pattern
+from torch_diffavatar.rest_terms import fused_rest_terms, rest_kernels_available
+from torch_diffavatar.sim.ops import extension_op
+
+pytestmark = pytest.mark.skipif(not has_extension(), reason="C++ extension not built")
+F64 = torch.float64
+
+
+@pytest.fixture(scope="module")
+def tshirt():
+    """(garment, template uv, a pattern moved 8 mm per coordinate at random: every term and hinge live)."""
+    garment = mesh_pattern(load_template("tshirt"), spacing=0.06)
+    uv0 = garment.vert_uv.to(F64)
+    gen = torch.Generator().manual_seed(3)
+    return garment, uv0, uv0 + 0.008 * torch.randn(uv0.shape, generator=gen, dtype=F64)
+
+
+def _calls(garment, uv0, dtype=F64, w=(2.0, 3.0, 5.0, 7.0)):
+    """The kernel calls of seam length, curvature (means, weights w[0], w[1]) and the area and shape hinges
+    (sums, w[2], w[3])."""
+    seg, frames, tri = seam_segments(garment), curvature_frames(uv0, garment), garment.tri_vertices
+    area, inverse = signed_rest_areas(uv0, tri), template_edge_inverse(uv0, tri)
+    cast = [t.to(dtype).contiguous() for t in (frames.edges, frames.edges_perp, frames.norm, area, inverse)]
+    hinges = (tri, cast[3], REST_AREA_THRESHOLD, w[2], cast[4], REST_DISTORTION_THRESHOLD, w[3])
+    return [
+        ("rest_seam_length", (seg, w[0] / len(seg))),
+        ("rest_curvature", (frames.triplets, *cast[:3], w[1] / len(frames.triplets))),
+        ("rest_triangle_hinges", hinges),
+    ]
+
+
+def _twin(garment, uv0, uv, w=(2.0, 3.0, 5.0, 7.0)):
+    tri = garment.tri_vertices
+    return (
+        w[0] * seam_length_loss(uv, garment)
+        + w[1] * curvature_loss(uv, uv0.to(uv), garment)
+        + w[2] * rest_area_loss(uv, uv0.to(uv), tri)
+        + w[3] * rest_distortion_loss(uv, uv0.to(uv), tri)
+    )
+
+
+def test_each_kernel_is_its_twin(tshirt):
+    """Each kernel's value and gradient are its loss function's (float64: to 1e-12), with its hinges live."""
+    garment, uv0, uv = tshirt
+    tri = garment.tri_vertices
+    twins = {
+        "rest_seam_length": lambda u: 2.0 * seam_length_loss(u, garment),
+        "rest_curvature": lambda u: 3.0 * curvature_loss(u, uv0, garment),
+        "rest_triangle_hinges": lambda u: (
+            5.0 * rest_area_loss(u, uv0, tri) + 7.0 * rest_distortion_loss(u, uv0, tri)
+        ),
+    }
+    assert float(rest_area_loss(uv, uv0, tri)) > 0 and float(rest_distortion_loss(uv, uv0, tri)) > 0
+    for name, args in _calls(garment, uv0):
+        value, grad = extension_op(name)(uv, *args)
+        u = uv.clone().requires_grad_(True)
+        want = twins[name](u)
+        (want_grad,) = torch.autograd.grad(want, u)
+        torch.testing.assert_close(value, want.detach(), rtol=1e-12, atol=0, msg=name)
+        torch.testing.assert_close(grad, want_grad, rtol=1e-10, atol=1e-12 * float(want_grad.abs().max()))
+
+
+def test_fused_node_gradcheck_and_float32(tshirt):
+    """`fused_rest_terms` passes gradcheck (float64, finite differences) and gives the twins' value and
+    gradient in float32 too (to float32's rounding)."""
+    garment, uv0, uv = tshirt
+    calls = _calls(garment, uv0)
+    assert torch.autograd.gradcheck(lambda u: fused_rest_terms(u, calls), (uv.clone().requires_grad_(True),))
+    u32 = uv.float().requires_grad_(True)
+    fused = fused_rest_terms(u32, _calls(garment, uv0, torch.float32))
+    want = _twin(garment, uv0, uv.clone().requires_grad_(True))
+    (g_fused,) = torch.autograd.grad(fused, u32)
+    assert fused.dtype == torch.float32
+    torch.testing.assert_close(fused.double(), want.detach(), rtol=1e-5, atol=0)
+    u = uv.clone().requires_grad_(True)
+    (g_want,) = torch.autograd.grad(_twin(garment, uv0, u), u)
+    torch.testing.assert_close(g_fused.double(), g_want, rtol=0, atol=1e-4 * float(g_want.abs().max()))
+
+
+def test_kernels_opcheck_and_refuse_bad_input(tshirt):
+    """opcheck on every kernel; an index out of range, a wrong dtype or shape is a one-line error; where the
+    kernels cannot run (a batch, another dtype), `rest_kernels_available` says so."""
+    garment, uv0, uv = tshirt
+    for name, args in _calls(garment, uv0):
+        torch.library.opcheck(extension_op(name).default, (uv, *args))
+    seg = seam_segments(garment)
+    with pytest.raises(RuntimeError, match="outside"):
+        extension_op("rest_seam_length")(uv, seg + uv.shape[0], 1.0)
+    with pytest.raises(RuntimeError, match="must be float32 or float64"):
+        extension_op("rest_seam_length")(uv.half(), seg, 1.0)
+    with pytest.raises(RuntimeError, match="shape"):
+        extension_op("rest_seam_length")(uv, seg[:, :3].contiguous(), 1.0)
+    frames = curvature_frames(uv0, garment)
+    with pytest.raises(RuntimeError, match="edges must be"):
+        extension_op("rest_curvature")(
+            uv, frames.triplets, frames.edges.float(), frames.edges_perp, frames.norm, 1.0
+        )
+    assert rest_kernels_available(uv) and rest_kernels_available(uv.float())
+    assert not rest_kernels_available(uv[None]) and not rest_kernels_available(uv.half())
+
+
+def test_objective_rest_loss_through_the_kernels_is_its_terms_sum(skirt_problem):
+    """`FitObjective.rest_loss` (the kernels and the openings' terms) gives the weighted sum of `rest_terms`
+    (the loss functions) and its gradient, float64 to 1e-12, away from the template."""
+    from helpers_fit import DT
+    from helpers_fit import fit_config as _config
+
+    from torch_diffavatar.objective import FitObjective, FitParameters
+
+    garment, _, target = skirt_problem
+    config = _config()
+    objective = FitObjective(garment, target, config, dtype=DT)
+    params = FitParameters.from_config(garment, config, dtype=DT)
+    gen = torch.Generator().manual_seed(1)
+    with torch.no_grad():
+        params.cage.handles.add_(0.01 * torch.randn(params.cage.handles.shape, generator=gen, dtype=DT))
+    rest_uv = params.cage().detach()
+    u1, u2 = rest_uv.clone().requires_grad_(True), rest_uv.clone().requires_grad_(True)
+    fused, terms = objective.rest_loss(u1), objective.rest_terms(u2)
+    want = objective.weighted_sum(terms)
+    assert set(terms) >= {"seam_length", "curvature", "rest_area", "rest_shape"}
+    assert float(want.detach()) > 0
+    torch.testing.assert_close(fused, want, rtol=1e-12, atol=0)
+    (g1,) = torch.autograd.grad(fused, u1)
+    (g2,) = torch.autograd.grad(want, u2)
+    torch.testing.assert_close(g1, g2, rtol=1e-10, atol=1e-12 * float(g2.abs().max()))
