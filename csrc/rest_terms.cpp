@@ -1,6 +1,8 @@
 // The rest pattern's regularizers with their gradients in one pass each: seam length (paper eq. 7),
 // boundary curvature (eq. 8), and the rest triangles' area and shape hinges.
 //
+// The openings' lengths and their split between panels (`opening_lengths`) likewise.
+//
 // A fit's proximal step (`fit.rest_prox`) evaluates these ~40 times per iteration on ~2k-8k panel
 // vertices; as autograd graphs of ~200 small tensor ops each evaluation cost ~4 ms, almost all of it
 // per-op overhead. Each op here returns (value, gradient) = (w * sum_i f_i, w * d/d(uv) sum_i f_i);
@@ -201,6 +203,68 @@ std::tuple<at::Tensor, at::Tensor> rest_triangle_hinges(const at::Tensor& uv, co
   return finish(uv, value, grad);
 }
 
+// The openings' rest lengths (`opening_lengths.opening_length_loss` and `opening_split_loss`): edges (L, 2)
+// of all openings, each edge's slot (L,) (its panel within its opening, numbered over all openings), each
+// slot's opening (S,); least (K,) [m] the shortest length each opening may have, shares (S,) the template's
+// share of each slot in its opening's length. value = length_weight * sum_k (max(0, least_k - L_k) / least_k)^2
+// + split_weight * sum_s (P_s / L_k(s) - shares_s)^2, with L_k the opening's length and P_s the slot's.
+std::tuple<at::Tensor, at::Tensor> rest_openings(const at::Tensor& uv, const at::Tensor& edges,
+                                                 const at::Tensor& slot, const at::Tensor& slot_opening,
+                                                 const at::Tensor& least, const at::Tensor& shares,
+                                                 double length_weight, double split_weight) {
+  check_uv(uv);
+  check_index(edges, "edges", 2, uv.size(0));
+  const int64_t n = edges.size(0), k_count = least.size(0), s_count = shares.size(0);
+  check_table(least, "least", {-1}, uv);
+  check_table(shares, "shares", {-1}, uv);
+  check_shape(slot, "slot", {n});
+  check_shape(slot_opening, "slot_opening", {s_count});
+  check_index(slot.view({-1, 1}), "slot", 1, s_count);
+  check_index(slot_opening.view({-1, 1}), "slot_opening", 1, k_count);
+  const int64_t* ev = edges.data_ptr<int64_t>();
+  const int64_t* sl = slot.data_ptr<int64_t>();
+  const int64_t* so = slot_opening.data_ptr<int64_t>();
+  std::vector<double> grad(uv.numel(), 0.0), length(n), part(s_count, 0.0), total(k_count, 0.0);
+  std::vector<double> d_part(s_count, 0.0), d_total(k_count, 0.0);
+  double value = 0.0;
+  AT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "rest_openings", [&] {
+    const scalar_t* p = uv.data_ptr<scalar_t>();
+    const scalar_t* lp = least.data_ptr<scalar_t>();
+    const scalar_t* sh = shares.data_ptr<scalar_t>();
+    for (int64_t e = 0; e < n; ++e) {
+      const V2 d = load2(p, ev[2 * e + 1]) - load2(p, ev[2 * e]);
+      length[e] = std::sqrt(dot(d, d));
+      part[sl[e]] += length[e];
+      total[so[sl[e]]] += length[e];
+    }
+    if (length_weight != 0.0) {
+      for (int64_t k = 0; k < k_count; ++k) {
+        const double lk = static_cast<double>(lp[k]);
+        const double shortfall = std::max(lk - total[k], 0.0) / lk;
+        value += length_weight * shortfall * shortfall;
+        d_total[k] -= 2.0 * length_weight * shortfall / lk;
+      }
+    }
+    if (split_weight != 0.0) {
+      for (int64_t s = 0; s < s_count; ++s) {
+        const double lk = total[so[s]];
+        const double r = part[s] / lk - static_cast<double>(sh[s]);
+        value += split_weight * r * r;
+        d_part[s] += 2.0 * split_weight * r / lk;
+        d_total[so[s]] -= 2.0 * split_weight * r * part[s] / (lk * lk);
+      }
+    }
+    for (int64_t e = 0; e < n; ++e) {
+      if (!(length[e] > 0.0)) continue;  // as torch's norm: no gradient through a zero length
+      const double c = (d_part[sl[e]] + d_total[so[sl[e]]]) / length[e];
+      const V2 d = load2(p, ev[2 * e + 1]) - load2(p, ev[2 * e]);
+      add2(grad, ev[2 * e + 1], d, c);
+      add2(grad, ev[2 * e], d, -c);
+    }
+  });
+  return finish(uv, value, grad);
+}
+
 }  // namespace
 }  // namespace diffavatar
 
@@ -215,10 +279,15 @@ TORCH_LIBRARY_FRAGMENT(diffavatar, m) {
   m.def(
       "rest_triangle_hinges(Tensor uv, Tensor tri, Tensor area, float area_threshold, float area_weight, "
       "Tensor inverse, float shape_threshold, float shape_weight) -> (Tensor value, Tensor grad)");
+  // (weighted openings' length shortfall and panel split, its gradient (V, 2)).
+  m.def(
+      "rest_openings(Tensor uv, Tensor edges, Tensor slot, Tensor slot_opening, Tensor least, Tensor shares, "
+      "float length_weight, float split_weight) -> (Tensor value, Tensor grad)");
 }
 
 TORCH_LIBRARY_IMPL(diffavatar, CPU, m) {
   m.impl("rest_seam_length", &diffavatar::rest_seam_length);
   m.impl("rest_curvature", &diffavatar::rest_curvature);
   m.impl("rest_triangle_hinges", &diffavatar::rest_triangle_hinges);
+  m.impl("rest_openings", &diffavatar::rest_openings);
 }

@@ -1,8 +1,11 @@
 """The rest terms' C++ kernels (`torch_diffavatar.rest_terms`) against their PyTorch twins, the loss functions
 of `torch_diffavatar.losses`: values and gradients, gradcheck of the fused node, opcheck of each kernel,
-bad input refused, and `FitObjective.rest_loss` through them equal to its terms' weighted sum."""
+bad input refused, and `FitObjective.rest_loss` through them equal to its terms' weighted sum.
+The openings' terms' twins are those of `torch_diffavatar.opening_lengths`."""
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import pytest
 import torch
@@ -19,6 +22,14 @@ from torch_diffavatar.losses import (
     seam_length_loss,
     signed_rest_areas,
     template_edge_inverse,
+)
+from torch_diffavatar.opening_lengths import (
+    opening_length_loss,
+    opening_split_loss,
+    rest_loop_edges,
+    rest_loop_length,
+    rest_loop_panels,
+    rest_loop_shares,
 )
 from torch_diffavatar.pattern import load_template, mesh_pattern
 from torch_diffavatar.rest_terms import fused_rest_terms, rest_kernels_available
@@ -37,9 +48,27 @@ def tshirt():
     return garment, uv0, uv0 + 0.008 * torch.randn(uv0.shape, generator=gen, dtype=F64)
 
 
-def _calls(garment, uv0, dtype=F64, w=(2.0, 3.0, 5.0, 7.0)):
-    """The kernel calls of seam length, curvature (means, weights w[0], w[1]) and the area and shape hinges
-    (sums, w[2], w[3])."""
+def _openings(garment, uv0):
+    """Every opening's (edges, panels, template shares) and lengths to hold: 5 % over the template's."""
+    edges = [rest_loop_edges(garment, lp) for lp in garment.boundary_loops]
+    panels = [rest_loop_panels(garment, e) for e in edges]
+    shares = [rest_loop_shares(uv0, e, p) for e, p in zip(edges, panels, strict=True)]
+    least = 1.05 * torch.stack([rest_loop_length(uv0, e) for e in edges])
+    return edges, panels, shares, least
+
+
+def _openings_call(garment, uv0, dtype, w_length, w_split):
+    edges, panels, shares, least = _openings(garment, uv0)
+    offsets = [0, *torch.tensor([len(s) for s in shares]).cumsum(0).tolist()]
+    slot = torch.cat([p + o for p, o in zip(panels, offsets, strict=False)])
+    slot_opening = torch.cat([torch.full((len(s),), k) for k, s in enumerate(shares)])
+    tables = (least.to(dtype), torch.cat(shares).to(dtype))
+    return ("rest_openings", (torch.cat(edges), slot, slot_opening, *tables, w_length, w_split))
+
+
+def _calls(garment, uv0, dtype=F64, w=(2.0, 3.0, 5.0, 7.0, 11.0, 13.0)):
+    """The kernel calls of seam length, curvature (means, weights w[0], w[1]), the area and shape hinges
+    (sums, w[2], w[3]) and the openings' length and split (w[4], w[5])."""
     seg, frames, tri = seam_segments(garment), curvature_frames(uv0, garment), garment.tri_vertices
     area, inverse = signed_rest_areas(uv0, tri), template_edge_inverse(uv0, tri)
     cast = [t.to(dtype).contiguous() for t in (frames.edges, frames.edges_perp, frames.norm, area, inverse)]
@@ -48,13 +77,17 @@ def _calls(garment, uv0, dtype=F64, w=(2.0, 3.0, 5.0, 7.0)):
         ("rest_seam_length", (seg, w[0] / len(seg))),
         ("rest_curvature", (frames.triplets, *cast[:3], w[1] / len(frames.triplets))),
         ("rest_triangle_hinges", hinges),
+        _openings_call(garment, uv0, dtype, w[4], w[5]),
     ]
 
 
-def _twin(garment, uv0, uv, w=(2.0, 3.0, 5.0, 7.0)):
+def _twin(garment, uv0, uv, w=(2.0, 3.0, 5.0, 7.0, 11.0, 13.0)):
     tri = garment.tri_vertices
+    edges, panels, shares, least = _openings(garment, uv0)
     return (
-        w[0] * seam_length_loss(uv, garment)
+        w[4] * opening_length_loss(uv, edges, least)
+        + w[5] * opening_split_loss(uv, edges, panels, shares)
+        + w[0] * seam_length_loss(uv, garment)
         + w[1] * curvature_loss(uv, uv0.to(uv), garment)
         + w[2] * rest_area_loss(uv, uv0.to(uv), tri)
         + w[3] * rest_distortion_loss(uv, uv0.to(uv), tri)
@@ -71,7 +104,12 @@ def test_each_kernel_is_its_twin(tshirt):
         "rest_triangle_hinges": lambda u: (
             5.0 * rest_area_loss(u, uv0, tri) + 7.0 * rest_distortion_loss(u, uv0, tri)
         ),
+        "rest_openings": lambda u: (
+            11.0 * opening_length_loss(u, edges, least) + 13.0 * opening_split_loss(u, edges, panels, shares)
+        ),
     }
+    edges, panels, shares, least = _openings(garment, uv0)
+    assert len(edges) >= 4 and float(opening_length_loss(uv, edges, least)) > 0
     assert float(rest_area_loss(uv, uv0, tri)) > 0 and float(rest_distortion_loss(uv, uv0, tri)) > 0
     for name, args in _calls(garment, uv0):
         value, grad = extension_op(name)(uv, *args)
@@ -127,11 +165,18 @@ def test_objective_rest_loss_through_the_kernels_is_its_terms_sum(skirt_problem)
     from helpers_fit import DT
     from helpers_fit import fit_config as _config
 
-    from torch_diffavatar.objective import FitObjective, FitParameters
+    from torch_diffavatar.objective import FitObjective, FitParameters, ScanTarget
 
     garment, _, target = skirt_problem
+    hem = target.boundaries["hem"]  # ~20 points: resampled densely enough for `scan_loop_length`
+    t = torch.linspace(0, 1, 9, dtype=DT)[:-1, None, None]
+    dense = ((1 - t) * hem + t * hem.roll(-1, 0)).transpose(0, 1).reshape(-1, 3)
+    target = ScanTarget(target.garment_points, {"hem": dense})
     config = _config()
+    weights = replace(config.weights, opening_length=3e3, opening_split=1e4)
+    config = replace(config, weights=weights, opening_length_names=("hem",))
     objective = FitObjective(garment, target, config, dtype=DT)
+    objective.opening_least.fill_(2.0)  # the hem held at 2 m, longer than it is: the shortfall live
     params = FitParameters.from_config(garment, config, dtype=DT)
     gen = torch.Generator().manual_seed(1)
     with torch.no_grad():
@@ -140,7 +185,17 @@ def test_objective_rest_loss_through_the_kernels_is_its_terms_sum(skirt_problem)
     u1, u2 = rest_uv.clone().requires_grad_(True), rest_uv.clone().requires_grad_(True)
     fused, terms = objective.rest_loss(u1), objective.rest_terms(u2)
     want = objective.weighted_sum(terms)
-    assert set(terms) >= {"seam_length", "curvature", "rest_area", "rest_shape"}
+    assert set(terms) == {
+        "seam_length",
+        "curvature",
+        "rest_area",
+        "rest_shape",
+        "opening_length",
+        "opening_split",
+    }
+    assert all(
+        float(terms[k].detach()) > 0 for k in ("seam_length", "curvature", "opening_length", "opening_split")
+    )
     assert float(want.detach()) > 0
     torch.testing.assert_close(fused, want, rtol=1e-12, atol=0)
     (g1,) = torch.autograd.grad(fused, u1)

@@ -15,6 +15,7 @@ drives the same objective with guards, a proximal rest step, logging and checkpo
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field, fields, replace
 
@@ -507,8 +508,8 @@ class FitObjective(nn.Module):
 
     def rest_terms(self, rest_uv: torch.Tensor) -> dict[str, torch.Tensor]:
         """The loss terms of the rest pattern alone, unweighted: seam length, curvature, and rest area (the
-        mesh's triangles, and those across its darts: `dart_triangles`) and rest shape when their weights
-        are positive; then `opening_rest_terms`. ``rest_uv``: (V, 2) [m]."""
+        mesh's triangles, and those across its darts: `dart_triangles`), rest shape, pattern change and the
+        openings' length and split when their weights are positive. ``rest_uv``: (V, 2) [m]."""
         terms = {
             "seam_length": seam_length_loss(rest_uv, self.garment, segments=self.seam_segments),
             "curvature": curvature_loss(
@@ -532,17 +533,8 @@ class FitObjective(nn.Module):
             terms["rest_shape"] = rest_distortion_loss(
                 rest_uv, self.template_uv, tri, template_inverse=self.template_inverse
             )
-        terms.update(self.opening_rest_terms(rest_uv))
-        return terms
-
-    def opening_rest_terms(self, rest_uv: torch.Tensor) -> dict[str, torch.Tensor]:
-        """The rest terms beyond the mesh's own, unweighted, when their weights are positive: pattern change
-        (the design prior) and the openings' length and split. ``rest_uv``: (V, 2) [m]."""
-        terms = {}
         if self.weight_pattern_change > 0:
-            terms["pattern_change"] = pattern_change_loss(
-                rest_uv, self.template_uv, self.garment.vert_panel, modes=self.design_modes
-            )
+            terms["pattern_change"] = self._pattern_change(rest_uv)
         if self.weight_opening_length > 0 and self.opening_edges:
             terms["opening_length"] = opening_length_loss(rest_uv, self.opening_edges, self.opening_least)
         if self.weight_opening_split > 0 and self.opening_edges:
@@ -551,32 +543,47 @@ class FitObjective(nn.Module):
             )
         return terms
 
+    def _pattern_change(self, rest_uv: torch.Tensor) -> torch.Tensor:
+        panel = self.garment.vert_panel
+        return pattern_change_loss(rest_uv, self.template_uv, panel, modes=self.design_modes)
+
     def rest_loss(self, rest_uv: torch.Tensor) -> torch.Tensor:
         """() the weighted sum of `rest_terms` at ``rest_uv`` (V, 2) [m]. Where `rest_kernels_available`,
-        the seam length, curvature, rest area and rest shape come from the C++ kernels as one autograd node
-        (`fused_rest_terms`: the same value and gradient to rounding at a tenth of the cost; a fit's
-        proximal step evaluates this ~40 times an iteration), the others as in `rest_terms`."""
+        all but the pattern change come from the C++ kernels as one autograd node (`fused_rest_terms`: the
+        same value and gradient to rounding, at a fraction of the cost; a fit's proximal step evaluates this
+        ~40 times an iteration)."""
         if not rest_kernels_available(rest_uv):
             return self.weighted_sum(self.rest_terms(rest_uv))
         fused = fused_rest_terms(rest_uv, self._rest_kernel_calls(rest_uv.dtype))
-        others = self.opening_rest_terms(rest_uv)
-        return fused + self.weighted_sum(others) if others else fused
+        if self.weight_pattern_change > 0:
+            fused = fused + self.weight_pattern_change * self._pattern_change(rest_uv)
+        return fused
 
     def _rest_kernel_calls(self, dtype: torch.dtype) -> list[RestKernelCall]:
-        """The `rest_terms` of the mesh as `fused_rest_terms`' kernel calls (weights and means folded in)."""
+        """The `rest_terms` of the mesh as `fused_rest_terms`' kernel calls (weights and means folded in);
+        kept while the dtype, the weights and the buffers (``.to()`` replaces them) stay the same."""
+        names = ("seam_length", "curvature", "rest_area", "rest_shape", "opening_length", "opening_split")
+        weights = tuple(float(self.weight(k)) for k in names)
+        key = (dtype, weights, self.template_area.data_ptr())
+        cache = self.__dict__.setdefault("_rest_kernel_cache", {})
+        if key not in cache:
+            cache.clear()
+            cache[key] = self._build_rest_kernel_calls(dtype, *weights)
+        return cache[key]
 
+    def _build_rest_kernel_calls(self, dtype, w_seam, w_curvature, w_area, w_shape, w_length, w_split):
         def cpu(t: torch.Tensor, floating: bool = True) -> torch.Tensor:
             return t.to(device="cpu", dtype=dtype if floating else torch.int64).contiguous()
 
         seg, frames = self.seam_segments, self.curvature_frames
         calls = []
         if len(seg):
-            calls.append(("rest_seam_length", (cpu(seg, False), float(self.weight_seam_length) / len(seg))))
+            calls.append(("rest_seam_length", (cpu(seg, False), w_seam / len(seg))))
         if len(frames.triplets):
+            triplets = cpu(frames.triplets, False)
             tables = (cpu(frames.edges), cpu(frames.edges_perp), cpu(frames.norm))
-            weight = float(self.weight_curvature) / len(frames.triplets)
-            calls.append(("rest_curvature", (cpu(frames.triplets, False), *tables, weight)))
-        w_area, w_shape = max(float(self.weight_rest_area), 0.0), max(float(self.weight_rest_shape), 0.0)
+            calls.append(("rest_curvature", (triplets, *tables, w_curvature / len(frames.triplets))))
+        w_area, w_shape = max(w_area, 0.0), max(w_shape, 0.0)
         no_shape = torch.zeros(0, 2, 2, dtype=dtype)
         if w_area > 0 or w_shape > 0:
             inverse = cpu(self.template_inverse) if w_shape > 0 else no_shape
@@ -586,6 +593,14 @@ class FitObjective(nn.Module):
         if w_area > 0 and len(self.dart_tri):
             darts = (cpu(self.dart_tri, False), cpu(self.dart_area), DART_KEEP, w_area, no_shape, 0.0, 0.0)
             calls.append(("rest_triangle_hinges", darts))
+        w_length, w_split = max(w_length, 0.0), max(w_split, 0.0)
+        if self.opening_edges and (w_length > 0 or w_split > 0):
+            offsets = [0, *itertools.accumulate(len(s) for s in self.opening_shares)]
+            slot = torch.cat([p + o for p, o in zip(self.opening_panels, offsets, strict=False)])
+            slot_opening = torch.cat([torch.full((len(s),), k) for k, s in enumerate(self.opening_shares)])
+            index = [cpu(t, False) for t in (torch.cat(self.opening_edges), slot, slot_opening)]
+            tables = (cpu(self.opening_least), cpu(torch.cat(self.opening_shares)))
+            calls.append(("rest_openings", (*index, *tables, w_length, w_split)))
         return calls
 
     def drape(

@@ -2,10 +2,11 @@
 
 A fit's proximal step (`fit.rest_prox`) minimises the weighted rest terms (`FitObjective.rest_loss`) around
 Adam's step with L-BFGS, ~40 evaluations per iteration. Built as autograd graphs of the loss functions of
-`torch_diffavatar.losses` (seam length, curvature, rest area with the darts, rest shape), an evaluation
-with its backward cost ~4 ms on the demo's dress (2,158 panel vertices), almost all of it the overhead of
-~200 small tensor ops: ~6 s of the demo's fit. The kernels ``torch.ops.diffavatar.rest_seam_length``,
-``rest_curvature`` and ``rest_triangle_hinges`` (``csrc/rest_terms.cpp``) each return the weighted sum and
+`torch_diffavatar.losses` (seam length, curvature, rest area with the darts, rest shape) and of
+`torch_diffavatar.opening_lengths` (the openings' length and split), an evaluation with its backward cost
+~4 ms on the demo's dress (2,158 panel vertices), almost all of it the overhead of ~200 small tensor ops:
+~6 s of the demo's fit. The kernels ``torch.ops.diffavatar.rest_seam_length``, ``rest_curvature``,
+``rest_triangle_hinges`` and ``rest_openings`` (``csrc/rest_terms.cpp``) each return the weighted sum and
 its gradient in one pass; `fused_rest_terms` adds them up under one `torch.autograd.Function`, whose
 backward scales the stored gradient. The loss functions are their PyTorch twins (tests compare values and
 gradients; ``gradcheck`` checks the fused node against finite differences).
@@ -28,7 +29,7 @@ __all__ = ["RestKernelCall", "fused_rest_terms", "rest_kernels_available"]
 # (kernel name, its arguments after ``uv``): e.g. ("rest_seam_length", (segments, weight))
 RestKernelCall = tuple[str, tuple]
 
-KERNELS = ("rest_seam_length", "rest_curvature", "rest_triangle_hinges")
+KERNELS = ("rest_seam_length", "rest_curvature", "rest_triangle_hinges", "rest_openings")
 
 
 def rest_kernels_available(rest_uv: torch.Tensor) -> bool:

@@ -4,6 +4,7 @@ input validation."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 
@@ -393,13 +394,16 @@ def test_converged_solve_of_a_stiff_system_does_not_warn(method):
     a, crow, col, val, b = _spring_chain()
     x, info = solve_symmetric(crow, col, val, b, method=method, tol=1e-8)
     exact = torch.linalg.solve(a, b)
-    assert info.converged and info.residual > 1e-8  # what used to warn
+    # around its target: above it in some runs (what used to warn), below in others (the solve's dot
+    # products are OpenMP reductions, summed in an unspecified order across threads)
+    assert info.converged and info.residual > 3e-9
     assert float((x - exact).norm() / exact.norm()) < 1e-7  # the answer is good
     assert info.backward_error < 1e-10
     for dtype in (torch.float64, torch.float32):
-        with warnings.catch_warnings():
-            warnings.simplefilter("error")
-            check_solve(info, 1e-8, "test", dtype)
+        for rel in (info.residual, 1.15e-8):  # this run's, and the one that used to warn
+            with warnings.catch_warnings():
+                warnings.simplefilter("error")
+                check_solve(dataclasses.replace(info, residual=rel), 1e-8, "test", dtype)
 
 
 @pytest.mark.parametrize(

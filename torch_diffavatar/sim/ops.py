@@ -111,6 +111,7 @@ def _register_fake(name: str) -> None:
         "rest_seam_length": fake_value_grad,
         "rest_curvature": fake_value_grad,
         "rest_triangle_hinges": fake_value_grad,
+        "rest_openings": fake_value_grad,
     }.get(name, fake_inplace)
     try:
         torch.library.register_fake(f"diffavatar::{name}")(fake)
