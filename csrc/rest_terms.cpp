@@ -1,14 +1,14 @@
 // The rest pattern's regularizers with their gradients in one pass each: seam length (paper eq. 7),
-// boundary curvature (eq. 8), and the rest triangles' area and shape hinges.
-//
-// The openings' lengths and their split between panels (`opening_lengths`) likewise.
+// boundary curvature (eq. 8), the rest triangles' area and shape hinges, and the openings' lengths and
+// their split between panels.
 //
 // A fit's proximal step (`fit.rest_prox`) evaluates these ~40 times per iteration on ~2k-8k panel
 // vertices; as autograd graphs of ~200 small tensor ops each evaluation cost ~4 ms, almost all of it
 // per-op overhead. Each op here returns (value, gradient) = (w * sum_i f_i, w * d/d(uv) sum_i f_i);
 // `torch_diffavatar.rest_terms` wraps them in one autograd.Function. Their PyTorch twins are the loss
-// functions of `torch_diffavatar.losses` (same formulas, summed in another order: equal to rounding).
-// Every sum is accumulated in double; the gradient is written in the input's dtype.
+// functions of `torch_diffavatar.losses` and `torch_diffavatar.opening_lengths` (same formulas, summed in
+// another order: equal to rounding). Every sum is accumulated in double; the gradient is written in the
+// input's dtype.
 
 #include <tuple>
 #include <vector>
