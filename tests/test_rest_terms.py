@@ -32,7 +32,7 @@ from torch_diffavatar.opening_lengths import (
     rest_loop_shares,
 )
 from torch_diffavatar.pattern import load_template, mesh_pattern
-from torch_diffavatar.rest_terms import fused_rest_terms, rest_kernels_available
+from torch_diffavatar.rest_terms import fused_rest_terms, opening_slots, rest_kernels_available
 from torch_diffavatar.sim.ops import extension_op
 
 pytestmark = pytest.mark.skipif(not has_extension(), reason="C++ extension not built")
@@ -59,11 +59,9 @@ def _openings(garment, uv0):
 
 def _openings_call(garment, uv0, dtype, w_length, w_split):
     edges, panels, shares, least = _openings(garment, uv0)
-    offsets = [0, *torch.tensor([len(s) for s in shares]).cumsum(0).tolist()]
-    slot = torch.cat([p + o for p, o in zip(panels, offsets, strict=False)])
-    slot_opening = torch.cat([torch.full((len(s),), k) for k, s in enumerate(shares)])
-    tables = (least.to(dtype), torch.cat(shares).to(dtype))
-    return ("rest_openings", (torch.cat(edges), slot, slot_opening, *tables, w_length, w_split))
+    edges, slot, slot_opening, shares = opening_slots(edges, panels, shares)
+    tables = (least.to(dtype), shares.to(dtype))
+    return ("rest_openings", (edges, slot, slot_opening, *tables, w_length, w_split))
 
 
 def _calls(garment, uv0, dtype=F64, w=(2.0, 3.0, 5.0, 7.0, 11.0, 13.0)):

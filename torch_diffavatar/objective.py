@@ -15,7 +15,6 @@ drives the same objective with guards, a proximal rest step, logging and checkpo
 
 from __future__ import annotations
 
-import itertools
 import math
 from dataclasses import dataclass, field, fields, replace
 
@@ -54,7 +53,12 @@ from torch_diffavatar.opening_lengths import (
     scan_loop_length,
 )
 from torch_diffavatar.pattern.garment_mesh import BoundaryLoop, GarmentMesh
-from torch_diffavatar.rest_terms import RestKernelCall, fused_rest_terms, rest_kernels_available
+from torch_diffavatar.rest_terms import (
+    RestKernelCall,
+    fused_rest_terms,
+    opening_slots,
+    rest_kernels_available,
+)
 from torch_diffavatar.sim.material import ClothMaterial
 from torch_diffavatar.sim.model import ClothModel, ClothModelBuilder
 from torch_diffavatar.sim.state import ClothState
@@ -595,11 +599,11 @@ class FitObjective(nn.Module):
             calls.append(("rest_triangle_hinges", darts))
         w_length, w_split = max(w_length, 0.0), max(w_split, 0.0)
         if self.opening_edges and (w_length > 0 or w_split > 0):
-            offsets = [0, *itertools.accumulate(len(s) for s in self.opening_shares)]
-            slot = torch.cat([p + o for p, o in zip(self.opening_panels, offsets, strict=False)])
-            slot_opening = torch.cat([torch.full((len(s),), k) for k, s in enumerate(self.opening_shares)])
-            index = [cpu(t, False) for t in (torch.cat(self.opening_edges), slot, slot_opening)]
-            tables = (cpu(self.opening_least), cpu(torch.cat(self.opening_shares)))
+            edges, slot, slot_opening, shares = opening_slots(
+                self.opening_edges, self.opening_panels, self.opening_shares
+            )
+            index = [cpu(t, False) for t in (edges, slot, slot_opening)]
+            tables = (cpu(self.opening_least), cpu(shares))
             calls.append(("rest_openings", (*index, *tables, w_length, w_split)))
         return calls
 

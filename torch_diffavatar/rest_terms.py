@@ -17,6 +17,7 @@ caller may use it.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 
 import torch
@@ -24,7 +25,7 @@ from torch.autograd.function import once_differentiable
 
 from torch_diffavatar.sim.ops import extension_op
 
-__all__ = ["RestKernelCall", "fused_rest_terms", "rest_kernels_available"]
+__all__ = ["RestKernelCall", "fused_rest_terms", "opening_slots", "rest_kernels_available"]
 
 # (kernel name, its arguments after ``uv``): e.g. ("rest_seam_length", (segments, weight))
 RestKernelCall = tuple[str, tuple]
@@ -41,6 +42,20 @@ def rest_kernels_available(rest_uv: torch.Tensor) -> bool:
         and rest_uv.dtype in (torch.float32, torch.float64)
         and all(extension_op(name) is not None for name in KERNELS)
     )
+
+
+def opening_slots(
+    edges: Sequence[torch.Tensor], panels: Sequence[torch.Tensor], shares: Sequence[torch.Tensor]
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The openings as ``rest_openings`` takes them: every opening's (L_k, 2) rest ``edges``, the panel of
+    each edge numbered within its opening (``panels``, `opening_lengths.rest_loop_panels`) and the
+    template's share of each of its panels (``shares``, `opening_lengths.rest_loop_shares`) become the
+    edges of all (L, 2), each edge's slot (L,) (its panel, numbered over all openings), each slot's opening
+    (S,) and the shares of all slots (S,)."""
+    offsets = itertools.accumulate((len(s) for s in shares), initial=0)
+    slot = torch.cat([p + o for p, o in zip(panels, offsets, strict=False)])
+    slot_opening = torch.cat([torch.full((len(s),), k) for k, s in enumerate(shares)])
+    return torch.cat(list(edges)), slot, slot_opening, torch.cat(list(shares))
 
 
 class _FusedRestTerms(torch.autograd.Function):
