@@ -11,7 +11,7 @@ import pytest
 
 from torch_diffavatar.errors import ScanError
 from torch_diffavatar.geometry import yaw_rotation
-from torch_diffavatar.scan import Scan, check_scan_frame, save_ply
+from torch_diffavatar.scan import UP_AXES, Scan, check_scan_frame, save_ply
 from torch_diffavatar.scan_intake import (
     find_floor,
     infer_units,
@@ -129,18 +129,34 @@ def test_units_not_inferable_and_bad_options_are_one_line_errors(tmp_path):
         intake_scan(path, units="inch")
 
 
-def test_floor_heavy_scan_in_cm_y_down(tmp_path):
+@pytest.mark.parametrize("up", ["-y", "z", "-z"])
+def test_floor_heavy_scan_in_cm_up_found_from_the_floor(tmp_path, up):
     """Half the points on a wide floor: the frame check must not say "wrong --up" once it is removed, and
-    Y down is found from the floor lying above the person."""
+    the up axis (Y down; Z up, as Blender saves; Z down) is found from the floor under the person."""
     points, kind = _standing(np.random.default_rng(6), floor=12000, floor_side=3.0)
     assert any("wider" in w for w in check_scan_frame(points))  # what the check says before the intake
     path = tmp_path / "scan.ply"
-    save_ply(path, points * [100.0, -100.0, -100.0], int_properties={"label": kind}, binary=True)
+    save_ply(path, points @ UP_AXES[up] * 100.0, int_properties={"label": kind}, binary=True)
     scan, report = intake_scan(path)
-    assert report.up == "-y" and report.units == "cm"
+    assert report.up == up and report.units == "cm"
+    assert any(m.startswith(f"up axis: {up} ") for m in report.messages)
     assert report.floor is not None and report.warnings == []
     assert not np.isin(scan.labels, [FLOOR, NOISE]).any()
     assert scan.points[:, 1].max() == pytest.approx(1.7, abs=0.02)
+
+
+def test_a_person_along_z_with_no_floor_is_refused_naming_the_axis(tmp_path):
+    """With no floor nothing tells up from down: Y stays, and the shape check names --up z (without
+    --units the height along Y already fails, naming --up)."""
+    points, _ = _standing(np.random.default_rng(8), floor=0, noise=0)
+    path = tmp_path / "scan.ply"
+    save_ply(path, points @ UP_AXES["z"], binary=True)
+    with pytest.raises(ScanError, match="--up z"):
+        intake_scan(path, units="m")
+    with pytest.raises(ScanError, match="--up if the person is not along Y"):
+        intake_scan(path)
+    save_ply(path, points, binary=True)  # the same person, Y up, no floor: Y
+    assert intake_scan(path)[1].up == "y"
 
 
 @pytest.mark.anny

@@ -7,7 +7,8 @@
    so (`recentre_far_points`);
 1. infers its length unit from its height when none is given (`infer_units`), and says so; refuses a
    height no person has in the unit given (`check_height`);
-2. with no up axis given, takes Y up, or Y down when the floor is found above the person (and says so);
+2. with no up axis given, takes Y up, or Y down when the floor is found above the person, or Z or -Z when
+   the floor is found under a standing person along it and Y shows none (and says so; `_choose_up`);
 3. finds the floor as a plane (`find_floor`: RANSAC among the lowest points, a tilt up to
    `MAX_FLOOR_TILT_DEG` allowed) and removes it (`remove_floor_plane`): every point less than a margin
    above the plane (3 robust sigmas of the floor's own scatter, at least `FLOOR_MARGIN_MIN`), and the
@@ -459,7 +460,8 @@ def intake_scan(
     Args:
         path: the scan file (`scan.load_scan`).
         units: the file's unit (`scan.UNITS`), or None to infer it from the height.
-        up: the file's up axis (`scan.UP_AXES`), or None: "y", or "-y" when the floor lies above the person.
+        up: the file's up axis (`scan.UP_AXES`), or None: "y", or "-y" when the floor lies above the person,
+            or "z" / "-z" when the floor lies under a standing person along it (`_choose_up`).
         clean: remove the floor, clutter and outliers (else only convert the frame).
         cluster_radius: the `largest_cluster` radius [m].
         max_points: a scan with more points is thinned to a seeded random subset this large first (said in
@@ -533,14 +535,37 @@ def _recentre(scan: Scan, report: IntakeReport, path) -> Scan:
 
 
 def _choose_up(scan: Scan, report: IntakeReport) -> Scan:
-    """With no up axis given: Y up, unless a floor lies above the person and none below (Y down)."""
-    height = max(robust_height(scan.points), 1e-9)
-    unit = scan.points / height * 1.7  # a scale-free look: a person of 1.7 m, whatever the unit
-    if find_floor(unit) is None and find_floor(unit @ UP_AXES["-y"].T) is not None:
-        report.up = "-y"
-        report.messages.append("up axis: -y (the floor lies above the person; pass --up to override)")
-        return replace(scan, points=scan.points @ UP_AXES["-y"].T)
-    return scan
+    """With no up axis given: the first of Y, -Y, Z, -Z along which a floor lies under a standing person's
+    shape (`person_shape` within `PERSON_DEPTH_WARN` above the floor); a capture saved Z up, as Blender and
+    many photogrammetry tools save them, is found so. Where none does, Y, or -Y when a floor lies above the
+    person along Y and none below; a person lying along Z is then refused by `check_person_shape`, which
+    names --up z (with no floor, nothing tells up from down)."""
+    floors: dict[str, tuple[np.ndarray, Floor | None]] = {}
+
+    def floor_along(axis: str) -> tuple[np.ndarray, Floor | None]:
+        if axis not in floors:
+            turned = _as_tall_as_a_person(scan.points @ UP_AXES[axis].T)
+            floors[axis] = turned, find_floor(turned)
+        return floors[axis]
+
+    def standing(axis: str) -> bool:
+        turned, floor = floor_along(axis)
+        return floor is not None and person_shape(turned[floor.height(turned) > 0.05]) <= PERSON_DEPTH_WARN
+
+    axis = next((a for a in ("y", "-y", "z", "-z") if standing(a)), None)
+    if axis is None:
+        axis = "-y" if floor_along("y")[1] is None and floor_along("-y")[1] is not None else "y"
+    if axis == "y":
+        return scan
+    where = "above the person" if axis == "-y" else f"under a standing person along {axis.upper()}"
+    report.up = axis
+    report.messages.append(f"up axis: {axis} (the floor lies {where}; pass --up to override)")
+    return replace(scan, points=scan.points @ UP_AXES[axis].T)
+
+
+def _as_tall_as_a_person(points: np.ndarray) -> np.ndarray:
+    """(N, 3) Y-up ``points`` scaled to a robust height of 1.7 m: a scale-free look, whatever the unit."""
+    return points / max(robust_height(points), 1e-9) * 1.7
 
 
 def _clean(scan: Scan, report: IntakeReport, cluster_radius: float) -> Scan:

@@ -62,7 +62,8 @@ def add_frame_args(parser) -> None:
         "--up",
         default=None,
         choices=tuple(UP_AXES),
-        help="up axis of the scan file (default: y, or -y when the floor is on top)",
+        help="up axis of the scan file (default: from the floor: y, -y when it is on top, z or -z when it "
+        "lies under the person along Z)",
     )
 
 
