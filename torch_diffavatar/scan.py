@@ -113,14 +113,24 @@ def _read_geometry(path: Path):
         if not parts:
             raise ScanError(f"{path}: the scan has no points (the file holds no geometry)")
         meshes = [g for g in parts if isinstance(g, trimesh.Trimesh)]
+        for mesh in meshes:  # the parts' textures as vertex colours: concatenating them would pack images
+            if mesh.visual.kind == "texture":
+                mesh.visual = mesh.visual.to_color()
         geom = trimesh.util.concatenate(meshes) if len(meshes) == len(parts) else parts[0]
     return geom
 
 
 def _colors_of(geom, count: int) -> np.ndarray | None:
+    """(count, 3) uint8 per-point colours of a trimesh geometry: its vertex colours, a point cloud's colours,
+    or a texture's colours at the vertices (photogrammetry meshes carry their colour as a texture: OBJ + MTL
+    + image, GLB); None without colour (a texture without an image gives one colour everywhere: none)."""
     colors = None
     visual = getattr(geom, "visual", None)
-    if visual is not None and getattr(visual, "kind", None) == "vertex":
+    kind = getattr(visual, "kind", None)
+    if kind == "texture":
+        colors = np.asarray(visual.to_color().vertex_colors)  # the image at each vertex's UV
+        colors = None if colors.ndim != 2 or (colors == colors[:1]).all() else colors
+    elif kind == "vertex":
         colors = np.asarray(visual.vertex_colors)
     elif getattr(geom, "colors", None) is not None and len(geom.colors) == count:
         colors = np.asarray(geom.colors)

@@ -57,6 +57,44 @@ def test_obj_mesh_and_faces(tmp_path):
     assert kept.faces.shape == (1, 3)
 
 
+def _textured_cylinder(top_rgb, bottom_rgb, shift=0.0):
+    """A cylinder (r = 0.3 m, 1.6 m tall, Y up) textured with ``top_rgb`` above y = 0.8 + ``shift`` and
+    ``bottom_rgb`` below: its UVs' v is the height, its image two bands."""
+    import trimesh
+    from PIL import Image
+
+    mesh = trimesh.creation.cylinder(radius=0.3, height=1.6, sections=48)
+    mesh.vertices = mesh.vertices[:, [0, 2, 1]] + [shift, 0.8, 0.0]  # Y up, standing on y = 0
+    y = mesh.vertices[:, 1]
+    uv = np.stack([np.arctan2(mesh.vertices[:, 2], mesh.vertices[:, 0]) / (2 * np.pi) % 1.0, y / 1.6], 1)
+    image = np.zeros((32, 32, 3), np.uint8)
+    image[:16], image[16:] = top_rgb, bottom_rgb  # row 0 is v = 1, the top
+    mesh.visual = trimesh.visual.TextureVisuals(uv=uv, image=Image.fromarray(image))
+    return mesh
+
+
+@pytest.mark.parametrize("suffix", [".obj", ".glb"])
+def test_a_textured_mesh_gives_its_colours_at_the_vertices(tmp_path, suffix):
+    """Photogrammetry meshes carry their colour as a texture (OBJ + MTL + image, GLB): the scan's colours
+    are the image at each vertex's UV (they were None, and the fit segmented without colour); a GLB of
+    two textured parts keeps each part's colours."""
+    import trimesh
+
+    parts = [_textured_cylinder((200, 30, 30), (20, 20, 220))]
+    if suffix == ".glb":
+        parts.append(_textured_cylinder((240, 240, 240), (10, 10, 10), shift=1.0))
+    path = tmp_path / f"scan{suffix}"
+    (trimesh.Scene(parts) if len(parts) > 1 else parts[0]).export(path)
+    scan = load_scan(path, check=False)
+    assert scan.colors is not None and scan.colors.shape == (scan.point_count, 3)
+    y, near = scan.points[:, 1], scan.points[:, 0] < 0.5
+    for part, (top, bottom) in zip((near, ~near), (((200, 30, 30), (20, 20, 220)), ((240,) * 3, (10,) * 3))):
+        if part.any():
+            np.testing.assert_array_equal(np.unique(scan.colors[part & (y > 1.2)], axis=0), [top])
+            np.testing.assert_array_equal(np.unique(scan.colors[part & (y < 0.4)], axis=0), [bottom])
+    assert (~near).any() == (suffix == ".glb")
+
+
 @pytest.mark.anny
 def test_frame_warnings(default_body):
     from torch_diffavatar.body.synthetic import sample_surface
