@@ -159,6 +159,31 @@ def test_a_person_along_z_with_no_floor_is_refused_naming_the_axis(tmp_path):
     assert intake_scan(path)[1].up == "y"
 
 
+@pytest.mark.parametrize("up", ["-y", "z", "-z"])
+def test_a_front_capture_sees_its_front_whatever_its_up_axis(tmp_path, up):
+    """The sensor's normals turn with the points: a front-only capture saved Y down (or Z up, Z down) is
+    seen from the same sides as saved Y up. They did not turn, and a Y-down front capture was taken for
+    one seen from behind, and its back pulled toward the scan."""
+    import trimesh
+
+    from torch_diffavatar.capture import CaptureSettings, SceneMesh, capture_scene
+
+    turn = trimesh.transformations.rotation_matrix(math.pi / 2, [1, 0, 0])
+    column = trimesh.creation.cylinder(radius=0.2, height=1.7, sections=48, transform=turn)
+    column.apply_translation([0.0, 0.85, 0.0])
+    person = SceneMesh(np.asarray(column.vertices), np.asarray(column.faces), 0, (200, 150, 120))
+    seen = {}
+    for axis in ("y", up):
+        s = CaptureSettings(layout="front", units="cm", up=axis, yaw_deg=60.0, width=320, height=240)
+        captured = capture_scene([person], s, np.random.default_rng(9))
+        path = tmp_path / f"scan{axis}.ply"
+        save_ply(path, captured.points, normals=captured.normals, binary=True)
+        scan, report = intake_scan(path)
+        assert report.up == axis
+        seen[axis] = report.coverage["seen"]
+    assert 3 <= sum(seen["y"]) <= 5 and seen[up] == seen["y"]
+
+
 @pytest.mark.anny
 @pytest.mark.slow
 def test_ring_capture_turned_in_cm_y_down_fits(anny_model, tmp_path):

@@ -560,7 +560,10 @@ def _choose_up(scan: Scan, report: IntakeReport) -> Scan:
     where = "above the person" if axis == "-y" else f"under a standing person along {axis.upper()}"
     report.up = axis
     report.messages.append(f"up axis: {axis} (the floor lies {where}; pass --up to override)")
-    return replace(scan, points=scan.points @ UP_AXES[axis].T)
+    turn = UP_AXES[axis].T
+    return replace(
+        scan, points=scan.points @ turn, normals=None if scan.normals is None else scan.normals @ turn
+    )
 
 
 def _as_tall_as_a_person(points: np.ndarray) -> np.ndarray:
