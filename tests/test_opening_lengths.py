@@ -304,3 +304,60 @@ def test_a_partial_scan_holds_an_opening_no_shorter_than_the_template():
     lengths = fit_report.opening_lengths(none, none.template_uv, none.template_uv)
     assert lengths["hem"]["scan"] is None and lengths["hem"]["least"] == pytest.approx(template, rel=1e-6)
     assert FitObjective(garment, ScanTarget(half, {"hem": few}), cfg, dtype=torch.float64).opening_names == []
+
+
+def test_a_neck_held_no_shorter_than_the_template_whatever_the_scan_shows():
+    """``opening_template_names``: the scan cannot measure a neck, and the fits shrank necks they started
+    right through the curvature term's local scale. Held at the template's whether or not the scan shows a
+    neck: a smaller neck pays and its gradient widens it, a larger one pays nothing; the report records it
+    as the template's (``template``; no ``scan`` length, no ``seen``: valid JSON) and a partial scan's
+    warning does not name it among the openings the scan shows too little of."""
+    import json
+    from dataclasses import replace
+
+    from helpers_fit import fit_config
+
+    from torch_diffavatar import fit_report
+    from torch_diffavatar.fit_config import LossWeights
+    from torch_diffavatar.objective import FitObjective, ScanTarget
+    from torch_diffavatar.pattern import load_template, mesh_pattern
+
+    garment = mesh_pattern(load_template("tshirt"), spacing=0.08)
+    neck = next(lp for lp in garment.boundary_loops if lp.name == "neck")
+    edges = rest_loop_edges(garment, neck)
+    template = float(rest_loop_length(garment.vert_uv.double(), edges))
+    small = torch.as_tensor(_ring(0.6 * template / (2 * math.pi), n=600)[0])  # a scan neck 40 % short
+    cfg = fit_config(weights=replace(LossWeights(), opening_length=1000.0), opening_template_names=["neck"])
+    assert cfg.opening_template_names == ("neck",)
+    seen = torch.tensor([True] * 4 + [False] * 4)
+    for boundaries, sides in (({"neck": small}, None), ({}, None), ({"neck": small}, seen)):
+        objective = FitObjective(
+            garment, ScanTarget(small, boundaries, seen_sides=sides), cfg, dtype=torch.float64
+        )
+        assert "neck" in objective.opening_names
+        k = objective.opening_names.index("neck")
+        assert float(objective.opening_least[k]) == pytest.approx(template, rel=1e-9)
+    assert (
+        "neck"
+        not in FitObjective(
+            garment, ScanTarget(small, {"neck": small}), fit_config(), dtype=torch.float64
+        ).opening_names
+    )
+    uv = objective.template_uv.clone()
+    centre = uv[neck.vertices].mean(0)
+    for scale, pays in ((0.9, True), (1.1, False)):
+        moved = uv.clone()
+        moved[neck.vertices] = centre + scale * (uv[neck.vertices] - centre)
+        moved.requires_grad_()
+        term = objective.rest_terms(moved)["opening_length"]
+        assert (float(term.detach()) > 0) == pays
+        if pays:
+            term.backward()
+            wider = moved.detach() - 0.01 * moved.grad
+            assert float(rest_loop_length(wider, edges)) > float(rest_loop_length(moved.detach(), edges))
+    lengths = fit_report.opening_lengths(objective, uv, uv)
+    assert lengths["neck"]["template"] and lengths["neck"]["scan"] is None and lengths["neck"]["seen"] is None
+    json.dumps(lengths, allow_nan=False)
+    report = {"chamfer_final": 0.0, "boundary_chamfer_final": {}, "opening_lengths": lengths}
+    coverage = {"sectors_seen": 4, "sectors": 8}
+    assert not any("neck" in w for w in fit_report.scan_warnings(report, small, coverage))

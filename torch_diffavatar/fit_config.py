@@ -222,6 +222,12 @@ class FitConfig:
             ``weights.opening_length`` holds no shorter than the scan's points of them trace: the hems
             by default; a trouser config adds its ``waist`` (its waistband lies on the body, a ring the
             scan traces well: on a Newton-made pair the fit narrowed it by 11 cm without).
+        opening_template_names: openings that ``weights.opening_length`` holds no shorter than the
+            template's (and whose split between the panels ``weights.opening_split`` holds), whatever the
+            scan shows: openings the scan cannot measure. The tops' necks: the scan's points there are the
+            neckline's and the skin's, and the fits shrank necks they started right by up to 4.7 cm
+            through the curvature term's local scale (docs/BENCHMARKS.md, "What shrinks the tops'
+            necks"); a neck may still grow.
         opening_length_bin: the bin length [m] along a scan opening of `opening_lengths.scan_loop_length`.
         opening_length_tolerance: the fraction [0, 1) of a scan hem's traced length that a fitted hem may
             fall short of it before ``weights.opening_length`` holds it.
@@ -311,6 +317,7 @@ class FitConfig:
     boundary_gap_bin: float = 0.0
     boundary_samples: int = 2
     opening_length_names: tuple[str, ...] = HEM_OPENINGS
+    opening_template_names: tuple[str, ...] = ()
     opening_length_bin: float = 0.02
     opening_length_tolerance: float = 0.0
     min_rest_area_ratio: float = 0.1
@@ -408,12 +415,13 @@ class FitConfig:
         self._check_numbers()
 
     def _check_opening_lengths(self) -> None:
-        """ValueError for bad ``opening_length_*`` settings; stores ``opening_length_names`` as a tuple."""
-        names = self.opening_length_names
-        if isinstance(names, list | tuple) and all(isinstance(n, str) and n for n in names):
-            object.__setattr__(self, "opening_length_names", tuple(names))  # YAML gives a list
-        else:
-            raise ValueError(f"FitConfig.opening_length_names must be a list of opening names, got {names!r}")
+        """ValueError for bad ``opening_length_*`` settings; stores the opening lists as tuples."""
+        for field_name in ("opening_length_names", "opening_template_names"):
+            names = getattr(self, field_name)
+            if isinstance(names, list | tuple) and all(isinstance(n, str) and n for n in names):
+                object.__setattr__(self, field_name, tuple(names))  # YAML gives a list
+            else:
+                raise ValueError(f"FitConfig.{field_name} must be a list of opening names, got {names!r}")
         if not 0.0 <= self.opening_length_tolerance < 1.0:
             raise ValueError(
                 f"FitConfig.opening_length_tolerance must be in [0, 1), got {self.opening_length_tolerance}"

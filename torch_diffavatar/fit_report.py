@@ -145,13 +145,14 @@ def fit_report(first: dict, final: dict, objective: FitObjective, run: dict) -> 
 
 
 def opening_lengths(objective: FitObjective, first_uv: torch.Tensor, final_uv: torch.Tensor) -> dict:
-    """Each held opening's length [m] (``config.opening_length_names``: the hems, a trouser waist) as the
-    scan's points trace it (``scan``: a lower bound, `torch_diffavatar.opening_lengths`; None where they
-    trace none) and the share of the loop they show (``seen``, 0-1: its angular bins with points), the
-    least the fit held it to (``least``: on a partial scan no less than the template's; ``held``: whether
-    the term was on, ``weights.opening_length`` > 0), and as the pattern's rest edges give it at the first
-    (``initial``) and at the resulting rest coordinates ``first_uv``, ``final_uv`` (V, 2) [m] (``final``):
-    opening name -> those six."""
+    """Each held opening's length [m] (``config.opening_length_names``: the hems, a trouser waist; and
+    ``config.opening_template_names``, ``template`` true: held at the template's, the scan not asked) as
+    the scan's points trace it (``scan``: a lower bound, `torch_diffavatar.opening_lengths`; None where
+    they trace none) and the share of the loop they show (``seen``, 0-1: its angular bins with points;
+    None where not asked), the least the fit held it to (``least``: on a partial scan no less than the
+    template's; ``held``: whether the term was on, ``weights.opening_length`` > 0), and as the pattern's
+    rest edges give it at the first (``initial``) and at the resulting rest coordinates ``first_uv``,
+    ``final_uv`` (V, 2) [m] (``final``): opening name -> those seven."""
     out = {}
     on = bool(objective.weight_opening_length > 0)
     held = zip(
@@ -164,7 +165,8 @@ def opening_lengths(objective: FitObjective, first_uv: torch.Tensor, final_uv: t
     for k, (name, traced, seen, edges) in enumerate(held):
         out[name] = {
             "scan": traced if math.isfinite(traced) else None,
-            "seen": float(seen),
+            "seen": float(seen) if math.isfinite(seen) else None,
+            "template": name in objective.config.opening_template_names,
             "least": float(objective.opening_least[k]),
             "held": on,
             "initial": float(rest_loop_length(first_uv.detach(), edges)),
@@ -237,7 +239,9 @@ def scan_warnings(report: dict, garment_points: torch.Tensor, coverage: dict | N
     )
     # the openings the scan shows too little of to measure: held at the template's length at least
     unmeasured = [
-        n for n, v in held.items() if v.get("held", True) and (v["scan"] is None or v["scan"] < v["least"])
+        n
+        for n, v in held.items()
+        if v.get("held", True) and not v.get("template") and (v["scan"] is None or v["scan"] < v["least"])
     ]
     if unmeasured:
         names = ", ".join(unmeasured)

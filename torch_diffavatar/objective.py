@@ -424,30 +424,36 @@ class FitObjective(nn.Module):
 
     def _register_opening_lengths(self, target: ScanTarget, dtype: torch.dtype) -> None:
         """The K matched openings of ``config.opening_length_names`` held no shorter than the scan shows
-        them: ``opening_names``, ``opening_traced`` (K floats [m]: the length the scan's points trace,
-        `scan_loop_length` with the placed garment's opening its reference; nan where they trace none),
-        ``opening_seen`` (K floats: the share of the loop's angular bins that hold scan points),
-        ``opening_edges`` (their rest edges, `rest_loop_edges`) and the buffer ``opening_least`` (K,) [m],
-        the traced lengths less ``config.opening_length_tolerance``; on a partial scan (``seen_sides``) no
-        less than the template's either. ``opening_panels`` and ``opening_shares``: the panel of each rest
-        edge and the template's split of each opening between its panels (`rest_loop_shares`)."""
+        them, and those of ``config.opening_template_names`` no shorter than the template's:
+        ``opening_names``, ``opening_traced`` (K floats [m]: the length the scan's points trace,
+        `scan_loop_length` with the placed garment's opening its reference; nan where they trace none or
+        are not asked), ``opening_seen`` (K floats: the share of the loop's angular bins that hold scan
+        points; nan where not asked), ``opening_edges`` (their rest edges, `rest_loop_edges`) and the buffer
+        ``opening_least`` (K,) [m], the traced lengths less ``config.opening_length_tolerance``; on a
+        partial scan (``seen_sides``), and for the template's openings, no less than the template's
+        either. ``opening_panels`` and ``opening_shares``: the panel of each rest edge and the template's
+        split of each opening between its panels (`rest_loop_shares`)."""
         cfg = self.config
         self.opening_names, self.opening_traced, self.opening_seen, self.opening_edges = [], [], [], []
         placed = self.garment.sim_positions().detach().double()
         least = []
-        for loop in self.loops:
-            if loop.name not in cfg.opening_length_names:
+        for loop in self.garment.boundary_loops:
+            measured = loop.name in cfg.opening_length_names and loop.name in self.boundary_names
+            held = loop.name in cfg.opening_template_names
+            if not (measured or held):
                 continue
-            # the placed garment's own opening: where the scan shows the loop in part (a hole over a hem),
-            # its curve bridges the gap
-            length, seen = scan_loop_length(
-                target.boundaries[loop.name],
-                bin_length=cfg.opening_length_bin,
-                reference=placed[loop.vertices],
-            )
+            length, seen = math.nan, math.nan
+            if measured:
+                # the placed garment's own opening: where the scan shows the loop in part (a hole over a
+                # hem), its curve bridges the gap
+                length, seen = scan_loop_length(
+                    target.boundaries[loop.name],
+                    bin_length=cfg.opening_length_bin,
+                    reference=placed[loop.vertices],
+                )
             edges = rest_loop_edges(self.garment, loop)
             bound = length * (1.0 - cfg.opening_length_tolerance)
-            if self.seen_sides is not None:
+            if self.seen_sides is not None or held:
                 # A scan from one side shows half a hem at most, and the fits narrowed what it did not show
                 # (a front-only dress's hem 28.7 cm short, the template's 12.5): what the scan cannot show,
                 # the fit does not take in.
