@@ -8,7 +8,8 @@
 1. infers its length unit from its height when none is given (`infer_units`), and says so; refuses a
    height no person has in the unit given (`check_height`);
 2. with no up axis given, takes Y up, or Y down when the floor is found above the person, or Z or -Z when
-   the floor is found under a standing person along it and Y shows none (and says so; `_choose_up`);
+   a floor is found under a standing person along it and along neither Y nor -Y (and says so;
+   `_choose_up`);
 3. finds the floor as a plane (`find_floor`: RANSAC among the lowest points, a tilt up to
    `MAX_FLOOR_TILT_DEG` allowed) and removes it (`remove_floor_plane`): every point less than a margin
    above the plane (3 robust sigmas of the floor's own scatter, at least `FLOOR_MARGIN_MIN`), and the
@@ -540,21 +541,16 @@ def _choose_up(scan: Scan, report: IntakeReport) -> Scan:
     many photogrammetry tools save them, is found so. Where none does, Y, or -Y when a floor lies above the
     person along Y and none below; a person lying along Z is then refused by `check_person_shape`, which
     names --up z (with no floor, nothing tells up from down)."""
-    floors: dict[str, tuple[np.ndarray, Floor | None]] = {}
-
-    def floor_along(axis: str) -> tuple[np.ndarray, Floor | None]:
-        if axis not in floors:
-            turned = _as_tall_as_a_person(scan.points @ UP_AXES[axis].T)
-            floors[axis] = turned, find_floor(turned)
-        return floors[axis]
+    floors: dict[str, Floor | None] = {}  # the floor under the points along each axis tried
 
     def standing(axis: str) -> bool:
-        turned, floor = floor_along(axis)
+        turned = _as_tall_as_a_person(scan.points @ UP_AXES[axis].T)
+        floor = floors[axis] = find_floor(turned)
         return floor is not None and person_shape(turned[floor.height(turned) > 0.05]) <= PERSON_DEPTH_WARN
 
     axis = next((a for a in ("y", "-y", "z", "-z") if standing(a)), None)
-    if axis is None:
-        axis = "-y" if floor_along("y")[1] is None and floor_along("-y")[1] is not None else "y"
+    if axis is None:  # every axis tried: no floor under a standing person
+        axis = "-y" if floors["y"] is None and floors["-y"] is not None else "y"
     if axis == "y":
         return scan
     where = "above the person" if axis == "-y" else f"under a standing person along {axis.upper()}"
