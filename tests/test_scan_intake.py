@@ -145,6 +145,23 @@ def test_floor_heavy_scan_in_cm_up_found_from_the_floor(tmp_path, up):
     assert scan.points[:, 1].max() == pytest.approx(1.7, abs=0.02)
 
 
+def test_a_person_holding_a_board_out_in_front_stays_y_up(tmp_path):
+    """No floor, forearms 1 m forward holding a 30 × 50 cm board: along Z the board is a floor under a
+    standing person's shape, but along Y the scan is a standing person, so Y stays (a posed Anny body in a
+    T-shirt, saved as a mesh without a floor, was turned to -Z and its fit failed)."""
+    rng = np.random.default_rng(10)
+    parts = [_standing(rng, floor=0, noise=0)[0]]
+    for x in (-0.12, 0.12):
+        a, z = rng.uniform(0, 2 * math.pi, 2000), rng.uniform(0.0, 1.0, 2000)
+        parts.append(np.stack([x + 0.04 * np.sin(a), 1.0 + 0.04 * np.cos(a), z], 1))
+    board = rng.uniform(-0.5, 0.5, (3000, 2))
+    parts.append(np.stack([0.3 * board[:, 0], 1.0 + 0.5 * board[:, 1], np.full(3000, 1.02)], 1))
+    path = tmp_path / "scan.ply"
+    save_ply(path, np.concatenate(parts), binary=True)
+    scan, report = intake_scan(path)
+    assert report.up == "y" and not any(m.startswith("up axis") for m in report.messages)
+
+
 def test_a_person_along_z_with_no_floor_is_refused_naming_the_axis(tmp_path):
     """With no floor nothing tells up from down: Y stays, and the shape check names --up z (without
     --units the height along Y already fails, naming --up)."""

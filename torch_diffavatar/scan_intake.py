@@ -536,11 +536,12 @@ def _recentre(scan: Scan, report: IntakeReport, path) -> Scan:
 
 
 def _choose_up(scan: Scan, report: IntakeReport) -> Scan:
-    """With no up axis given: the first of Y, -Y, Z, -Z along which a floor lies under a standing person's
-    shape (`person_shape` within `PERSON_DEPTH_WARN` above the floor); a capture saved Z up, as Blender and
-    many photogrammetry tools save them, is found so. Where none does, Y, or -Y when a floor lies above the
-    person along Y and none below; a person lying along Z is then refused by `check_person_shape`, which
-    names --up z (with no floor, nothing tells up from down)."""
+    """With no up axis given: the first of Y, -Y (and, where the points are no standing person's shape
+    along Y, Z, -Z) along which a floor lies under a standing person's shape (`person_shape` within
+    `PERSON_DEPTH_WARN` above the floor); a capture saved Z up, as Blender and many photogrammetry tools
+    save them, is found so. Where none does, Y, or -Y when a floor lies above the person along Y and none
+    below; a person lying along Z is then refused by `check_person_shape`, which names --up z (with no
+    floor, nothing tells up from down)."""
     floors: dict[str, Floor | None] = {}  # the floor under the points along each axis tried
 
     def standing(axis: str) -> bool:
@@ -548,7 +549,11 @@ def _choose_up(scan: Scan, report: IntakeReport) -> Scan:
         floor = floors[axis] = find_floor(turned)
         return floor is not None and person_shape(turned[floor.height(turned) > 0.05]) <= PERSON_DEPTH_WARN
 
-    axis = next((a for a in ("y", "-y", "z", "-z") if standing(a)), None)
+    # Z only where the scan is no standing person along Y: a person holding something out in front has a
+    # floor-like plane and a standing person's shape along Z too
+    standing_along_y = person_shape(_as_tall_as_a_person(scan.points)) <= PERSON_DEPTH_WARN
+    axes = ("y", "-y") if standing_along_y else ("y", "-y", "z", "-z")
+    axis = next((a for a in axes if standing(a)), None)
     if axis is None:  # every axis tried: no floor under a standing person
         axis = "-y" if floors["y"] is None and floors["-y"] is not None else "y"
     if axis == "y":
