@@ -158,3 +158,25 @@ def test_stand_on_floor_puts_each_body_s_feet_on_y_0(anny_model):
     shift = (after - before)[..., 1]  # a vertical shift of each whole body, nothing else
     torch.testing.assert_close(shift, shift[:, :1].expand_as(shift), atol=1e-12, rtol=0)
     torch.testing.assert_close((after - before)[..., [0, 2]], torch.zeros_like(after[..., [0, 2]]))
+
+
+def test_an_empty_anny_cache_variable_takes_the_default(monkeypatch):
+    """``ANNY_CACHE_DIR`` set but empty: Anny would put its ~800 MB cache into the working directory (a
+    source checkout, where `git add` takes it); `load_anny` takes Anny's default instead, and leaves a set
+    directory alone."""
+    from anny import paths
+
+    from torch_diffavatar.body.anny_model import _default_cache_for_an_empty_variable
+
+    before = paths.get_anny_cache_path()
+    try:
+        monkeypatch.setenv("ANNY_CACHE_DIR", "")
+        paths.set_anny_cache_path("")  # what Anny makes of the empty variable at import
+        _default_cache_for_an_empty_variable()
+        assert paths.get_anny_cache_path() == paths.DEFAULT_CACHE_PATH
+        monkeypatch.setenv("ANNY_CACHE_DIR", "/tmp/anny-cache-elsewhere")
+        paths.set_anny_cache_path("/tmp/anny-cache-elsewhere")
+        _default_cache_for_an_empty_variable()
+        assert str(paths.get_anny_cache_path()) == "/tmp/anny-cache-elsewhere"
+    finally:
+        paths.set_anny_cache_path(before)

@@ -2,10 +2,14 @@
 
 Every Anny configuration builds its own ~800 MB cache on first use (~80 s), so the whole project uses
 exactly one: the single watertight component (no eyes, no tongue). The cache goes where
-``ANNY_CACHE_DIR`` says (Anny reads that variable itself; default ``~/.cache/anny``).
+``ANNY_CACHE_DIR`` says (Anny reads that variable itself; default ``~/.cache/anny``; set but empty, the
+default too, `_default_cache_for_an_empty_variable`).
 """
 
 from __future__ import annotations
+
+import os
+import pathlib
 
 import torch
 
@@ -24,6 +28,15 @@ def _quiet_warp() -> None:
     warp.config.log_level = warp.LOG_WARNING
 
 
+def _default_cache_for_an_empty_variable() -> None:
+    """Anny reads ``ANNY_CACHE_DIR`` set but empty as the working directory, and writes its ~800 MB cache
+    there (into a source checkout, where `git add` takes it): take its default instead."""
+    from anny import paths
+
+    if os.environ.get("ANNY_CACHE_DIR") == "" and paths.get_anny_cache_path() == pathlib.Path(""):
+        paths.set_anny_cache_path(paths.DEFAULT_CACHE_PATH)
+
+
 def load_anny(dtype: torch.dtype = torch.float64, device: torch.device | str | None = None):
     """Instantiate ``anny.Anny`` in the project's single configuration.
 
@@ -31,6 +44,7 @@ def load_anny(dtype: torch.dtype = torch.float64, device: torch.device | str | N
         an ``anny.Anny`` module (13,348 vertices, 26,692 triangles, 104 bones) on ``device``/``dtype``.
     """
     _quiet_warp()
+    _default_cache_for_an_empty_variable()
     import anny
 
     model = anny.Anny(topology=ANNY_TOPOLOGY)
