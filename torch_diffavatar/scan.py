@@ -113,24 +113,34 @@ def _read_geometry(path: Path):
         if not parts:
             raise ScanError(f"{path}: the scan has no points (the file holds no geometry)")
         meshes = [g for g in parts if isinstance(g, trimesh.Trimesh)]
-        for mesh in meshes:  # the parts' textures as vertex colours: concatenating them would pack images
-            if mesh.visual.kind == "texture":
-                mesh.visual = mesh.visual.to_color()
+        for mesh in meshes:  # before they are joined: concatenating textures would pack their images
+            _texture_as_vertex_colours(mesh)
         geom = trimesh.util.concatenate(meshes) if len(meshes) == len(parts) else parts[0]
+    elif isinstance(geom, trimesh.Trimesh):
+        _texture_as_vertex_colours(geom)
     return geom
 
 
+def _texture_as_vertex_colours(mesh) -> None:
+    """A textured trimesh's colours read at its vertices, in place: photogrammetry meshes carry their
+    colour as a texture (OBJ + MTL + image, GLB). A texture without an image gives one colour everywhere,
+    which tells nothing: then the mesh is left without colours."""
+    import trimesh
+
+    if mesh.visual.kind != "texture":
+        return
+    colours = mesh.visual.to_color()  # the image at each vertex's UV
+    rgb = np.asarray(colours.vertex_colors)
+    uniform = rgb.ndim != 2 or bool((rgb == rgb[:1]).all())
+    mesh.visual = trimesh.visual.ColorVisuals(mesh) if uniform else colours
+
+
 def _colors_of(geom, count: int) -> np.ndarray | None:
-    """(count, 3) uint8 per-point colours of a trimesh geometry: its vertex colours, a point cloud's colours,
-    or a texture's colours at the vertices (photogrammetry meshes carry their colour as a texture: OBJ + MTL
-    + image, GLB); None without colour (a texture without an image gives one colour everywhere: none)."""
+    """(count, 3) uint8 per-point colours of a trimesh geometry: its vertex colours (a texture's, read at
+    the vertices by `_read_geometry`) or a point cloud's colours; None without colour."""
     colors = None
     visual = getattr(geom, "visual", None)
-    kind = getattr(visual, "kind", None)
-    if kind == "texture":
-        colors = np.asarray(visual.to_color().vertex_colors)  # the image at each vertex's UV
-        colors = None if colors.ndim != 2 or (colors == colors[:1]).all() else colors
-    elif kind == "vertex":
+    if visual is not None and getattr(visual, "kind", None) == "vertex":
         colors = np.asarray(visual.vertex_colors)
     elif getattr(geom, "colors", None) is not None and len(geom.colors) == count:
         colors = np.asarray(geom.colors)

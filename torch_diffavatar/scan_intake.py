@@ -551,7 +551,7 @@ def _choose_up(scan: Scan, report: IntakeReport) -> Scan:
 
     # Z only where the scan is no standing person along Y: a person holding something out in front has a
     # floor-like plane and a standing person's shape along Z too
-    standing_along_y = person_shape(_as_tall_as_a_person(scan.points)) <= PERSON_DEPTH_WARN
+    standing_along_y = person_shape(scan.points) <= PERSON_DEPTH_WARN  # a ratio: whatever the unit
     axes = ("y", "-y") if standing_along_y else ("y", "-y", "z", "-z")
     axis = next((a for a in axes if standing(a)), None)
     if axis is None:  # every axis tried: no floor under a standing person
