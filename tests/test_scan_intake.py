@@ -250,6 +250,26 @@ def test_level_arms_are_not_a_floor(tmp_path):
     assert report.up == "y" and report.floor is None
 
 
+@pytest.mark.parametrize(("floor", "up"), [(0, "y"), (8000, "y"), (8000, "-y")])
+def test_arms_held_forward_are_no_floor_upside_down(tmp_path, floor, up):
+    """Both arms held forward at shoulder height: seen upside down, their tops are a plane 65 cm long and
+    50 cm across at the lowest 35 cm, with a standing person's shape beyond it, so a Y-up scan without a
+    floor was turned Y down; the head under that plane tells it from a floor. With a floor, either way up
+    is found from it."""
+    rng = np.random.default_rng(11)
+    parts = [_standing(rng, floor=floor, noise=0)[0]]
+    for x in (-0.22, 0.22):
+        a, z = rng.uniform(0, 2 * math.pi, 3000), rng.uniform(0.05, 0.7, 3000)
+        parts.append(np.stack([x + 0.045 * np.sin(a), 1.40 + 0.045 * np.cos(a), z], 1))
+    points = np.concatenate(parts)
+    assert find_floor(points * [1.0, -1.0, 1.0]) is None  # fails before: the arms' tops were a floor
+    path = tmp_path / "scan.ply"
+    save_ply(path, points @ UP_AXES[up], binary=True)
+    scan, report = intake_scan(path)
+    assert report.up == up and (report.floor is None) == (floor == 0)
+    assert scan.points[:, 1].max() == pytest.approx(1.7, abs=0.02)  # the head on top
+
+
 @pytest.mark.parametrize("yaw", [0.0, 120.0, -75.0])
 def test_facing_from_hips_and_feet(yaw):
     """The stand-in's feet point to +Z: its facing is found turned with it, first of the two opposite

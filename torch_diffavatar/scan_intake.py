@@ -59,6 +59,11 @@ MAX_FLOOR_TILT_DEG = 15.0
 FLOOR_MARGIN_MIN = 0.015  # [m] a floor point this close to the plane is always floor
 FLOOR_BAND = 0.12  # [m] above the floor, only points under the legs' footprint are kept
 FOOTPRINT_REACH = 0.2  # [m] horizontal reach of the feet beyond the shins (toes, heels)
+# a floor has nothing under it: at most this share of the points off a candidate plane may lie more than
+# `FLOOR_BELOW_MIN` (or 4 of its sigmas) below it (stray points, depth noise); the tops of two arms held
+# forward at shoulder height, seen upside down, have the head and neck under them (~10 % of a body)
+FLOOR_BELOW_SHARE = 0.01
+FLOOR_BELOW_MIN = 0.05  # [m]
 SECTORS = 8
 
 
@@ -259,7 +264,8 @@ def find_floor(
     tilted at most `MAX_FLOOR_TILT_DEG`, scored by their points within ``threshold`` [m], then refined
     by least squares on those. A plane counts as a floor when its points reach farther than ``min_span``
     [m] along their principal horizontal axis and half that across it (the soles of a person are flat
-    too, but only ~30 cm long; arms held out level are long but narrow) and number at least 200.
+    too, but only ~30 cm long; arms held out level are long but narrow) and number at least 200, and when
+    hardly any point lies under it (`FLOOR_BELOW_SHARE`: not the top of arms held forward, upside down).
 
     Args:
         points: (N, 3) [m], Y up.
@@ -294,11 +300,16 @@ def find_floor(
     span = np.quantile(flat, 0.98, axis=0) - np.quantile(flat, 0.02, axis=0)
     if len(inl) < 200 or span[1] < min_span or span[0] < 0.5 * min_span or normal[1] < min_cos:
         return None
+    sigma = float(1.4826 * np.median(np.abs(dist - np.median(dist))))
+    height = points @ normal - float(normal @ centre)  # of every point, not only the lowest
+    below = int((height < -max(FLOOR_BELOW_MIN, 4.0 * sigma)).sum())
+    if below > FLOOR_BELOW_SHARE * int((np.abs(height) >= threshold).sum()):
+        return None  # points under it: the top of something, such as arms held forward seen upside down
     return Floor(
         normal=normal,
         offset=float(normal @ centre),
         inliers=int(len(inl)),
-        sigma=float(1.4826 * np.median(np.abs(dist - np.median(dist)))),
+        sigma=sigma,
         tilt_deg=float(math.degrees(math.acos(min(1.0, normal[1])))),
     )
 
