@@ -23,70 +23,48 @@ from pathlib import Path
 import numpy as np
 
 from torch_diffavatar.mesh_io import read_obj
-from torch_diffavatar.render import BODY_COLOR, RenderMesh, render, save_png
+from torch_diffavatar.render import BODY_COLOR, RenderMesh, point_splats, render, save_png
 from torch_diffavatar.scan import load_scan
 from torch_diffavatar.scan_intake import intake_scan
 
 GARMENT = (60, 100, 190)
 
 
-def point_meshes(points: np.ndarray, colors: np.ndarray | None, size: float, view_dir: np.ndarray):
-    """`RenderMesh` splats of ``points`` (N, 3): one triangle of edge ~``size`` facing ``view_dir`` per
-    point, grouped by colour ((N, 3) uint8 quantised to 4 levels a channel; None: grey)."""
-    a = np.cross(view_dir, [0.0, 1.0, 0.0])
-    a /= np.linalg.norm(a)
-    b = np.cross(view_dir, a)
-    corners = size * np.stack([a, -0.5 * a + 0.87 * b, -0.5 * a - 0.87 * b])
-    colors = np.full((len(points), 3), 150, np.uint8) if colors is None else colors
-    bins = (colors // 64).astype(np.int64)
-    key = bins[:, 0] * 16 + bins[:, 1] * 4 + bins[:, 2]
-    out = []
-    for k in np.unique(key):
-        p = points[key == k]
-        verts = (p[:, None, :] + corners[None]).reshape(-1, 3)
-        faces = np.arange(len(verts)).reshape(-1, 3)
-        color = tuple(int(c) for c in (bins[key == k][0] * 64 + 32))
-        out.append(RenderMesh(verts, faces, color))
-    return out
-
-
-def _front(azimuth_deg: float) -> np.ndarray:
-    """The view direction (camera → scene) of a camera at ``azimuth_deg`` about +Y (0: looking along −Z)."""
-    a = np.radians(azimuth_deg)
-    return -np.array([np.sin(a), 0.0, np.cos(a)])
+def _grey(colors: np.ndarray | None):
+    """A scan's (N, 3) colours, or grey for a scan without them."""
+    return (150, 150, 150) if colors is None else colors
 
 
 def stages(scan_path, body_dir, fit_dir, size: int, view: float) -> np.ndarray:
     """(size, 4·size, 3) uint8: the four panels (see the module docstring) seen from azimuth ``view``."""
     raw = load_scan(scan_path, check=False)
     person, _ = intake_scan(scan_path)
-    d = _front(view)
     kw = dict(view=view, width=size, height=size)
     splat = 0.006 * np.ptp(raw.points[:, 1])  # the file's own units
     panels = [
-        render(point_meshes(raw.points, raw.colors, splat, d), elevation_deg=20.0, **kw),
-        render(point_meshes(person.points, person.colors, 0.01, d), **kw),
+        render(point_splats(raw.points, _grey(raw.colors), splat, view), elevation_deg=20.0, **kw),
+        render(point_splats(person.points, _grey(person.colors), 0.01, view), **kw),
     ]
     body = read_obj(Path(body_dir) / "body.obj")
-    dots = np.full((len(person.points[::4]), 3), (200, 40, 40), np.uint8)
+    dots = (200, 40, 40)
     panels.append(
         render(
             [
                 RenderMesh(body.verts.numpy(), body.faces.numpy(), BODY_COLOR),
-                *point_meshes(person.points[::4], dots, 0.006, d),
+                point_splats(person.points[::4], dots, 0.006, view),
             ],
             **kw,
         )
     )
     fitted_body, drape = read_obj(Path(fit_dir) / "body.obj"), read_obj(Path(fit_dir) / "draped.obj")
     garment = person.points if person.labels is None else person.points[person.labels == 1]
-    dots = np.full((len(garment[::3]), 3), (240, 240, 240), np.uint8)
+    dots = (240, 240, 240)
     panels.append(
         render(
             [
                 RenderMesh(fitted_body.verts.numpy(), fitted_body.faces.numpy(), BODY_COLOR),
                 RenderMesh(drape.verts.numpy(), drape.faces.numpy(), GARMENT),
-                *point_meshes(garment[::3], dots, 0.006, d),
+                point_splats(garment[::3], dots, 0.006, view),
             ],
             **kw,
         )

@@ -90,11 +90,15 @@ def test_write_assets_and_read_back(dress, tmp_path):
         material=material,
         report=report,
         before=(garment.sim_positions(), garment.sim_faces, body_verts, body_faces),
+        scan_points=x[::3],
         png_size=64,
     )
     for key in ("pattern_json", "pattern_svg", "rest_obj", "draped_obj", "body_obj", "body_json",
-                "material_json", "report_json", "before_after_png", "draped_initial_obj"):  # fmt: skip
+                "material_json", "report_json", "before_after_png", "scan_fit_png",
+                "draped_initial_obj"):  # fmt: skip
         assert key in files
+    manifest = json.loads(open(files["manifest_json"]).read())
+    assert "scan_fit.png" in json.dumps(manifest["files"])
     # pattern JSON loads with our loader and meshes
     loaded = load_pattern(files["pattern_json"])
     assert list(loaded.panels) == list(pattern.panels)

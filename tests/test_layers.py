@@ -34,6 +34,7 @@ LAYERS = {
     "rest_terms": (3, "terms"),  # the rest terms' C++ kernels as one autograd node
     "assets": (3, "assets"),
     "assets_newton": (3, "assets"),  # the asset's material in Newton's units (pure numpy)
+    "scan_fit_picture": (3, "assets"),  # the scan on its fit, coloured by distance (render, no fit)
     "motion": (3, "motion"),
     "fit_config": (3, "fit_config"),  # the fit's settings: the objective reads them
     "capture": (3, "capture"),  # simulated depth captures: meshes in, points out (numpy)

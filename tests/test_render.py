@@ -9,6 +9,7 @@ import trimesh
 from torch_diffavatar.render import (
     RenderMesh,
     look_at_camera,
+    point_splats,
     render,
     render_views,
     save_png,
@@ -129,3 +130,24 @@ def test_invalid_inputs_are_rejected():
         render([(v, f, (0, 0, 0))], view="top")
     with pytest.raises(ValueError, match="uint8"):
         save_png(np.zeros((4, 4, 3)), "/tmp/never_written.png")
+
+
+def test_per_face_colours_and_point_splats_in_front_of_a_surface():
+    """A mesh's colour may be one RGB per face; points drawn as splats face the camera of any view and show
+    where they are in front of a surface, in their own colours."""
+    v, f = _quad(0.0)
+    red, blue, grey = (255, 0, 0), (0, 0, 255), (128, 128, 128)
+    halves = render([(v, f, np.array([red, blue]))], view="front", width=100, height=100, ambient=1.0)
+    assert {tuple(halves[70, 60]), tuple(halves[30, 40])} == {red, blue}  # one face each side of the diagonal
+    points = np.array([[-0.25, 0.0, 0.05], [0.25, 0.0, 0.05]])
+    for view in ("front", 30.0):
+        splats = point_splats(points, np.array([red, blue]), 0.05, view)
+        assert splats.verts.shape == (6, 3) and splats.faces.shape == (2, 3)
+        image = render([(v, f, grey), splats], view=view, width=100, height=100, ambient=1.0)
+        colours = {tuple(c) for c in image.reshape(-1, 3)}
+        assert red in colours and blue in colours and grey in colours
+    behind = point_splats(points * [1, 1, -1], red, 0.05)  # one colour for all; hidden by the quad
+    image = render([(v, f, grey), behind], view="front", width=100, height=100, ambient=1.0)
+    assert red not in {tuple(c) for c in image.reshape(-1, 3)}
+    with pytest.raises(ValueError, match="per face"):
+        render([(v, f, np.array([red, blue, grey]))])

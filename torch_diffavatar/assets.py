@@ -18,6 +18,8 @@ Files written by `write_assets` (names in `ASSET_FILES`):
 * ``material_newton.json``: the material in NVIDIA Newton's units (`assets_newton`);
 * ``report.json`` (final metrics, see `torch_diffavatar.fit`);
 * ``before_after.png``: front and back views of the first and the last drape on their bodies;
+* ``scan_fit.png``: the scan's garment points on the fit and the fit against them, coloured by distance
+  (`scan_fit_picture`);
 * ``draped_initial.obj``: the first drape (the template on the initial body), to measure what the fit gained;
 * ``seams.json``: the garment topology beside the OBJs (panel of each rest vertex, seam vertex pairs,
   stitched edge pairs, rest-vertex -> draped-vertex map, labels, openings);
@@ -65,6 +67,7 @@ ASSET_FILES = {
     "material_newton_json": "material_newton.json",
     "report_json": "report.json",
     "before_after_png": "before_after.png",
+    "scan_fit_png": "scan_fit.png",
     "draped_initial_obj": "draped_initial.obj",
     "seams_json": "seams.json",
     "manifest_json": "asset.json",
@@ -366,6 +369,8 @@ def write_assets(
     material: ClothMaterial,
     report: dict,
     before: tuple | None = None,
+    scan_points: torch.Tensor | None = None,
+    front_deg: float = 0.0,
     png_size: int = 320,
 ) -> dict[str, str]:
     """Write every asset of a fit into ``out_dir`` (see the module docstring).
@@ -379,7 +384,10 @@ def write_assets(
         report: the metrics; ``pattern_export_max_deviation_m`` and ``files`` are added.
         before: optional (cloth_x, faces, body_verts, body_faces) of the first drape, for the PNG and
             ``draped_initial.obj``.
-        png_size: width of one view in the PNG [px].
+        scan_points: optional (P, 3) the scan's garment points [m], for ``scan_fit.png``.
+        front_deg: the azimuth [deg] of the body's front in the pictures of ``scan_points``
+            (`body.facing.body_facing_yaw`).
+        png_size: width of one view in the PNGs [px].
 
     Returns:
         asset name -> path (the keys of `ASSET_FILES` that were written).
@@ -402,8 +410,23 @@ def write_assets(
     write_json(paths["material_json"], material_dict(material))
     write_json(paths["material_newton_json"], newton_material_dict(garment, uv, material))
     write_json(paths["seams_json"], seams_dict(garment))
-    optional = ("report_json", "before_after_png", "draped_initial_obj", "manifest_json")
+    optional = ("report_json", "before_after_png", "scan_fit_png", "draped_initial_obj", "manifest_json")
     written = [k for k in ASSET_FILES if k not in optional]
+    if scan_points is not None:
+        from torch_diffavatar.render import save_png
+        from torch_diffavatar.scan_fit_picture import render_scan_on_fit
+
+        picture = render_scan_on_fit(
+            scan_points,
+            draped_x,
+            garment.sim_faces,
+            body_verts,
+            body_faces,
+            front_deg=front_deg,
+            size=png_size,
+        )
+        save_png(picture, paths["scan_fit_png"])
+        written.append("scan_fit_png")
     if before is not None:
         from torch_diffavatar.render import save_png
 
@@ -447,6 +470,7 @@ FILE_CONTENTS = {
     "edge_ke on draped.obj's interior edges, density, friction, radius), converted as docs/ASSETS.md says",
     "report_json": "metrics of the fit",
     "before_after_png": "first and final drape of the fit",
+    "scan_fit_png": "the scan's garment points on the fit and the fit against them, coloured by distance",
     "draped_initial_obj": "the fit's first drape (template pattern on the initial body), as draped.obj",
     "seams_json": "garment topology: panel of each rest vertex, seam vertex pairs, stitched edge pairs, "
     "rest vertex -> draped vertex map, edge labels, openings",

@@ -322,12 +322,14 @@ def full_report(fit_report: dict, setup: dict, scan_path, spacing: float, second
 
 def write_fit_assets(out: Path, setup: dict, fitter, result, report: dict) -> dict:
     """Write the assets of a fit (`assets.write_assets`: pattern, meshes, body, material, ``report``, the
-    before/after picture) into ``out``; print the report's warnings on stderr; returns ``report.json``.
+    before/after picture, the scan on the fit) into ``out``; print the report's warnings on stderr;
+    returns ``report.json``.
 
     Args:
         setup: `fit_setup.prepare`'s; fitter: the `Fitter` that ran; result: its `FitResult`.
     """
     from torch_diffavatar.assets import write_assets
+    from torch_diffavatar.body.facing import body_facing_yaw
     from torch_diffavatar.fit_report import animation_warnings
 
     body, garment = fitter.params.body, setup["garment"]
@@ -353,6 +355,8 @@ def write_fit_assets(out: Path, setup: dict, fitter, result, report: dict) -> di
         material=final_material,
         report=report,
         before=before,
+        scan_points=setup["target"].garment_points,
+        front_deg=body_facing_yaw(body.global_orient[0]),
     )
     (out / INCOMPLETE).unlink(missing_ok=True)  # every file is whole now
     written = json.loads(Path(files["report_json"]).read_text())  # with the export's warnings

@@ -35,6 +35,7 @@ __all__ = [
     "Camera",
     "RenderMesh",
     "look_at_camera",
+    "point_splats",
     "render",
     "render_views",
     "save_png",
@@ -55,14 +56,14 @@ class RenderMesh:
     Attributes:
         verts: (V, 3) float positions [m] (numpy array or torch tensor).
         faces: (F, 3) int vertex indices.
-        color: RGB in 0..255.
+        color: RGB in 0..255, or (F, 3) one RGB per face (a heat map, `point_splats`' colours).
         depth_bias: [m] the mesh is drawn as if this much nearer the camera (use `CLOTH_DEPTH_BIAS`
             for cloth lying on a body).
     """
 
     verts: np.ndarray
     faces: np.ndarray
-    color: tuple[int, int, int] = BODY_COLOR
+    color: tuple[int, int, int] | np.ndarray = BODY_COLOR
     depth_bias: float = 0.0
 
 
@@ -122,13 +123,34 @@ def _check_meshes(meshes) -> list[RenderMesh]:
             raise ValueError(f"mesh {k}: face indices must lie in [0, {len(verts)})")
         if not np.all(np.isfinite(verts)):
             raise ValueError(f"mesh {k}: verts contain NaN or inf")
-        color = tuple(int(c) for c in m.color)
-        if len(color) != 3:
-            raise ValueError(f"mesh {k}: color must be RGB, got {m.color}")
+        color = _as_numpy(m.color, np.float64)
+        if color.shape not in ((3,), (len(faces), 3)):
+            raise ValueError(f"mesh {k}: color must be RGB or (F, 3) RGB per face, got shape {color.shape}")
+        color = tuple(int(c) for c in color) if color.ndim == 1 else color
         out.append(RenderMesh(verts, faces, color, float(m.depth_bias)))
     if not out:
         raise ValueError("render needs at least one mesh")
     return out
+
+
+def point_splats(
+    points, colors, size: float, view: str | float = "front", *, depth_bias: float = 0.0
+) -> RenderMesh:
+    """Points drawn as one small triangle each, facing a camera at ``view`` (as `render`'s), so that the
+    z-buffer decides which points and surfaces are in front.
+
+    Args:
+        points: (N, 3) [m]; colors: (N, 3) RGB in 0..255 per point, or one RGB for all.
+        size: a triangle's circumradius [m] (about the points' spacing, so that they cover a surface).
+        depth_bias: [m] the points drawn as if this much nearer the camera (`RenderMesh`).
+    """
+    points = _as_numpy(points, np.float64).reshape(-1, 3)
+    right, up, _ = _view_axes(view, 0.0)
+    corners = size * np.stack([up, -0.87 * right - 0.5 * up, 0.87 * right - 0.5 * up])  # (3, 3)
+    verts = (points[:, None, :] + corners[None]).reshape(-1, 3)
+    colors = _as_numpy(colors, np.float64)
+    colors = colors if colors.ndim == 2 else np.broadcast_to(colors, (len(points), 3))
+    return RenderMesh(verts, np.arange(len(verts)).reshape(-1, 3), colors, depth_bias)
 
 
 def _view_axes(view: str | float, elevation_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -281,14 +303,16 @@ def _combine_meshes(meshes: list[RenderMesh], camera: Camera) -> tuple[np.ndarra
         depth = depth - m.depth_bias
         key = -1.0 / np.maximum(depth, 1e-9) if camera.perspective else depth
         faces = m.faces
+        color = np.broadcast_to(np.asarray(m.color, dtype=np.float64), (len(faces), 3))
         if camera.perspective:  # drop triangles touching the space behind the eye
-            faces = faces[(depth[faces] > 1e-6).all(1)]
+            front = (depth[faces] > 1e-6).all(1)
+            faces, color = faces[front], color[front]
         vn, _ = _vertex_normals(m.verts, m.faces)
         pix_list.append(pix)
         key_list.append(key)
         vn_list.append(vn)
         tri_list.append(faces + offset)
-        tri_color.append(np.broadcast_to(np.asarray(m.color, dtype=np.float64), (len(faces), 3)))
+        tri_color.append(color)
         offset += len(m.verts)
     pix, key, tris = np.concatenate(pix_list), np.concatenate(key_list), np.concatenate(tri_list)
     return pix, key, tris, np.concatenate(vn_list), np.concatenate(tri_color)
