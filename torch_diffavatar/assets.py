@@ -356,6 +356,27 @@ def render_before_after(
     return np.concatenate(panels, axis=1)
 
 
+def _write_pictures(paths, garment, after, before, scan_points, front_deg, png_size) -> list[str]:
+    """``before_after.png`` and ``draped_initial.obj`` (with ``before``), ``scan_fit.png`` (with
+    ``scan_points``), as `write_assets` documents; the keys of what was written."""
+    from torch_diffavatar.render import save_png
+
+    written = []
+    if scan_points is not None:
+        from torch_diffavatar.scan_fit_picture import render_scan_on_fit
+
+        picture = render_scan_on_fit(scan_points, *after, front_deg=front_deg, size=png_size)
+        save_png(picture, paths["scan_fit_png"])
+        written.append("scan_fit_png")
+    if before is not None:
+        save_png(render_before_after(before, after, size=png_size), paths["before_after_png"])
+        write_garment_obj(
+            paths["draped_initial_obj"], garment, sim_positions=before[0].detach().cpu().double()
+        )
+        written += ["before_after_png", "draped_initial_obj"]
+    return written
+
+
 def write_assets(
     out_dir: str | os.PathLike,
     *,
@@ -412,30 +433,8 @@ def write_assets(
     write_json(paths["seams_json"], seams_dict(garment))
     optional = ("report_json", "before_after_png", "scan_fit_png", "draped_initial_obj", "manifest_json")
     written = [k for k in ASSET_FILES if k not in optional]
-    if scan_points is not None:
-        from torch_diffavatar.render import save_png
-        from torch_diffavatar.scan_fit_picture import render_scan_on_fit
-
-        picture = render_scan_on_fit(
-            scan_points,
-            draped_x,
-            garment.sim_faces,
-            body_verts,
-            body_faces,
-            front_deg=front_deg,
-            size=png_size,
-        )
-        save_png(picture, paths["scan_fit_png"])
-        written.append("scan_fit_png")
-    if before is not None:
-        from torch_diffavatar.render import save_png
-
-        after = (draped_x, garment.sim_faces, body_verts, body_faces)
-        save_png(render_before_after(before, after, size=png_size), paths["before_after_png"])
-        write_garment_obj(
-            paths["draped_initial_obj"], garment, sim_positions=before[0].detach().cpu().double()
-        )
-        written += ["before_after_png", "draped_initial_obj"]
+    after = (draped_x, garment.sim_faces, body_verts, body_faces)
+    written += _write_pictures(paths, garment, after, before, scan_points, front_deg, png_size)
     written += ["report_json", "manifest_json"]
     report = dict(report)
     report["pattern_export_max_deviation_m"] = pattern_deviation(fitted, garment, uv)
