@@ -137,6 +137,19 @@ def test_eval_of_the_truth_itself_is_exact(skirt_scan, tmp_path, capsys):
     assert not np.array_equal(views[0], views[2]) and (views[2] < 250).any()
     truth = json.loads((tmp_path / "gt" / "truth" / "truth.json").read_text())
     assert truth["design_change"] == {"hem_up_m": 0.05, "hem_widen": 0.1}
+    # from the fitted body's front and back: a body turned 90° about +Y (facing +X) is drawn from +X
+    body_json = tmp_path / "fit" / "body.json"
+    body_json.write_text(
+        json.dumps({**json.loads(body_json.read_text()), "global_orient_axis_angle": [[0, 1.5708, 0]]})
+    )
+    assert main(["eval", str(tmp_path / "fit"), "--gt", str(tmp_path / "gt")]) == 0
+    turned = np.split(np.asarray(Image.open(tmp_path / "fit" / DRAPE_PICTURE))[16:], 6, axis=1)
+    assert not np.array_equal(turned[2], views[2]) and not np.array_equal(turned[3], views[3])
+
+    def width(view):  # columns the drawing covers: a person is narrower seen from the side
+        return int((view < 250).any(axis=(0, 2)).sum())
+
+    assert width(turned[2]) < 0.8 * width(views[2])
 
 
 def test_make_scan_rejects_bad_phenotypes(capsys):

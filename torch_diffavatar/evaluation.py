@@ -235,8 +235,22 @@ def evaluate_assets(assets_dir, gt_dir) -> dict:
 DRAPE_PICTURE = "eval_drapes.png"
 
 
+def _facing_deg(body_json: Path) -> float:
+    """The azimuth [deg] of a camera in front of the body of an asset folder's ``body.json``
+    (`body.facing.body_facing_yaw`); 0 (the +Z camera) when it holds no global orientation."""
+    from torch_diffavatar.body.facing import body_facing_yaw
+
+    if not body_json.is_file():
+        return 0.0
+    orient = read_json_file(body_json, f"{body_json} is missing").get("global_orient_axis_angle")
+    return (
+        0.0 if orient is None else body_facing_yaw(torch.tensor(orient, dtype=torch.float64).reshape(-1)[:3])
+    )
+
+
 def save_drape_comparison(assets_dir, gt_dir, path, *, size: int = 320, frame: float = 0.1) -> Path:
-    """A PNG of the fit's first drape, its result and the true drape, each from the front and the back.
+    """A PNG of the fit's first drape, its result and the true drape, each from the front and the back (of
+    the fitted body, whichever way it faces the scan's frame).
 
     All six views share one camera per side, so sizes compare: the box around the three garments, grown
     by ``frame`` [m] (the body beyond it is cut off). The first drape (``draped_initial.obj``, left out
@@ -284,8 +298,9 @@ def save_drape_comparison(assets_dir, gt_dir, path, *, size: int = 320, frame: f
     lo, hi = cloth.min(0) - frame, cloth.max(0) + frame  # the garments fill the views; the body is cut
     width, height, title = size, size * 5 // 4, 16
     views = []
+    front = _facing_deg(folder / "body.json")
     for scene in scenes:
-        for view in ("front", "back"):
+        for view in (front, front + 180.0):
             camera = look_at_camera(lo, hi, view, width=width, height=height)
             views.append(render(scene, width=width, height=height, camera=camera))
     image = Image.fromarray(np.concatenate(views, axis=1))
