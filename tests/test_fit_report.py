@@ -1,5 +1,6 @@
 """The fit report's warnings about the scan: a fit far above the scan's own noise, an opening far from the
-scan's (issue #29: real-capture fits ended 23 mm from the scan with ``warnings: []``)."""
+scan's (issue #29: real-capture fits ended 23 mm from the scan with ``warnings: []``); and a fit that never
+left its first drape."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from torch_diffavatar.fit_report import scan_warnings
+from torch_diffavatar.fit_report import scan_warnings, stall_warnings
 from torch_diffavatar.metrics import scan_noise_sigma_m
 
 
@@ -98,3 +99,16 @@ def test_a_garment_that_reaches_the_floor_is_said():
     assert floor_warnings(None, legs) == []
     assert floor_warnings(floor, legs + torch.tensor([0.0, FLOOR_REACH_M, 0.0], dtype=torch.float64)) == []
     assert floor_warnings(floor, legs[:0]) == []
+
+
+def test_a_fit_that_never_left_its_first_drape_says_so():
+    """A captured T-shirt's fit rejected all 51 trials of its 30 iterations and wrote its first drape as the
+    result, without a word; a fit whose first drape was simply best, or that took steps, says nothing."""
+    run = {"iterations": 30, "result_iteration": 0, "rejected_steps": 51}
+    run["rejection_reasons"] = {"loss rose more than max_loss_rise": 49, "drape failed": 2}
+    (said,) = stall_warnings(run)
+    assert said.startswith("the fit kept its first drape: none of its 30 iterations lowered the loss (51 ")
+    assert "49 loss rose more than max_loss_rise, 2 drape failed" in said and "scan_fit.png" in said
+    assert stall_warnings({**run, "result_iteration": 1}) == []  # it moved, if little
+    assert stall_warnings({**run, "rejected_steps": 3, "rejection_reasons": {"x": 3}}) == []  # first was best
+    assert stall_warnings({**run, "iterations": 0, "rejected_steps": 0}) == []

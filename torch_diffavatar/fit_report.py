@@ -140,8 +140,26 @@ def fit_report(first: dict, final: dict, objective: FitObjective, run: dict) -> 
         "opening_lengths": opening_lengths(objective, first["rest_uv"], final["rest_uv"]),
         "first_drape_candidates": list(run["first_drape_candidates"]),
         "resewings": list(run.get("resewings", [])),
-        "warnings": result_warnings(final["x"], garment.sim_faces, ratio, config.spacing),
+        "warnings": result_warnings(final["x"], garment.sim_faces, ratio, config.spacing)
+        + stall_warnings(run),
     }
+
+
+def stall_warnings(run: dict) -> list[str]:
+    """A warning when the fit never left its first drape: no iteration lowered the loss, and at least as many
+    trials as iterations were rejected (a T-shirt's ring capture, 51 rejected trials in 30 iterations, the
+    assets its first drape, said nothing). ``run``: `fit_report`'s."""
+    rejected, iterations = run["rejected_steps"], run["iterations"]
+    if run["result_iteration"] != 0 or iterations == 0 or rejected < iterations:
+        return []
+    reasons = ", ".join(
+        f"{n} {why}" for why, n in sorted(run["rejection_reasons"].items(), key=lambda kv: -kv[1])
+    )
+    return [
+        f"the fit kept its first drape: none of its {iterations} iterations lowered the loss ({rejected} "
+        f"trials rejected: {reasons}); the pattern and material are where the fit started, not fitted "
+        "to the scan; look at scan_fit.png"
+    ]
 
 
 def opening_lengths(objective: FitObjective, first_uv: torch.Tensor, final_uv: torch.Tensor) -> dict:
@@ -222,7 +240,7 @@ def scan_warnings(report: dict, garment_points: torch.Tensor, coverage: dict | N
         warnings.append(
             f"the fitted garment ends {1e3 * report['chamfer_final']:.1f} mm from the scan, far above the "
             f"scan's own noise (about {1e3 * sigma:.1f} mm): the body fit, the scan's segmentation or the "
-            "garment type is probably wrong; look at before_after.png"
+            "garment type is probably wrong; look at scan_fit.png and before_after.png"
         )
     far = {k: v for k, v in report["boundary_chamfer_final"].items() if v > FAR_OPENING_M}
     for name, distance in far.items():
