@@ -583,3 +583,10 @@ def test_the_race_continues_the_candidate_with_the_lowest_loss(skirt_problem, tm
     assert raced.report["loss_final"] == pytest.approx(single.report["loss_final"], rel=1e-9)
     assert raced.report["loss_initial"] == pytest.approx(single.report["loss_initial"], rel=1e-9)
     assert torch.allclose(raced.rest_uv, single.rest_uv, rtol=0, atol=1e-12)
+
+
+def test_a_fit_with_nothing_free_is_refused_in_one_line(skirt_problem):
+    """The body's learning rates alone are above 0, but this fit has no body: Adam had no parameter and
+    failed with a traceback."""
+    with pytest.raises(InputError, match="nothing to fit"):
+        _fitter(skirt_problem, _config(lr_cage=0.0, lr_log_bend_stiffness=0.0), tensorboard=False)

@@ -46,6 +46,11 @@ def test_numbers_that_yaml_reads_as_strings_parse(tmp_path):
         ("drape_velocity_scale: 0", "drape_velocity_scale must be in \\(0, 1\\]"),
         ("drape_contact_bounce: -1", "drape_contact_bounce must be in \\[0, 1\\]"),
         ("animation_check_s: -0.5", "animation_check_s must be in \\[0, inf\\)"),
+        # every variable frozen: the whole set-up ran, then Adam failed with a traceback
+        (
+            "lr_cage: 0\nlr_phenotypes: 0\nlr_translation: 0\nlr_pose: 0\nlr_log_bend_stiffness: 0",
+            "every learning rate .* is 0, so nothing would be fitted",
+        ),
     ],
 )
 def test_values_of_the_wrong_type_or_range_are_refused(tmp_path, line, message):

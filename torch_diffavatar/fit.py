@@ -38,7 +38,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from torch_diffavatar.errors import SimulationError
+from torch_diffavatar.errors import InputError, SimulationError
 from torch_diffavatar.fit_checkpoint import (
     CHECKPOINT,
     SETUP,
@@ -372,6 +372,8 @@ class Fitter:
         self.out_dir, self.progress = None if out_dir is None else Path(out_dir), progress
         self.tensorboard = tensorboard and self.out_dir is not None
         self.groups = [dict(g, base_lr=g["lr"]) for g in param_groups(self.params, config)]
+        if not self.groups:  # a config whose only free variables are the body's, with the body given
+            raise InputError("nothing to fit: every variable with a learning rate above 0 is held fixed")
         self.optimizer = torch.optim.Adam(self.groups)
         self.start_state, self.sewing_fallback = start_state, sewing_fallback
         # iteration 0, no history, no rejections, lr_scale 1 (shrunk by rejected steps, regrown by steps

@@ -34,6 +34,16 @@ RESOLVED_CONFIG = "config.yaml"
 # material.json then held Infinity), rejected like any other (`fit.parameter_rejection`)
 BEND_STIFFNESS_RANGE = (1.0e-9, 1.0e-2)
 # guards that ``inf`` switches off; every other number of a config must be finite
+# the fitted variables' Adam steps: 0 freezes one, and at least one must be free
+LEARNING_RATES = (
+    "lr_cage",
+    "lr_phenotypes",
+    "lr_translation",
+    "lr_pose",
+    "lr_log_bend_stiffness",
+    "lr_log_stretch",
+    "lr_waist_shift",
+)
 INFINITY_MEANS_OFF = ("max_drape_jump", "max_loss_rise")
 
 
@@ -401,17 +411,15 @@ class FitConfig:
             raise ValueError(f"FitConfig.max_loss_rise must be > 0 (inf: no check), got {self.max_loss_rise}")
         if not 0 < self.lr_final <= 1:
             raise ValueError(f"FitConfig.lr_final must be in (0, 1], got {self.lr_final}")
-        for name in (
-            "lr_cage",
-            "lr_phenotypes",
-            "lr_translation",
-            "lr_pose",
-            "lr_log_bend_stiffness",
-            "lr_log_stretch",
-            "lr_waist_shift",
-        ):
+        for name in LEARNING_RATES:
             if not getattr(self, name) >= 0:
                 raise ValueError(f"FitConfig.{name} must be >= 0 (0 freezes the parameter)")
+        if not any(getattr(self, name) > 0 for name in LEARNING_RATES):
+            # the fit would set everything up and then fail in Adam ("an empty parameter list")
+            raise ValueError(
+                f"FitConfig: every learning rate ({', '.join(LEARNING_RATES)}) is 0, so nothing would be "
+                "fitted; set one above 0 (`diffavatar drape` drapes a pattern as it is)"
+            )
         self._check_numbers()
 
     def _check_opening_lengths(self) -> None:
