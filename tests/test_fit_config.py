@@ -7,7 +7,7 @@ import math
 import pytest
 
 from torch_diffavatar.errors import InputError
-from torch_diffavatar.fit_config import FitConfig, load_config
+from torch_diffavatar.fit_config import CONFIG_DIR, FitConfig, load_config
 
 
 def _load(tmp_path, text: str) -> FitConfig:
@@ -109,3 +109,14 @@ def test_the_floor_reaches_every_drape_of_a_fit(tmp_path):
     assert first_drape_config(FitConfig()).floor
     config = _load(tmp_path, "drape_floor: false\n")
     assert not drape_config(config).floor and not first_drape_config(config).floor
+
+
+@pytest.mark.parametrize("path", sorted(CONFIG_DIR.glob("*.yaml")), ids=lambda p: p.stem)
+def test_the_openings_each_shipped_config_holds_are_openings_of_its_template(path):
+    """A held name that no opening of the garment has is held nowhere, silently (the dress's armholes are
+    its ``cuff_left`` and ``cuff_right``)."""
+    from torch_diffavatar.pattern import load_template, mesh_pattern
+
+    config = load_config(path)
+    loops = {loop.name for loop in mesh_pattern(load_template(config.template), spacing=0.05).boundary_loops}
+    assert set(config.opening_template_names) <= loops, (config.opening_template_names, loops)
