@@ -109,7 +109,7 @@ __all__ = [
 
 def param_groups(params: FitParameters, config: FitConfig) -> list[dict]:
     """Adam parameter groups (name, params, lr) of the parameters with a positive learning rate; the
-    others are frozen (``requires_grad=False``)."""
+    others are frozen (``requires_grad=False``). InputError when there is none."""
     spec = [("cage", [params.cage.handles], config.lr_cage)]
     if params.body is not None:
         spec += [
@@ -128,6 +128,8 @@ def param_groups(params: FitParameters, config: FitConfig) -> list[dict]:
             for p in ps:
                 p.requires_grad_(True)
             groups.append({"name": name, "params": ps, "lr": lr})
+    if not groups:  # the body's learning rates alone above 0, and no body to fit: Adam would fail
+        raise InputError("nothing to fit: every variable with a learning rate above 0 is held fixed")
     return groups
 
 
@@ -372,8 +374,6 @@ class Fitter:
         self.out_dir, self.progress = None if out_dir is None else Path(out_dir), progress
         self.tensorboard = tensorboard and self.out_dir is not None
         self.groups = [dict(g, base_lr=g["lr"]) for g in param_groups(self.params, config)]
-        if not self.groups:  # a config whose only free variables are the body's, with the body given
-            raise InputError("nothing to fit: every variable with a learning rate above 0 is held fixed")
         self.optimizer = torch.optim.Adam(self.groups)
         self.start_state, self.sewing_fallback = start_state, sewing_fallback
         # iteration 0, no history, no rejections, lr_scale 1 (shrunk by rejected steps, regrown by steps
