@@ -233,6 +233,31 @@ def drape_rejection(out: ObjectiveOutput, start: ClothState, max_jump: float) ->
     return None
 
 
+def carried_trials(fitter, ev, start: ClothState, params: list, before: list) -> tuple:
+    """(a no-argument trial for `backtrack`, the list of the starts it drapes from): ``fitter._trial(ev,
+    s)`` with ``s`` = ``start``, or with ``config.carry_cloth_with_body`` ``start`` moved rigidly by the
+    body's translation since ``before`` (``params``' values at which ``start`` lies on the body,
+    `Fitter.step`'s), so that a trial drape starts with the cloth where it rested on the body. Left where
+    the old drape was, a body moved 0.3 mm into a stiff T-shirt resting on its shoulders raised the loss by
+    3.5 % (1 mm: 28 %) where the gradient promised a fall (docs/BENCHMARKS.md, "The cloth carried with the
+    body"). Unmoved: a start with a linearization (its predicted equilibrium moves with the body already),
+    or no body translation fitted."""
+    body, trial = fitter.params.body, fitter._trial
+    carry = fitter.config.carry_cloth_with_body and body is not None
+    index = next((k for k, p in enumerate(params) if carry and p is body.translation), None)
+    starts = []
+
+    def carried() -> ObjectiveOutput | None:
+        s = start
+        if index is not None and start.linearization is None:
+            shift = (params[index].detach() - before[index]).reshape(-1, 3)[0].to(start.x.dtype)
+            s = ClothState(start.x + shift, start.v, None) if bool(shift.any()) else start
+        starts.append(s)
+        return trial(ev, s)
+
+    return carried, starts
+
+
 def backtrack(
     params: list[torch.Tensor],
     before: list[torch.Tensor],
@@ -458,11 +483,12 @@ class Fitter:
         # iterations; it still stalls: docs/RESULTS_HISTORY.md)
         x, lin = ev.x.detach(), ev.stats.get("linearization") if self.config.predict_warm_starts else None
         next_start = start if self.trial_from_start else ClothState(x, torch.zeros_like(x), lin)
-        new, scale, rejected = backtrack(params, before, delta, lambda: self._trial(ev, next_start), retries)
+        trial, starts = carried_trials(self, ev, next_start, params, before)
+        new, scale, rejected = backtrack(params, before, delta, trial, retries)
         if new is not None:
             self.lr_scale = min(1.0, self.lr_scale * (1.25 if scale == 1.0 else scale))
             self.trial_from_start = False
-            return new, next_start, rejected
+            return new, starts[-1], rejected
         # every retry failed: drop the step, halve the learning rates, and drape the last accepted
         # parameters from that drape's own start, which gives the same drape again (a fresh graph for the
         # next backward). Continuing from its end state instead can land elsewhere when it had not settled

@@ -158,6 +158,13 @@ class FitConfig:
             (`sim.adjoint.linearization`). Off by default: on the demo dress it saved 8-17 % of the frames
             but no CPU time, and its drapes ended 0.47-0.67 mm (mean) from 200-frame drapes of the same
             steps, against 0.17-0.27 mm without it (docs/BENCHMARKS.md, "Warm starts that land").
+        carry_cloth_with_body: each trial drape starts from the last drape moved rigidly by the body's
+            translation since then (`fit.carried_trials`), not where the old drape was. A body moved 0.3 mm
+            into a stiff T-shirt resting on it raised the loss 3.5 % where the gradient promised a fall
+            (a fitted dress rejected 50 trials and stopped at its first iteration; with it, 29 iterations and
+            12.1 -> 5.8 mm from its true drape); off by default: on 21 ring captures the fits moved by
+            their scatter (outline median 3.1 -> 2.9 mm, mean 3.6 -> 3.7) and the demo ended 5.09 mm from
+            its scan instead of 4.77 (docs/BENCHMARKS.md, "The cloth carried with the body").
         drape_substeps: XPBD substeps per frame of the fit's drapes [-].
         drape_velocity_scale: velocity factor per frame of the fit's warm-started drapes (artificial
             damping; `DrapeConfig.drape_velocity_scale`) [-], in (0, 1].
@@ -305,6 +312,7 @@ class FitConfig:
     polish_iterations: int = 0
     adjoint_hessian: str = "projected"
     predict_warm_starts: bool = False
+    carry_cloth_with_body: bool = False
     drape_substeps: int = 10
     drape_velocity_scale: float = 0.97
     drape_contact_bounce: float = 1.0
