@@ -595,8 +595,7 @@ def test_a_fit_with_nothing_free_is_refused_in_one_line(skirt_problem):
 def test_trials_start_with_the_cloth_carried_along_with_the_body():
     """With ``carry_cloth_with_body`` a trial drapes from the last drape's cloth moved by the body's
     translation since then (a stiff T-shirt left where it was while its body moved 0.3 mm into it lost 3.5 %
-    of loss to the jump, and a dress fit rejected 50 trials); every other parameter's change, and the
-    default, leave the start as it was."""
+    of loss to the jump); every other parameter's change, and the default, leave the start as it was."""
     from types import SimpleNamespace
 
     from torch_diffavatar.fit import carried_trials

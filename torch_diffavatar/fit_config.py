@@ -161,10 +161,10 @@ class FitConfig:
         carry_cloth_with_body: each trial drape starts from the last drape moved rigidly by the body's
             translation since then (`fit.carried_trials`), not where the old drape was. A body moved 0.3 mm
             into a stiff T-shirt resting on it raised the loss 3.5 % where the gradient promised a fall
-            (a fitted dress rejected 50 trials and stopped at its first iteration; with it, 29 iterations and
-            12.1 -> 5.8 mm from its true drape); off by default: on 21 ring captures the fits moved by
-            their scatter (outline median 3.1 -> 2.9 mm, mean 3.6 -> 3.7) and the demo ended 5.09 mm from
-            its scan instead of 4.77 (docs/BENCHMARKS.md, "The cloth carried with the body").
+            (a captured dress's fit: loss 26.0 -> 19.4, 10.2 -> 5.8 mm from its true drape with it); off by
+            default: on 21 ring captures the fits moved by their scatter (outline median 3.1 -> 2.9 mm,
+            mean 3.6 -> 3.7) and the demo ended 5.09 mm from its scan instead of 4.77
+            (docs/BENCHMARKS.md, "The cloth carried with the body").
         drape_substeps: XPBD substeps per frame of the fit's drapes [-].
         drape_velocity_scale: velocity factor per frame of the fit's warm-started drapes (artificial
             damping; `DrapeConfig.drape_velocity_scale`) [-], in (0, 1].
