@@ -112,3 +112,17 @@ def test_a_fit_that_never_left_its_first_drape_says_so():
     assert stall_warnings({**run, "result_iteration": 1}) == []  # it moved, if little
     assert stall_warnings({**run, "rejected_steps": 3, "rejection_reasons": {"x": 3}}) == []  # first was best
     assert stall_warnings({**run, "iterations": 0, "rejected_steps": 0}) == []
+
+
+def test_a_held_opening_the_garment_does_not_have_is_named():
+    """``opening_template_names`` with a name no opening has held it nowhere, silently."""
+    from types import SimpleNamespace
+
+    from torch_diffavatar.fit_report import unheld_opening_warnings
+
+    garment = SimpleNamespace(boundary_loops=[SimpleNamespace(name=n) for n in ("neck", "hem", "cuff_left")])
+    config = SimpleNamespace(opening_template_names=("neck", "armhole_left"))
+    (said,) = unheld_opening_warnings(config, garment)
+    assert said.startswith("opening_template_names names armhole_left, which this garment has no opening of")
+    assert "cuff_left, hem, neck" in said
+    assert unheld_opening_warnings(SimpleNamespace(opening_template_names=("neck",)), garment) == []

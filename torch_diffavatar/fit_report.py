@@ -141,8 +141,22 @@ def fit_report(first: dict, final: dict, objective: FitObjective, run: dict) -> 
         "first_drape_candidates": list(run["first_drape_candidates"]),
         "resewings": list(run.get("resewings", [])),
         "warnings": result_warnings(final["x"], garment.sim_faces, ratio, config.spacing)
-        + stall_warnings(run),
+        + stall_warnings(run)
+        + unheld_opening_warnings(config, garment),
     }
+
+
+def unheld_opening_warnings(config, garment) -> list[str]:
+    """A warning for each name of ``config.opening_template_names`` that no opening of ``garment`` has (a
+    misspelt name, or a config written for another garment): it is held nowhere."""
+    names = {loop.name for loop in garment.boundary_loops}
+    missing = [n for n in config.opening_template_names if n not in names]
+    if not missing:
+        return []
+    return [
+        f"opening_template_names names {', '.join(missing)}, which this garment has no opening of (it has "
+        f"{', '.join(sorted(names))}): held nowhere"
+    ]
 
 
 def stall_warnings(run: dict) -> list[str]:
