@@ -33,7 +33,6 @@ RESOLVED_CONFIG = "config.yaml"
 # (Kawabata B per unit width); a step beyond it is a runaway (lr_log_bend_stiffness: 1000 reached inf, and
 # material.json then held Infinity), rejected like any other (`fit.parameter_rejection`)
 BEND_STIFFNESS_RANGE = (1.0e-9, 1.0e-2)
-# guards that ``inf`` switches off; every other number of a config must be finite
 # the fitted variables' Adam steps: 0 freezes one, and at least one must be free
 LEARNING_RATES = (
     "lr_cage",
@@ -44,6 +43,7 @@ LEARNING_RATES = (
     "lr_log_stretch",
     "lr_waist_shift",
 )
+# guards that ``inf`` switches off; every other number of a config must be finite
 INFINITY_MEANS_OFF = ("max_drape_jump", "max_loss_rise")
 
 
