@@ -10,6 +10,7 @@
 // another order: equal to rounding). Every sum is accumulated in double; the gradient is written in the
 // input's dtype.
 
+#include <cmath>
 #include <tuple>
 #include <vector>
 
@@ -205,17 +206,20 @@ std::tuple<at::Tensor, at::Tensor> rest_triangle_hinges(const at::Tensor& uv, co
 
 // The openings' rest lengths (`opening_lengths.opening_length_loss` and `opening_split_loss`): edges (L, 2)
 // of all openings, each edge's slot (L,) (its panel within its opening, numbered over all openings), each
-// slot's opening (S,); least (K,) [m] the shortest length each opening may have, shares (S,) the template's
-// share of each slot in its opening's length. value = length_weight * sum_k (max(0, least_k - L_k) / least_k)^2
-// + split_weight * sum_s (P_s / L_k(s) - shares_s)^2, with L_k the opening's length and P_s the slot's.
+// slot's opening (S,); least (K,) [m] the shortest length each opening may have, most (K,) [m] the longest (inf:
+// none), shares (S,) the template's share of each slot in its opening's length. value = length_weight * sum_k
+// [(max(0, least_k - L_k) / least_k)^2 + (max(0, L_k - most_k) / most_k)^2] + split_weight * sum_s (P_s / L_k(s)
+// - shares_s)^2, with L_k the opening's length and P_s the slot's.
 std::tuple<at::Tensor, at::Tensor> rest_openings(const at::Tensor& uv, const at::Tensor& edges,
                                                  const at::Tensor& slot, const at::Tensor& slot_opening,
-                                                 const at::Tensor& least, const at::Tensor& shares,
-                                                 double length_weight, double split_weight) {
+                                                 const at::Tensor& least, const at::Tensor& most,
+                                                 const at::Tensor& shares, double length_weight,
+                                                 double split_weight) {
   check_uv(uv);
   check_index(edges, "edges", 2, uv.size(0));
   const int64_t n = edges.size(0), k_count = least.size(0), s_count = shares.size(0);
   check_table(least, "least", {-1}, uv);
+  check_table(most, "most", {k_count}, uv);
   check_table(shares, "shares", {-1}, uv);
   check_shape(slot, "slot", {n});
   check_shape(slot_opening, "slot_opening", {s_count});
@@ -230,6 +234,7 @@ std::tuple<at::Tensor, at::Tensor> rest_openings(const at::Tensor& uv, const at:
   AT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "rest_openings", [&] {
     const scalar_t* p = uv.data_ptr<scalar_t>();
     const scalar_t* lp = least.data_ptr<scalar_t>();
+    const scalar_t* mp = most.data_ptr<scalar_t>();
     const scalar_t* sh = shares.data_ptr<scalar_t>();
     for (int64_t e = 0; e < n; ++e) {
       const V2 d = load2(p, ev[2 * e + 1]) - load2(p, ev[2 * e]);
@@ -243,6 +248,12 @@ std::tuple<at::Tensor, at::Tensor> rest_openings(const at::Tensor& uv, const at:
         const double shortfall = std::max(lk - total[k], 0.0) / lk;
         value += length_weight * shortfall * shortfall;
         d_total[k] -= 2.0 * length_weight * shortfall / lk;
+        const double mk = static_cast<double>(mp[k]);
+        if (std::isfinite(mk)) {
+          const double excess = std::max(total[k] - mk, 0.0) / mk;
+          value += length_weight * excess * excess;
+          d_total[k] += 2.0 * length_weight * excess / mk;
+        }
       }
     }
     if (split_weight != 0.0) {
@@ -279,10 +290,10 @@ TORCH_LIBRARY_FRAGMENT(diffavatar, m) {
   m.def(
       "rest_triangle_hinges(Tensor uv, Tensor tri, Tensor area, float area_threshold, float area_weight, "
       "Tensor inverse, float shape_threshold, float shape_weight) -> (Tensor value, Tensor grad)");
-  // (weighted openings' length shortfall and panel split, its gradient (V, 2)).
+  // (weighted openings' length shortfall and excess and panel split, its gradient (V, 2)).
   m.def(
-      "rest_openings(Tensor uv, Tensor edges, Tensor slot, Tensor slot_opening, Tensor least, Tensor shares, "
-      "float length_weight, float split_weight) -> (Tensor value, Tensor grad)");
+      "rest_openings(Tensor uv, Tensor edges, Tensor slot, Tensor slot_opening, Tensor least, Tensor most, "
+      "Tensor shares, float length_weight, float split_weight) -> (Tensor value, Tensor grad)");
 }
 
 TORCH_LIBRARY_IMPL(diffavatar, CPU, m) {

@@ -306,10 +306,12 @@ def test_a_partial_scan_holds_an_opening_no_shorter_than_the_template():
     assert FitObjective(garment, ScanTarget(half, {"hem": few}), cfg, dtype=torch.float64).opening_names == []
 
 
-def test_a_neck_held_no_shorter_than_the_template_whatever_the_scan_shows():
+def test_a_neck_held_to_the_template_whatever_the_scan_shows():
     """``opening_template_names``: the scan cannot measure a neck, and the fits shrank necks they started
-    right through the curvature term's local scale. Held at the template's whether or not the scan shows a
-    neck: a smaller neck pays and its gradient widens it, a larger one pays nothing; the report records it
+    right through the curvature term's local scale (and grew a dress's armholes onto the rims of holes under
+    the arms). Held to the template's length whether or not the scan shows a neck: a smaller neck pays and
+    its gradient widens it; a larger one pays nothing (``opening_template_hold`` ``"least"``, the default)
+    or pays and its gradient narrows it (``"exact"``); the report records it
     as the template's (``template``; no ``scan`` length, no ``seen``: valid JSON) and a partial scan's
     warning does not name it among the openings the scan shows too little of."""
     import json
@@ -337,26 +339,43 @@ def test_a_neck_held_no_shorter_than_the_template_whatever_the_scan_shows():
         assert "neck" in objective.opening_names
         k = objective.opening_names.index("neck")
         assert float(objective.opening_least[k]) == pytest.approx(template, rel=1e-9)
+        assert math.isinf(float(objective.opening_most[k]))
     assert (
         "neck"
         not in FitObjective(
             garment, ScanTarget(small, {"neck": small}), fit_config(), dtype=torch.float64
         ).opening_names
     )
+    exact = FitObjective(
+        garment,
+        ScanTarget(small, {"neck": small}),
+        replace(cfg, opening_template_hold="exact"),
+        dtype=torch.float64,
+    )
+    assert float(exact.opening_most[exact.opening_names.index("neck")]) == pytest.approx(template, rel=1e-9)
     uv = objective.template_uv.clone()
     centre = uv[neck.vertices].mean(0)
-    for scale, pays in ((0.9, True), (1.1, False)):
+    for held, scale, pays in (
+        (objective, 0.9, True),
+        (objective, 1.1, False),
+        (exact, 0.9, True),
+        (exact, 1.1, True),
+    ):
         moved = uv.clone()
         moved[neck.vertices] = centre + scale * (uv[neck.vertices] - centre)
         moved.requires_grad_()
-        term = objective.rest_terms(moved)["opening_length"]
+        term = held.rest_terms(moved)["opening_length"]
         assert (float(term.detach()) > 0) == pays
         if pays:
             term.backward()
-            wider = moved.detach() - 0.01 * moved.grad
-            assert float(rest_loop_length(wider, edges)) > float(rest_loop_length(moved.detach(), edges))
+            stepped = float(rest_loop_length(moved.detach() - 0.01 * moved.grad, edges))
+            before = float(rest_loop_length(moved.detach(), edges))
+            assert abs(stepped - template) < abs(before - template), scale  # toward the template's length
+    assert float(exact.rest_terms(uv)["opening_length"]) == 0
     lengths = fit_report.opening_lengths(objective, uv, uv)
     assert lengths["neck"]["template"] and lengths["neck"]["scan"] is None and lengths["neck"]["seen"] is None
+    assert lengths["neck"]["most"] is None
+    assert fit_report.opening_lengths(exact, uv, uv)["neck"]["most"] == pytest.approx(template, rel=1e-6)
     json.dumps(lengths, allow_nan=False)
     report = {"chamfer_final": 0.0, "boundary_chamfer_final": {}, "opening_lengths": lengths}
     coverage = {"sectors_seen": 4, "sectors": 8}

@@ -49,18 +49,22 @@ def tshirt():
 
 
 def _openings(garment, uv0):
-    """Every opening's (edges, panels, template shares) and lengths to hold: 5 % over the template's."""
+    """Every opening's (edges, panels, template shares) and the lengths to hold: the first two openings
+    between 90 and 95 % of the template's (held at a length: their excess live), the others no shorter than
+    5 % over it (their shortfall live)."""
     edges = [rest_loop_edges(garment, lp) for lp in garment.boundary_loops]
     panels = [rest_loop_panels(garment, e) for e in edges]
     shares = [rest_loop_shares(uv0, e, p) for e, p in zip(edges, panels, strict=True)]
-    least = 1.05 * torch.stack([rest_loop_length(uv0, e) for e in edges])
-    return edges, panels, shares, least
+    template = torch.stack([rest_loop_length(uv0, e) for e in edges])
+    least, most = 1.05 * template, torch.full_like(template, torch.inf)
+    least[:2], most[:2] = 0.9 * template[:2], 0.95 * template[:2]
+    return edges, panels, shares, least, most
 
 
 def _openings_call(garment, uv0, dtype, w_length, w_split):
-    edges, panels, shares, least = _openings(garment, uv0)
+    edges, panels, shares, least, most = _openings(garment, uv0)
     edges, slot, slot_opening, shares = opening_slots(edges, panels, shares)
-    tables = (least.to(dtype), shares.to(dtype))
+    tables = (least.to(dtype), most.to(dtype), shares.to(dtype))
     return ("rest_openings", (edges, slot, slot_opening, *tables, w_length, w_split))
 
 
@@ -81,9 +85,9 @@ def _calls(garment, uv0, dtype=F64, w=(2.0, 3.0, 5.0, 7.0, 11.0, 13.0)):
 
 def _twin(garment, uv0, uv, w=(2.0, 3.0, 5.0, 7.0, 11.0, 13.0)):
     tri = garment.tri_vertices
-    edges, panels, shares, least = _openings(garment, uv0)
+    edges, panels, shares, least, most = _openings(garment, uv0)
     return (
-        w[4] * opening_length_loss(uv, edges, least)
+        w[4] * opening_length_loss(uv, edges, least, most)
         + w[5] * opening_split_loss(uv, edges, panels, shares)
         + w[0] * seam_length_loss(uv, garment)
         + w[1] * curvature_loss(uv, uv0.to(uv), garment)
@@ -103,11 +107,15 @@ def test_each_kernel_is_its_twin(tshirt):
             5.0 * rest_area_loss(u, uv0, tri) + 7.0 * rest_distortion_loss(u, uv0, tri)
         ),
         "rest_openings": lambda u: (
-            11.0 * opening_length_loss(u, edges, least) + 13.0 * opening_split_loss(u, edges, panels, shares)
+            11.0 * opening_length_loss(u, edges, least, most)
+            + 13.0 * opening_split_loss(u, edges, panels, shares)
         ),
     }
-    edges, panels, shares, least = _openings(garment, uv0)
+    edges, panels, shares, least, most = _openings(garment, uv0)
     assert len(edges) >= 4 and float(opening_length_loss(uv, edges, least)) > 0
+    # the openings held at a length pay for their excess (none of them is short of it)
+    held = opening_length_loss(uv, edges[:2], least[:2], most[:2])
+    assert float(held) > 0 and float(opening_length_loss(uv, edges[:2], least[:2])) == 0
     assert float(rest_area_loss(uv, uv0, tri)) > 0 and float(rest_distortion_loss(uv, uv0, tri)) > 0
     for name, args in _calls(garment, uv0):
         value, grad = extension_op(name)(uv, *args)
@@ -172,9 +180,19 @@ def test_objective_rest_loss_through_the_kernels_is_its_terms_sum(skirt_problem)
     target = ScanTarget(target.garment_points, {"hem": dense})
     config = _config()
     weights = replace(config.weights, opening_length=3e3, opening_split=1e4)
-    config = replace(config, weights=weights, opening_length_names=("hem",))
+    names = {
+        "opening_length_names": ("hem",),
+        "opening_template_names": ("waist",),
+        "opening_template_hold": "exact",
+    }
+    config = replace(config, weights=weights, **names)
     objective = FitObjective(garment, target, config, dtype=DT)
-    objective.opening_least.fill_(2.0)  # the hem held at 2 m, longer than it is: the shortfall live
+    assert sorted(objective.opening_names) == ["hem", "waist"]
+    hem, waist = objective.opening_names.index("hem"), objective.opening_names.index("waist")
+    assert torch.isinf(objective.opening_most[hem])
+    assert objective.opening_most[waist] == objective.opening_least[waist]  # held at the template's
+    objective.opening_least[hem] = 2.0  # the hem held at 2 m, longer than it is: the shortfall live
+    objective.opening_most[waist] *= 0.8  # the waist held at 80 % of the template's: the excess live
     params = FitParameters.from_config(garment, config, dtype=DT)
     gen = torch.Generator().manual_seed(1)
     with torch.no_grad():

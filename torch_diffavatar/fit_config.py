@@ -45,6 +45,8 @@ LEARNING_RATES = (
 )
 # guards that ``inf`` switches off; every other number of a config must be finite
 INFINITY_MEANS_OFF = ("max_drape_jump", "max_loss_rise")
+# how `FitConfig.opening_template_names` are held: no shorter than the template's, or at its length
+OPENING_HOLDS = ("least", "exact")
 
 
 @dataclass(frozen=True)
@@ -239,12 +241,19 @@ class FitConfig:
             ``weights.opening_length`` holds no shorter than the scan's points of them trace: the hems
             by default; a trouser config adds its ``waist`` (its waistband lies on the body, a ring the
             scan traces well: on a Newton-made pair the fit narrowed it by 11 cm without).
-        opening_template_names: openings that ``weights.opening_length`` holds no shorter than the
-            template's (and whose split between the panels ``weights.opening_split`` holds), whatever the
-            scan shows: openings the scan cannot measure. The tops' necks: the scan's points there are the
-            neckline's and the skin's, and the fits shrank necks they started right by up to 4.7 cm
-            through the curvature term's local scale (docs/BENCHMARKS.md, "What shrinks the tops'
-            necks"); a neck may still grow.
+        opening_template_names: openings that ``weights.opening_length`` holds to the template's length
+            (as ``opening_template_hold`` says; and whose split between the panels ``weights.opening_split``
+            holds), whatever the scan shows: openings the scan cannot measure. The tops' necks: the scan's
+            points there are the neckline's and the skin's, and the fits shrank necks they started right by
+            up to 4.7 cm through the curvature term's local scale (docs/BENCHMARKS.md, "What shrinks the
+            tops' necks"); the dress's armholes, which the fits grew by 2-4 cm onto the rims of the holes
+            that an arm leaves in a scan under it; a trouser's waistband, whose trace (a lower bound) came out
+            3 cm short where it gathers (docs/BENCHMARKS.md, "Openings held at the template's"). An opening
+            also in ``opening_length_names`` is held to the longer of the template's and the scan's trace.
+        opening_template_hold: how: ``"least"``, no shorter than the template's (a neck may grow), or
+            ``"exact"``, at the template's length, neither shorter nor longer (the dress and trouser
+            configs: on the tops it changed nothing but one fit's path, docs/BENCHMARKS.md, "Openings held
+            at the template's").
         opening_length_bin: the bin length [m] along a scan opening of `opening_lengths.scan_loop_length`.
         opening_length_tolerance: the fraction [0, 1) of a scan hem's traced length that a fitted hem may
             fall short of it before ``weights.opening_length`` holds it.
@@ -336,6 +345,7 @@ class FitConfig:
     boundary_samples: int = 2
     opening_length_names: tuple[str, ...] = HEM_OPENINGS
     opening_template_names: tuple[str, ...] = ()
+    opening_template_hold: str = "least"
     opening_length_bin: float = 0.02
     opening_length_tolerance: float = 0.0
     min_rest_area_ratio: float = 0.1
@@ -438,6 +448,11 @@ class FitConfig:
                 object.__setattr__(self, field_name, tuple(names))  # YAML gives a list
             else:
                 raise ValueError(f"FitConfig.{field_name} must be a list of opening names, got {names!r}")
+        if self.opening_template_hold not in OPENING_HOLDS:
+            raise ValueError(
+                f"FitConfig.opening_template_hold must be one of {OPENING_HOLDS}, "
+                f"got {self.opening_template_hold!r}"
+            )
         if not 0.0 <= self.opening_length_tolerance < 1.0:
             raise ValueError(
                 f"FitConfig.opening_length_tolerance must be in [0, 1), got {self.opening_length_tolerance}"

@@ -304,7 +304,8 @@ class FitObjective(nn.Module):
     per scan opening (its name, which may hold dots: ``boundary_names[k]``); ``weight_<term>`` () per
     loss term (`TERM_NAMES`, from ``config.weights``: the buffers are the weights used);
     ``initial_phenotypes`` (1, P) [-] (the prior's centre) or None; ``opening_least`` (K,) [m], the
-    shortest openings the scan allows (`_register_opening_lengths`). Non-persistent: the template's
+    shortest openings the scan allows, and ``opening_most`` (K,) [m], the longest the fit allows (inf but for
+    the openings held at the template's length; `_register_opening_lengths`). Non-persistent: the template's
     ``template_uv`` (V, 2) [m] and its rest areas and edge inverses, ``fixed_body_verts`` (Vb, 3) [m] or
     None, ``body_faces`` (Fb, 3) int64 or None.
 
@@ -424,19 +425,21 @@ class FitObjective(nn.Module):
 
     def _register_opening_lengths(self, target: ScanTarget, dtype: torch.dtype) -> None:
         """The K matched openings of ``config.opening_length_names`` held no shorter than the scan shows
-        them, and those of ``config.opening_template_names`` no shorter than the template's:
+        them, and those of ``config.opening_template_names`` no shorter than the template's (and no longer
+        with ``config.opening_template_hold`` ``"exact"``):
         ``opening_names``, ``opening_traced`` (K floats [m]: the length the scan's points trace,
         `scan_loop_length` with the placed garment's opening its reference; nan where they trace none or
         are not asked), ``opening_seen`` (K floats: the share of the loop's angular bins that hold scan
         points; nan where not asked), ``opening_edges`` (their rest edges, `rest_loop_edges`) and the buffer
         ``opening_least`` (K,) [m], the traced lengths less ``config.opening_length_tolerance``; on a
         partial scan (``seen_sides``), and for the template's openings, no less than the template's
-        either. ``opening_panels`` and ``opening_shares``: the panel of each rest edge and the template's
-        split of each opening between its panels (`rest_loop_shares`)."""
+        either; the buffer ``opening_most`` (K,) [m]: ``opening_least`` for the template's openings held
+        ``"exact"``, inf for the others. ``opening_panels`` and ``opening_shares``: the panel of each rest
+        edge and the template's split of each opening between its panels (`rest_loop_shares`)."""
         cfg = self.config
         self.opening_names, self.opening_traced, self.opening_seen, self.opening_edges = [], [], [], []
         placed = self.garment.sim_positions().detach().double()
-        least = []
+        least, most = [], []
         for loop in self.garment.boundary_loops:
             measured = loop.name in cfg.opening_length_names and loop.name in self.boundary_names
             held = loop.name in cfg.opening_template_names
@@ -465,7 +468,12 @@ class FitObjective(nn.Module):
                 self.opening_seen.append(seen)
                 self.opening_edges.append(edges)
                 least.append(bound)
+                # the scan cannot measure these (a neck's trace 5.5 cm short to 4.2 cm long), and the fits
+                # moved them whatever the truth: shrank necks, and grew a dress's armholes by 2-4 cm onto the
+                # rims of holes under the arms (docs/BENCHMARKS.md, "Openings held at the template's")
+                most.append(bound if held and cfg.opening_template_hold == "exact" else math.inf)
         self.register_buffer("opening_least", torch.tensor(least, dtype=dtype).reshape(-1))
+        self.register_buffer("opening_most", torch.tensor(most, dtype=dtype).reshape(-1))
         # each opening's panels and the template's split of it between them (`opening_split_loss`)
         self.opening_panels = [rest_loop_panels(self.garment, e) for e in self.opening_edges]
         self.opening_shares = [
@@ -546,7 +554,9 @@ class FitObjective(nn.Module):
         if self.weight_pattern_change > 0:
             terms["pattern_change"] = self._pattern_change(rest_uv)
         if self.weight_opening_length > 0 and self.opening_edges:
-            terms["opening_length"] = opening_length_loss(rest_uv, self.opening_edges, self.opening_least)
+            terms["opening_length"] = opening_length_loss(
+                rest_uv, self.opening_edges, self.opening_least, self.opening_most
+            )
         if self.weight_opening_split > 0 and self.opening_edges:
             terms["opening_split"] = opening_split_loss(
                 rest_uv, self.opening_edges, self.opening_panels, self.opening_shares
@@ -609,7 +619,7 @@ class FitObjective(nn.Module):
                 self.opening_edges, self.opening_panels, self.opening_shares
             )
             index = [cpu(t, False) for t in (edges, slot, slot_opening)]
-            tables = (cpu(self.opening_least), cpu(shares))
+            tables = (cpu(self.opening_least), cpu(self.opening_most), cpu(shares))
             calls.append(("rest_openings", (*index, *tables, w_length, w_split)))
         return calls
 

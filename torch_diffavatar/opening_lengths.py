@@ -217,17 +217,26 @@ def opening_length_loss(
     rest_uv: torch.Tensor,
     edges: Sequence[torch.Tensor],
     least: torch.Tensor,
+    most: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """() the hems' shortfall: Σ_k (max(0, least_k − L_k) / least_k)² [-] over the openings k, L_k the rest
-    length of ``edges[k]`` (`rest_loop_length`) at ``rest_uv`` (V, 2) [m], ``least`` (K,) [m] the shortest
-    length the scan allows (`scan_loop_length` less a tolerance). 0 with no openings."""
-    if len(edges) != least.shape[0]:
+    """() the openings' shortfall and excess: Σ_k (max(0, least_k − L_k) / least_k)² + (max(0, L_k − most_k)
+    / most_k)² [-] over the openings k, L_k the rest length of ``edges[k]`` (`rest_loop_length`) at
+    ``rest_uv`` (V, 2) [m], ``least`` (K,) [m] the shortest length the scan allows (`scan_loop_length` less a
+    tolerance), ``most`` (K,) [m] the longest (inf: none; None: none for any; an opening held at the
+    template's has both its length). 0 with no openings."""
+    if len(edges) != least.shape[0] or (most is not None and most.shape != least.shape):
         raise ValueError(f"{len(edges)} openings but {least.shape[0]} lengths")
     if not edges:
         return rest_uv.sum() * 0.0
     lengths = torch.stack([rest_loop_length(rest_uv, e) for e in edges])
     least = least.to(lengths)
-    return ((least - lengths).clamp(min=0) / least).square().sum()
+    loss = ((least - lengths).clamp(min=0) / least).square().sum()
+    if most is not None:
+        most = most.to(lengths)
+        bounded = torch.isfinite(most)
+        excess = (lengths[bounded] - most[bounded]).clamp(min=0) / most[bounded]
+        loss = loss + excess.square().sum()
+    return loss
 
 
 def rest_loop_panels(garment: GarmentMesh, edges: torch.Tensor) -> torch.Tensor:
