@@ -224,8 +224,10 @@ def opening_length_loss(
     ``rest_uv`` (V, 2) [m], ``least`` (K,) [m] the shortest length the scan allows (`scan_loop_length` less a
     tolerance), ``most`` (K,) [m] the longest (inf: none; None: none for any; an opening held at the
     template's has both its length). 0 with no openings."""
-    if len(edges) != least.shape[0] or (most is not None and most.shape != least.shape):
+    if len(edges) != least.shape[0]:
         raise ValueError(f"{len(edges)} openings but {least.shape[0]} lengths")
+    if most is not None and most.shape != least.shape:
+        raise ValueError(f"{least.shape[0]} shortest lengths but {tuple(most.shape)} longest")
     if not edges:
         return rest_uv.sum() * 0.0
     lengths = torch.stack([rest_loop_length(rest_uv, e) for e in edges])
