@@ -182,7 +182,7 @@ def opening_lengths(objective: FitObjective, first_uv: torch.Tensor, final_uv: t
     the scan's points trace it (``scan``: a lower bound, `torch_diffavatar.opening_lengths`; None where
     they trace none) and the share of the loop they show (``seen``, 0-1: its angular bins with points;
     None where not asked), the least the fit held it to (``least``: on a partial scan no less than the
-    template's), the most (``most``: the template's length for the openings held ``"exact"``, None for the
+    template's), the most (``most``: ``least`` again for the openings held ``"exact"``, None for the
     others; ``held``: whether the term was on, ``weights.opening_length`` > 0), and as the pattern's rest
     edges give it at the first (``initial``) and at the resulting rest coordinates ``first_uv``,
     ``final_uv`` (V, 2) [m] (``final``): opening name -> those eight."""
