@@ -47,6 +47,8 @@ def test_numbers_that_yaml_reads_as_strings_parse(tmp_path):
         ("drape_contact_bounce: -1", "drape_contact_bounce must be in \\[0, 1\\]"),
         ("animation_check_s: -0.5", "animation_check_s must be in \\[0, inf\\)"),
         ("opening_template_hold: both", "opening_template_hold must be one of \\('least', 'exact'\\)"),
+        ("first_fit_bend_scales: [1, -3]\nfirst_race_iterations: 5", "first_fit_bend_scales must be"),
+        ("first_fit_bend_scales: [1, 3]\nfirst_race_iterations: 0", "several bending stiffnesses need"),
         # every variable frozen: the whole set-up ran, then Adam failed with a traceback
         (
             "lr_cage: 0\nlr_phenotypes: 0\nlr_translation: 0\nlr_pose: 0\nlr_log_bend_stiffness: 0",
@@ -125,3 +127,14 @@ def test_the_openings_each_shipped_config_holds_are_openings_of_its_template(pat
     # template's"): the dress's neck and armholes, the trousers' waist; the tops' necks no shorter
     exact = config.template in ("dress", "pants")
     assert config.opening_template_hold == ("exact" if exact else "least"), config.opening_template_hold
+
+
+@pytest.mark.parametrize("path", sorted(CONFIG_DIR.glob("*.yaml")), ids=lambda p: p.stem)
+def test_the_dress_races_its_bending_stiffness_and_the_others_start_at_one(path):
+    """The dress config starts its fit from three bending stiffnesses and keeps the lowest loss after a
+    short race (docs/BENCHMARKS.md, "A race of bending stiffnesses"); no other config pays for one."""
+    config = load_config(path)
+    if config.template == "dress":
+        assert config.first_fit_bend_scales == (1, 3) and 0 < config.first_race_iterations < config.iterations
+    else:
+        assert config.first_fit_bend_scales == (1.0,)

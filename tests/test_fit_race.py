@@ -36,9 +36,10 @@ class Killed(Exception):
     """Stands for a kill right after a checkpoint was written (any kill before the next one is the same)."""
 
 
-def _fitter(problem, out) -> Fitter:
+def _fitter(problem, out, settings: dict = RACE) -> Fitter:
     garment, _, target = problem
-    return Fitter(garment, target, _config(**RACE), progress=False, dtype=DT, out_dir=out, tensorboard=False)
+    config = _config(**settings)
+    return Fitter(garment, target, config, progress=False, dtype=DT, out_dir=out, tensorboard=False)
 
 
 def _killed_after(fitter: Fitter, saves: int) -> Fitter:
@@ -109,11 +110,9 @@ MEMBRANES = dict(RACE, first_bend_scales=[1], first_stretch_scales=[1, 0.2], lr_
 def test_a_race_of_membranes_gives_each_candidate_its_own_and_resumes_exactly(skirt_problem, tmp_path):
     """``first_stretch_scales``: the second sewing is made with a 5× softer membrane and its race fits from
     that membrane; stopped inside that candidate, the run resumes to the uninterrupted result."""
-    garment, _, target = skirt_problem
 
     def fitter(out):
-        config = _config(**MEMBRANES)
-        return Fitter(garment, target, config, progress=False, dtype=DT, out_dir=out, tensorboard=False)
+        return _fitter(skirt_problem, out, MEMBRANES)
 
     straight_fitter = fitter(tmp_path / "a")
     expected = straight_fitter.run()
@@ -132,6 +131,49 @@ def test_a_race_of_membranes_gives_each_candidate_its_own_and_resumes_exactly(sk
         assert torch.equal(value, straight_fitter.params.state_dict()[name]), name
     with pytest.raises(ValueError, match="need a race"):
         _config(**dict(MEMBRANES, first_race_iterations=0))
+
+
+STIFFNESSES = dict(RACE, first_bend_scales=[1], first_fit_bend_scales=[1, 4])
+
+
+def test_a_race_of_bending_stiffnesses_fits_each_from_its_own_and_resumes_exactly(skirt_problem, tmp_path):
+    """``first_fit_bend_scales``: the second sewing is made and settled at 4× the fit's bending stiffness
+    and its race fits from that stiffness; stopped inside that candidate, the run resumes to the
+    uninterrupted result. A fresh sewing during the fit (``resew_at``) keeps the fit's own stiffness."""
+    start_log = math.log(_config().initial_bend_stiffness)
+
+    def fitter(out, **kw):
+        return _fitter(skirt_problem, out, dict(STIFFNESSES, **kw))
+
+    straight_fitter = fitter(tmp_path / "a")
+    expected = straight_fitter.run()
+    plain, stiff = expected.report["first_drape_candidates"]
+    assert "fit_bend_scale" not in plain and stiff["fit_bend_scale"] == 4
+    assert math.isfinite(plain["race_loss"]) and math.isfinite(stiff["race_loss"])
+    scales = []
+    for saves, index in ((1, 0), (3, 1)):  # each candidate's first iteration
+        with pytest.raises(Killed):
+            _killed_after(fitter(tmp_path / "b"), saves).run()
+        checkpoint = safe_load(tmp_path / "b" / CHECKPOINT)
+        race = checkpoint["race"]
+        assert race["index"] == index and race["started"]
+        scale = race["candidates"][race["starts"][index]["candidate"]].get("fit_bend_scale", 1.0)
+        own = start_log + math.log(scale)
+        # the candidate's own stiffness, moved by its one iteration
+        assert abs(float(checkpoint["params"]["log_bend_stiffness"]) - own) < 0.3, (scale, own)
+        scales.append(scale)
+    assert sorted(scales) == [1.0, 4.0]
+    resumed_fitter = fitter(tmp_path / "b")
+    result = resumed_fitter.run(resume=True)
+    assert torch.equal(result.x, expected.x) and torch.equal(result.rest_uv, expected.rest_uv)
+    for name, value in resumed_fitter.params.state_dict().items():
+        assert torch.equal(value, straight_fitter.params.state_dict()[name]), name
+    resewn = fitter(tmp_path / "c", resew_at=[1], first_race_iterations=1, iterations=1).run()
+    assert [set(e) & {"fit_bend_scale"} for e in resewn.report["resewings"][0]["fresh"]] == [set()]
+    with pytest.raises(ValueError, match="need a race"):
+        _config(**dict(STIFFNESSES, first_race_iterations=0))
+    with pytest.raises(ValueError, match="outside"):
+        _config(**dict(STIFFNESSES, first_fit_bend_scales=[1, 1e5]))
 
 
 def test_an_older_checkpoint_from_inside_the_race_is_refused(skirt_problem, tmp_path):

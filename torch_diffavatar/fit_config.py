@@ -207,6 +207,13 @@ class FitConfig:
             Another simulator's cloth can rest where ours would with a far softer membrane than the
             nominal one, and a fit started at 1 does not find it (docs/BENCHMARKS.md, "Newton's drape is
             not an equilibrium of our cloth"). ``(1.0,)``: one membrane.
+        first_fit_bend_scales: each first sewing is also made once per entry with the fit's bending
+            stiffness (``initial_bend_stiffness``) times it, and its candidate in the race fits from that
+            stiffness (``first_race_iterations`` must be > 0) [-]. A fit started soft can stay in the soft
+            cloth's fold state whatever the scan's cloth is: three of ten captured dresses (true k_b 4x the
+            start) ended at 0.22-0.35x the truth and 10.6-15.9 mm from their true drapes; raced from 1x and
+            3x, at 0.67-1.24x and 4.7-6.3 mm (docs/BENCHMARKS.md, "A race of bending stiffnesses").
+            ``(1.0,)``: the fit starts at ``initial_bend_stiffness`` alone.
         first_race_iterations: with several ``first_bend_scales``, the fit runs this many iterations from
             every candidate sewing and continues from the one whose lowest loss is the lowest [-]. A fold
             state and the pattern that suits it are found together, so the first drape's loss alone can
@@ -333,6 +340,7 @@ class FitConfig:
     first_max_steps: int = 400
     first_bend_scales: tuple[float, ...] = (1.0,)
     first_stretch_scales: tuple[float, ...] = (1.0,)
+    first_fit_bend_scales: tuple[float, ...] = (1.0,)
     first_race_iterations: int = 0
     resew_at: tuple[int, ...] = ()
     max_scan_points: int = 4000
@@ -396,22 +404,7 @@ class FitConfig:
             )
         self._check_drape_options()
         self._check_counts()
-        for name in ("first_bend_scales", "first_stretch_scales"):
-            self._positive_list(name)
-        resew = (self.resew_at,) if isinstance(self.resew_at, int) else self.resew_at
-        if not all(isinstance(i, int) and not isinstance(i, bool) and i >= 1 for i in resew):
-            raise ValueError(f"FitConfig.resew_at must list iteration counts >= 1, got {self.resew_at!r}")
-        object.__setattr__(self, "resew_at", tuple(sorted(set(resew))))  # YAML gives a list
-        if len(self.first_stretch_scales) > 1 and self.first_race_iterations == 0:
-            raise ValueError(
-                "FitConfig.first_stretch_scales: several membranes need a race (first_race_iterations > 0): "
-                "the first drape's loss is taken at one membrane"
-            )
-        for s in self.first_stretch_scales:
-            if not 1 / self.stretch_bound < self.initial_stretch * s < self.stretch_bound:
-                raise ValueError(
-                    f"FitConfig.first_stretch_scales: initial_stretch x {s} is outside the stretch_bound"
-                )
+        self._check_first_drapes()
         for name in ("boundary_robust", "interior_robust"):
             kernel = getattr(self, name)
             if kernel not in ROBUST_KERNELS:
@@ -439,6 +432,38 @@ class FitConfig:
                 "fitted; set one above 0 (`diffavatar drape` drapes a pattern as it is)"
             )
         self._check_numbers()
+
+    def _check_first_drapes(self) -> None:
+        """ValueError for bad settings of the first sewings and their race (``first_*_scales``,
+        ``resew_at``); stores the lists as tuples."""
+        for name in ("first_bend_scales", "first_stretch_scales", "first_fit_bend_scales"):
+            self._positive_list(name)
+        if len(self.first_stretch_scales) > 1 and self.first_race_iterations == 0:
+            raise ValueError(
+                "FitConfig.first_stretch_scales: several membranes need a race (first_race_iterations > 0): "
+                "the first drape's loss is taken at one membrane"
+            )
+        if len(self.first_fit_bend_scales) > 1 and self.first_race_iterations == 0:
+            raise ValueError(
+                "FitConfig.first_fit_bend_scales: several bending stiffnesses need a race "
+                "(first_race_iterations > 0): a first drape's loss favours the stiffer cloth"
+            )
+        low, high = BEND_STIFFNESS_RANGE
+        for s in self.first_fit_bend_scales:
+            if not low <= self.initial_bend_stiffness * s <= high:
+                raise ValueError(
+                    f"FitConfig.first_fit_bend_scales: initial_bend_stiffness x {s} is outside "
+                    f"[{low:g}, {high:g}] N·m"
+                )
+        for s in self.first_stretch_scales:
+            if not 1 / self.stretch_bound < self.initial_stretch * s < self.stretch_bound:
+                raise ValueError(
+                    f"FitConfig.first_stretch_scales: initial_stretch x {s} is outside the stretch_bound"
+                )
+        resew = (self.resew_at,) if isinstance(self.resew_at, int) else self.resew_at
+        if not all(isinstance(i, int) and not isinstance(i, bool) and i >= 1 for i in resew):
+            raise ValueError(f"FitConfig.resew_at must list iteration counts >= 1, got {self.resew_at!r}")
+        object.__setattr__(self, "resew_at", tuple(sorted(set(resew))))  # YAML gives a list
 
     def _check_opening_lengths(self) -> None:
         """ValueError for bad ``opening_length_*`` settings; stores the opening lists as tuples."""

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import copy
 import functools
+import math
 
 import torch
 
@@ -93,21 +94,24 @@ def opening(fitter, total: int, resume: bool) -> ClothState:
     starts = fitter._first_states()
     laps = min(fitter.config.first_race_iterations, total) if len(starts) > 1 else 0
     fitter.race = race_state(fitter, starts, laps) if laps > 0 else None
-    if fitter.race is None:  # one start: the fit goes on at its membrane
-        candidate_membrane(fitter, starts[0][2])
+    if fitter.race is None:  # one start: the fit goes on at its material
+        candidate_material(fitter, starts[0][2])
     return starts[0][1]
 
 
-def candidate_membrane(fitter, candidate: dict) -> None:
-    """Give ``fitter``'s parameters the membrane of a first sewing made with a scaled one (its entry's
-    ``stretch_scale``, `fit_start.first_states`): the present factor times that scale."""
-    scale = candidate.get("stretch_scale", 1.0)
-    if scale == 1.0:
-        return
+def candidate_material(fitter, candidate: dict) -> None:
+    """Give ``fitter``'s parameters the material of a first sewing made with a scaled one (its entry's
+    ``stretch_scale`` and ``fit_bend_scale``, `fit_start.first_states`): the present membrane factor and
+    bending stiffness times those scales."""
     params = fitter.params
-    factor = float(params.stretch().detach()) * scale
+    scale = candidate.get("stretch_scale", 1.0)
     with torch.no_grad():
-        params.log_stretch.fill_(unbounded_stretch(factor, params.stretch_bound))
+        if scale != 1.0:
+            factor = float(params.stretch().detach()) * scale
+            params.log_stretch.fill_(unbounded_stretch(factor, params.stretch_bound))
+        stiffer = candidate.get("fit_bend_scale", 1.0)
+        if stiffer != 1.0:
+            params.log_bend_stiffness.add_(math.log(stiffer))
 
 
 def bar_span(fitter, total: int) -> tuple[int, int]:
@@ -221,7 +225,7 @@ def _run_candidate(fitter, state: dict, start: ClothState | None, bar) -> ClothS
                 raise SimulationError("the resumed candidate's drape failed (blow-up or non-finite values)")
     else:
         fitter.load_state_dict(copy.deepcopy(state["initial"]))
-        candidate_membrane(fitter, candidate)
+        candidate_material(fitter, candidate)
         start = ClothState(entry["x"].to(fitter.dtype), entry["v"].to(fitter.dtype))
         ev = fitter._checked_evaluate(start)
         if ev is None:

@@ -66,13 +66,16 @@ def first_states(
     *,
     start_state: ClothState | None = None,
     sewing_fallback=None,
+    fit_bend_scales: tuple[float, ...] | None = None,
 ) -> list[Start]:
     """The first warm starts, each settled with the fit's own substeps and stiffness (`settled`), as
     (loss, state, its entry of ``candidates``), lowest loss first: ``start_state`` alone, or the template
-    sewn and draped once per ``first_bend_scales`` (the bending stiffness scaled by it) and
-    ``first_stretch_scales`` (the membrane scaled by it: the entry's ``stretch_scale``, which the race gives
-    that candidate's fit, `fit_race.candidate_membrane`). With one start the loss is NaN (not evaluated).
-    Each sewing's scales and loss (or error) are appended to ``candidates``.
+    sewn and draped once per ``first_bend_scales`` (the bending stiffness scaled by it for the sewing),
+    ``first_stretch_scales`` (the membrane scaled by it: the entry's ``stretch_scale``) and
+    ``fit_bend_scales`` (default ``first_fit_bend_scales``: the fit's bending stiffness scaled by it, for
+    the sewing and the settling: the entry's ``fit_bend_scale``); the race gives each candidate's fit its
+    entry's membrane and stiffness (`fit_race.candidate_material`). With one start the loss is NaN (not
+    evaluated). Each sewing's scales and loss (or error) are appended to ``candidates``.
 
     Args:
         objective: the fit's objective (garment, config, material, body faces, the fixed body).
@@ -96,12 +99,15 @@ def first_states(
         start = ClothState(start_state.x.to(dtype), start_state.v.to(dtype))
         return [(math.nan, settled(objective, start, rest_uv, body_verts, material), {})]
     config = objective.config
-    pairs = [(b, m) for m in config.first_stretch_scales for b in config.first_bend_scales]
+    fit_bend_scales = config.first_fit_bend_scales if fit_bend_scales is None else fit_bend_scales
+    stretches, bends = config.first_stretch_scales, config.first_bend_scales
+    pairs = [(b, m, k) for k in fit_bend_scales for m in stretches for b in bends]
     states = []
-    for scale, membrane in pairs:
+    for scale, membrane, stiffer in pairs:
         candidate = {"bend_scale": scale} | ({"stretch_scale": membrane} if membrane != 1.0 else {})
+        candidate |= {"fit_bend_scale": stiffer} if stiffer != 1.0 else {}
         candidates.append(candidate)
-        mat = objective.material_at(float(bend_stiffness), (stretch or 1.0) * membrane)
+        mat = objective.material_at(float(bend_stiffness) * stiffer, (stretch or 1.0) * membrane)
         try:
             res = sew_and_drape(
                 objective.garment,
@@ -109,7 +115,7 @@ def first_states(
                 body_verts=body_verts,
                 body_faces=None if body_verts is None else objective.body_faces,
                 fallback=sewing_fallback,
-                material=replace(mat, bend_stiffness=float(bend_stiffness) * scale),
+                material=replace(mat, bend_stiffness=float(bend_stiffness) * stiffer * scale),
                 config=first_drape_config(objective.config),
                 dtype=dtype,
             )
@@ -163,8 +169,14 @@ def resew(fitter, ev: ObjectiveOutput, start: ClothState) -> tuple[ObjectiveOutp
     entries: list[dict] = []
     record = {"iteration": fitter.iteration, "warm_loss": float(ev.loss.detach()), "fresh": entries}
     try:
+        # at the fit's own stiffness: the fit goes on with it, whichever drape it takes
         starts = first_states(
-            fitter.objective, variables, fitter.evaluate, entries, sewing_fallback=fitter.sewing_fallback
+            fitter.objective,
+            variables,
+            fitter.evaluate,
+            entries,
+            sewing_fallback=fitter.sewing_fallback,
+            fit_bend_scales=(1.0,),
         )
     except SimulationError:  # every sewing failed: the warm drape goes on
         starts = []
