@@ -131,7 +131,7 @@ def test_the_openings_each_shipped_config_holds_are_openings_of_its_template(pat
 
 @pytest.mark.parametrize("path", sorted(CONFIG_DIR.glob("*.yaml")), ids=lambda p: p.stem)
 def test_the_dress_races_its_bending_stiffness_and_the_others_start_at_one(path):
-    """The dress config starts its fit from three bending stiffnesses and keeps the lowest loss after a
+    """The dress config starts its fit from two bending stiffnesses and keeps the lower loss after a
     short race (docs/BENCHMARKS.md, "A race of bending stiffnesses"); no other config pays for one."""
     config = load_config(path)
     if config.template == "dress":
