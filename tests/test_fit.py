@@ -566,8 +566,8 @@ def test_the_race_continues_the_candidate_with_the_lowest_loss(skirt_problem, tm
     fitter = Fitter(garment, target, config, progress=False, dtype=DT, out_dir=tmp_path)
     first_states = fitter._first_states
 
-    def worst_first():  # the race, not the order of the first drapes' losses, must pick the winner
-        return sorted(first_states(), key=lambda s: -s[0])
+    def worst_first(workers=1):  # the race, not the order of the first drapes' losses, must pick the winner
+        return sorted(first_states(workers), key=lambda s: -s[0])
 
     fitter._first_states = worst_first
     raced = fitter.run()

@@ -298,3 +298,43 @@ def test_a_race_on_workers_stopped_after_its_round_resumes_to_the_uninterrupted_
     _, expected = straight
     assert torch.equal(result.rest_uv, expected.rest_uv) and torch.equal(result.x, expected.x)
     assert _timeless(result.history) == _timeless(expected.history)
+
+
+SEWINGS = dict(iterations=0, first_max_steps=80, first_bend_scales=[1, 30, 3000, 10])
+
+
+@pytest.mark.parametrize("lose", [False, True], ids=["forked", "workers lost"])
+def test_first_sewings_on_two_workers_are_those_made_one_after_another(
+    skirt_problem, monkeypatch, one_thread, lose
+):
+    """``workers=2``: every other first sewing is made (and evaluated) in a forked worker while the driver
+    makes the one before it: the same states, losses, order and recorded failure (scale 3000: the seams do
+    not close) as one after another. A worker lost (killed) leaves its sewing to the driver."""
+    from torch_diffavatar import fit_start
+    from torch_diffavatar.forked import ForkedCall, WorkerLost
+
+    expected = _fitter(skirt_problem, None, SEWINGS)
+    want = expected._first_states()
+    forks, lost = [], []
+
+    class Counted(ForkedCall):
+        def __init__(self, fn):
+            super().__init__(fn)
+            forks.append(self)
+
+        def result(self):
+            if not lose:
+                return super().result()
+            self._process.kill()
+            lost.append(self)
+            raise WorkerLost("killed")
+
+    monkeypatch.setattr(fit_start, "ForkedCall", Counted)
+    fitter = _fitter(skirt_problem, None, SEWINGS)
+    got = fitter._first_states(workers=2)
+    assert len(forks) == 2 and len(lost) == (2 if lose else 0)  # the sewings at 30 and 10
+    assert fitter.first_candidates == expected.first_candidates
+    assert "seams did not close" in fitter.first_candidates[2]["error"]
+    assert [(loss, entry) for loss, _, entry in got] == [(loss, entry) for loss, _, entry in want]
+    for (_, state, _), (_, other, _) in zip(got, want):
+        assert torch.equal(state.x, other.x) and torch.equal(state.v, other.v)

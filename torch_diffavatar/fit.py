@@ -517,13 +517,14 @@ class Fitter:
 
     # -- the run -------------------------------------------------------------------------------------------
 
-    def _first_states(self) -> list[Start]:
-        """`fit_start.first_states` at the current parameters (sewings recorded in ``first_candidates``)."""
+    def _first_states(self, workers: int = 1) -> list[Start]:
+        """`fit_start.first_states` at the current parameters (sewings recorded in ``first_candidates``),
+        ``workers`` sewings at a time."""
         with torch.no_grad():
             variables = self.params()
         if self.start_state is None:
             self.first_candidates = []
-        kw = dict(start_state=self.start_state, sewing_fallback=self.sewing_fallback)
+        kw = dict(start_state=self.start_state, sewing_fallback=self.sewing_fallback, workers=workers)
         return first_states(self.objective, variables, self.evaluate, self.first_candidates, **kw)
 
     def _first_state(self) -> ClothState:
@@ -535,11 +536,12 @@ class Fitter:
 
         With ``resume``, continue from ``out_dir/checkpoint.pt`` when it exists, to the result of an
         uninterrupted run (one stopped during the race of first drapes too: `fit_race.opening`).
-        ``race_workers``: candidates of the race fitted at a time, in forked processes (`fit_race.race`).
+        ``race_workers``: first sewings made and candidates of the race fitted at a time, in forked
+        processes (`fit_start.first_states`, `fit_race.race`).
         """
         total = self.config.iterations if iterations is None else iterations
         t0 = time.perf_counter()
-        start, raced = opening(self, total, resume), self.race is not None
+        start, raced = opening(self, total, resume, race_workers), self.race is not None
         writer = open_writer(self.out_dir, self.config) if self.tensorboard else None
         bar = progress_bar(*bar_span(self, total)) if self.progress else None
         try:

@@ -71,10 +71,11 @@ def check_old_race(checkpoint: dict, config) -> None:
         )
 
 
-def opening(fitter, total: int, resume: bool) -> ClothState:
+def opening(fitter, total: int, resume: bool, workers: int = 1) -> ClothState:
     """Where ``fitter``'s run of ``total`` iterations starts: its checkpoint's state with ``resume`` (and
-    the race's, if it stopped during one), else the first states, raced when there are several and
-    ``first_race_iterations`` is positive. Sets ``fitter.race`` (None without a race); returns the start.
+    the race's, if it stopped during one), else the first states (``workers`` sewings at a time), raced
+    when there are several and ``first_race_iterations`` is positive. Sets ``fitter.race`` (None without a
+    race); returns the start.
 
     Raises:
         InputError: the checkpoint cannot be read, or cannot be resumed exactly (`check_old_race`).
@@ -91,7 +92,7 @@ def opening(fitter, total: int, resume: bool) -> ClothState:
             race["seconds_before"] = race.get("seconds", 0.0) + fitter.seconds
         fitter.race = race
         return start
-    starts = fitter._first_states()
+    starts = fitter._first_states(workers)
     laps = min(fitter.config.first_race_iterations, total) if len(starts) > 1 else 0
     fitter.race = race_state(fitter, starts, laps) if laps > 0 else None
     if fitter.race is None:  # one start: the fit goes on at its material

@@ -10,6 +10,7 @@ continues. During the fit, the garment can be sewn afresh at the parameters it h
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import replace
@@ -18,6 +19,7 @@ import torch
 
 from torch_diffavatar.errors import SimulationError
 from torch_diffavatar.fit_config import drape_config, first_drape_config
+from torch_diffavatar.forked import ForkedCall, WorkerLost, can_fork
 from torch_diffavatar.objective import FitObjective, FitVariables, ObjectiveOutput
 from torch_diffavatar.sim.material import ClothMaterial
 from torch_diffavatar.sim.state import ClothState
@@ -67,6 +69,7 @@ def first_states(
     start_state: ClothState | None = None,
     sewing_fallback=None,
     fit_bend_scales: tuple[float, ...] | None = None,
+    workers: int = 1,
 ) -> list[Start]:
     """The first warm starts, each settled with the fit's own substeps and stiffness (`settled`), as
     (loss, state, its entry of ``candidates``), lowest loss first: ``start_state`` alone, or the template
@@ -84,12 +87,12 @@ def first_states(
         candidates: where each sewing's entry goes.
         start_state: the first warm start (e.g. a `sew_and_drape` result's state), or None to sew.
         sewing_fallback: `sew_and_drape`'s ``fallback`` (`sim.placement.a_pose_route` for a posed body).
+        workers: sewings made at a time, all but one in forked workers (`_sewn_side_by_side`; the same
+            results on any number).
 
     Raises:
         SimulationError: the sewing or the drape blew up (of every candidate, when there are several).
     """
-    from torch_diffavatar.sim.forward_drape import sew_and_drape
-
     rest_uv, bend_stiffness = variables.rest_uv, variables.bend_stiffness
     body_verts = objective.body_or_fixed(variables.body_verts)
     stretch = None if variables.stretch is None else float(variables.stretch)
@@ -102,41 +105,101 @@ def first_states(
     fit_bend_scales = config.first_fit_bend_scales if fit_bend_scales is None else fit_bend_scales
     stretches, bends = config.first_stretch_scales, config.first_bend_scales
     pairs = [(b, m, k) for k in fit_bend_scales for m in stretches for b in bends]
+    entries = [_candidate_entry(*pair) for pair in pairs]
+    candidates.extend(entries)
+    sew = functools.partial(_sewn, objective, variables, body_verts, stretch, sewing_fallback)
+    if len(pairs) == 1:  # nothing to choose; the fit evaluates it anyway
+        state, _ = sew(pairs[0], entries[0], None)
+        return [(math.nan, state, entries[0])]
     states = []
-    for scale, membrane, stiffer in pairs:
-        candidate = {"bend_scale": scale} | ({"stretch_scale": membrane} if membrane != 1.0 else {})
-        candidate |= {"fit_bend_scale": stiffer} if stiffer != 1.0 else {}
-        candidates.append(candidate)
-        mat = objective.material_at(float(bend_stiffness) * stiffer, (stretch or 1.0) * membrane)
-        try:
-            res = sew_and_drape(
-                objective.garment,
-                rest_uv=rest_uv,
-                body_verts=body_verts,
-                body_faces=None if body_verts is None else objective.body_faces,
-                fallback=sewing_fallback,
-                material=replace(mat, bend_stiffness=float(bend_stiffness) * stiffer * scale),
-                config=first_drape_config(objective.config),
-                dtype=dtype,
-            )
-            if "fallback_after" in res.diagnostics:
-                candidate["sewn_in_a_pose"] = True
-            state = settled(objective, res.state, rest_uv, body_verts, mat)
-            if len(pairs) == 1:  # nothing to choose; the fit evaluates it anyway
-                return [(math.nan, state, candidate)]
-            loss = float(evaluate(state).loss)
-            # report.json is strict JSON: a non-finite loss is recorded as an error, not as NaN
-            candidate.update({"loss": loss} if math.isfinite(loss) else {"error": f"loss {loss}"})
-        except SimulationError as exc:
-            if len(pairs) == 1:
-                raise
-            candidate["error"] = str(exc)
-            continue
-        if math.isfinite(loss):
-            states.append((loss, state, candidate))
+    for first in range(0, len(pairs), max(workers, 1)):
+        chunk = list(range(first, min(first + max(workers, 1), len(pairs))))
+        for i, (state, loss) in zip(chunk, _sewn_side_by_side(sew, pairs, entries, chunk, evaluate)):
+            if state is not None and math.isfinite(loss):
+                states.append((loss, state, entries[i]))
     if not states:
         raise SimulationError(f"every first sewing of the template failed: {candidates}")
     return sorted(states, key=lambda ls: ls[0])
+
+
+def _candidate_entry(scale: float, membrane: float, stiffer: float) -> dict:
+    """A first sewing's entry of the candidates: its scales, those at 1 left out."""
+    candidate = {"bend_scale": scale} | ({"stretch_scale": membrane} if membrane != 1.0 else {})
+    return candidate | ({"fit_bend_scale": stiffer} if stiffer != 1.0 else {})
+
+
+def _sewn(objective, variables, body_verts, stretch, sewing_fallback, pair, candidate, evaluate):
+    """One first sewing (`first_states`): the template sewn and draped at ``pair`` = (bend scale, membrane
+    scale, fit bend scale), settled at the fit's stiffness times the last; notes a sewing finished in the
+    A-pose in ``candidate``. Returns (state, its loss by ``evaluate``, NaN when None).
+
+    Raises:
+        SimulationError: the sewing or the drape blew up.
+    """
+    from torch_diffavatar.sim.forward_drape import sew_and_drape
+
+    scale, membrane, stiffer = pair
+    bend_stiffness = float(variables.bend_stiffness) * stiffer
+    mat = objective.material_at(bend_stiffness, (stretch or 1.0) * membrane)
+    res = sew_and_drape(
+        objective.garment,
+        rest_uv=variables.rest_uv,
+        body_verts=body_verts,
+        body_faces=None if body_verts is None else objective.body_faces,
+        fallback=sewing_fallback,
+        material=replace(mat, bend_stiffness=bend_stiffness * scale),
+        config=first_drape_config(objective.config),
+        dtype=objective.template_uv.dtype,
+    )
+    if "fallback_after" in res.diagnostics:
+        candidate["sewn_in_a_pose"] = True
+    state = settled(objective, res.state, variables.rest_uv, body_verts, mat)
+    return state, (math.nan if evaluate is None else float(evaluate(state).loss))
+
+
+def _sewn_plain(sew, pair, entry: dict, evaluate, _counter=None) -> dict:
+    """``sew``'s (`_sewn`'s) result as a worker sends it: the state's tensors, the loss, the entry's notes."""
+    entry = dict(entry)
+    state, loss = sew(pair, entry, evaluate)
+    return {"x": state.x, "v": state.v, "loss": loss, "entry": entry}
+
+
+def _sewn_side_by_side(sew, pairs, entries: list[dict], chunk: list[int], evaluate) -> list:
+    """The sewings ``chunk`` (indices into ``pairs``), each as (state, loss): the first here while forked
+    workers (`forked.ForkedCall`, where `forked.can_fork`) sew the others, the same results as one after
+    another (the sewing, the drape and the evaluation are deterministic, and each starts from the same
+    parameters). Records each loss, or the error, in its entry of ``entries``; a failed sewing is (None,
+    NaN). A worker lost (killed, out of memory) has its sewing done here."""
+    calls = {}
+    if can_fork():
+        calls = {
+            i: ForkedCall(functools.partial(_sewn_plain, sew, pairs[i], entries[i], evaluate))
+            for i in chunk[1:]
+        }
+    out = []
+    try:
+        for i in chunk:
+            try:
+                if i in calls:
+                    try:
+                        result = calls[i].result()
+                    except WorkerLost:
+                        result = _sewn_plain(sew, pairs[i], entries[i], evaluate)
+                    entries[i].update(result["entry"])
+                    state, loss = ClothState(result["x"], result["v"]), result["loss"]
+                else:
+                    state, loss = sew(pairs[i], entries[i], evaluate)
+            except SimulationError as exc:
+                entries[i]["error"] = str(exc)
+                out.append((None, math.nan))
+                continue
+            # report.json is strict JSON: a non-finite loss is recorded as an error, not as NaN
+            entries[i].update({"loss": loss} if math.isfinite(loss) else {"error": f"loss {loss}"})
+            out.append((state, loss))
+    finally:
+        for call in calls.values():
+            call.close()
+    return out
 
 
 def first_drape(
