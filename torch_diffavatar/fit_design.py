@@ -32,6 +32,15 @@ from torch_diffavatar.pattern.measurements import HEM_OPENINGS
 # a hem within this of the scan's height [m] and length [-] is left as the template has it
 HEM_UP_TOLERANCE = 0.01
 HEM_WIDEN_TOLERANCE = 0.02
+# the heights above a floor-cut garment's lowest scan point [m] whose points trace its hidden hems
+FLOOR_CUT_BAND = (0.01, 0.06)
+# a garment whose lowest scan points lie within this [m] of the intake's floor margin was cut off there
+FLOOR_CUT_SLACK = 0.005
+# a floor-cut band's points per bin of its trace at the least (`scan_loop_length`): the medians of a 5 cm
+# tall band of ten points jitter and lengthen it (a 320x240 capture's 330 points per leg: 76.6 / 80.7 cm
+# against a true hem of 68.8; at 30 per bin 69.3 / 67.3; the ring captures 401 and 501, 1,000-1,150 per
+# leg, 68.5-70.9 either way)
+FLOOR_CUT_PER_BIN = 30
 
 
 @dataclass(frozen=True)
@@ -45,6 +54,8 @@ class HemDesign:
         loops: the hem loops measured (names of `HEM_OPENINGS` that both the garment and the scan have).
         applied: the template was changed (either beyond `HEM_UP_TOLERANCE` / `HEM_WIDEN_TOLERANCE`).
         waist_up: the scan's waistband lies this far above the first drape's [m] (0 without a waist).
+        floor_cut: hem loops the scan does not show, measured where the floor cut the garment off
+            (`floor_cut_hems`): their length counts in ``hem_widen``, not their height in ``hem_up``.
     """
 
     hem_up: float
@@ -52,13 +63,18 @@ class HemDesign:
     loops: tuple[str, ...]
     applied: bool
     waist_up: float = 0.0
+    floor_cut: tuple[str, ...] = ()
 
     def as_dict(self) -> dict:
-        return asdict(self) | {"loops": list(self.loops)}
+        return asdict(self) | {"loops": list(self.loops), "floor_cut": list(self.floor_cut)}
 
 
 def hem_design(
-    garment, drape_x: torch.Tensor, boundaries: dict[str, torch.Tensor], bin_length: float = 0.02
+    garment,
+    drape_x: torch.Tensor,
+    boundaries: dict[str, torch.Tensor],
+    bin_length: float = 0.02,
+    floor_cut: dict[str, torch.Tensor] | None = None,
 ) -> HemDesign | None:
     """The scan's hem against the template's first drape; None when the scan shows no hem of the garment.
 
@@ -67,26 +83,90 @@ def hem_design(
         drape_x: (Vs, 3) its first drape [m], +y up (the fit's frame).
         boundaries: the scan's openings (`ScanTarget.boundaries`: name -> (k, 3) points [m]).
         bin_length: `scan_loop_length`'s bin [m] (`FitConfig.opening_length_bin`).
+        floor_cut: hem loops the scan does not show, as the scan's garment points just above the floor
+            that cut them off (`floor_cut_hems`: name -> (k, 3) [m]): their lengths only.
     """
+    cut = {n: p for n, p in (floor_cut or {}).items() if len(p) > 0}
     loops = [lp for lp in garment.boundary_loops if lp.name in HEM_OPENINGS and lp.name in boundaries]
-    loops = [lp for lp in loops if len(boundaries[lp.name]) > 0]
-    if not loops:
+    loops = [lp for lp in loops if len(boundaries[lp.name]) > 0 and lp.name not in cut]
+    cut_loops = [lp for lp in garment.boundary_loops if lp.name in cut]
+    if not loops and not cut_loops:
         return None
-    scan_y = torch.cat([boundaries[lp.name][:, 1].double() for lp in loops])
-    drape_y = torch.cat([drape_x[lp.vertices, 1].double() for lp in loops])
-    waist_up = _waist_up(garment, drape_x, boundaries)
-    hem_up = float(scan_y.median() - drape_y.median()) - waist_up
+    waist_up = _waist_up(garment, drape_x, boundaries) if loops else 0.0
+    hem_up = 0.0
+    if loops:
+        scan_y = torch.cat([boundaries[lp.name][:, 1].double() for lp in loops])
+        drape_y = torch.cat([drape_x[lp.vertices, 1].double() for lp in loops])
+        hem_up = float(scan_y.median() - drape_y.median()) - waist_up
     traced, rest = 0.0, 0.0
-    for lp in loops:
-        length, _ = scan_loop_length(
-            boundaries[lp.name], bin_length=bin_length, reference=drape_x[lp.vertices]
-        )
+    for lp in loops + cut_loops:
+        if lp.name in cut:  # no reference: the first drape's hem in its pile is no cross-section of a leg
+            length, _ = scan_loop_length(
+                cut[lp.name], bin_length=bin_length, points_per_bin=FLOOR_CUT_PER_BIN
+            )
+        else:
+            length, _ = scan_loop_length(
+                boundaries[lp.name], bin_length=bin_length, reference=drape_x[lp.vertices]
+            )
         if math.isfinite(length):  # too few of the hem's points for a length: its height still counts
             traced += length
             rest += float(rest_loop_length(garment.vert_uv.double(), rest_loop_edges(garment, lp)))
     hem_widen = max(traced / rest - 1.0, 0.0) if rest > 0 else 0.0
     applied = abs(hem_up) > HEM_UP_TOLERANCE or hem_widen > HEM_WIDEN_TOLERANCE
-    return HemDesign(hem_up, hem_widen, tuple(lp.name for lp in loops), applied, waist_up)
+    names = tuple(lp.name for lp in loops)
+    return HemDesign(hem_up, hem_widen, names, applied, waist_up, tuple(lp.name for lp in cut_loops))
+
+
+def floor_cut_hems(
+    garment,
+    drape_x: torch.Tensor,
+    boundaries: dict[str, torch.Tensor],
+    garment_points,
+    margin: float,
+    band: tuple[float, float] = FLOOR_CUT_BAND,
+) -> dict[str, torch.Tensor]:
+    """The scan's garment points just above the floor, by hem loop, for the hems that the intake's floor
+    removal cut off: trousers too long for their wearer pile on the floor, and the intake takes every point
+    up to ``margin`` above it (`scan_intake.floor_margin`), the pile and its hems with them. The scan then
+    shows no hem, or the rim of the cut, which says nothing of the hem's height (the first drape's hems lie
+    somewhere in its own pile). Above the pile a leg still hangs as wide as its hem: on the captured
+    trousers 401 its cross-sections 1.5-20 cm above the cut trace 66.4-68.5 cm, the true drape's 67.1-68.4,
+    the true hem 68.8 cm, where the fit without them ended at 64.2 (docs/BENCHMARKS.md, "Trousers piled on
+    the floor").
+
+    Args:
+        garment: the placed template (`GarmentMesh`).
+        drape_x: (Vs, 3) its first drape [m], +y up, the floor at y = 0.
+        boundaries: the scan's openings (name -> (k, 3) points [m]).
+        garment_points: (P, 3) the scan's garment points [m] (numpy or tensor).
+        margin: the height above the floor up to which the intake removed the points [m].
+        band: heights above the garment's lowest scan point [m] whose points are taken.
+
+    Returns:
+        name -> (k, 3) float64 points [m] of each hem loop cut off: not in ``boundaries`` or there only
+        within ``band`` of the lowest point; each band point goes to the hem whose first drape lies nearest
+        it horizontally. Empty when the garment's lowest scan point lies more than `FLOOR_CUT_SLACK` above
+        ``margin`` (the garment ends above the cut), or no hem was cut off.
+    """
+    points = torch.as_tensor(garment_points).double()
+    if len(points) == 0:
+        return {}
+    low = float(points[:, 1].min())
+    if low > margin + FLOOR_CUT_SLACK:
+        return {}
+
+    def cut_off(name: str) -> bool:
+        shown = boundaries.get(name)
+        return shown is None or len(shown) == 0 or float(shown[:, 1].double().median()) <= low + band[1]
+
+    missing = [lp for lp in garment.boundary_loops if lp.name in HEM_OPENINGS and cut_off(lp.name)]
+    if not missing:
+        return {}
+    height = points[:, 1] - low
+    near = points[(height >= band[0]) & (height <= band[1])]
+    centres = torch.stack([drape_x[lp.vertices].double().mean(0)[[0, 2]] for lp in missing])
+    nearest = torch.cdist(near[:, [0, 2]], centres).argmin(1)
+    return {lp.name: near[nearest == k] for k, lp in enumerate(missing)}
 
 
 def _waist_up(garment, drape_x: torch.Tensor, boundaries: dict[str, torch.Tensor]) -> float:

@@ -278,14 +278,18 @@ class DressedTemplate:
     design: HemDesign | None = None
 
 
-def dress_template(pattern, mesh, body, body_out, loops: dict, config, spacing: float) -> DressedTemplate:
+def dress_template(
+    pattern, mesh, body, body_out, loops: dict, config, spacing: float, floor_cut=None
+) -> DressedTemplate:
     """``mesh`` (``pattern`` meshed at ``spacing`` [m]) placed on the body facing its way, its openings
     matched to the scan's ``loops``; with ``config.hem_from_scan`` it is first sewn and draped once, and
     when the scan's hem lies higher or lower or traces a longer loop (`fit_design.hem_design`) the pattern
     is changed so (`pattern.design.changed_pattern`) and meshed and placed again. When that sewing fails,
-    the template stays as it is (the fit's own first sewings may still succeed: `fit_start.first_states`)."""
+    the template stays as it is (the fit's own first sewings may still succeed: `fit_start.first_states`).
+    ``floor_cut``: (the scan's (P, 3) garment points [m], the intake's floor margin [m]) when the scan had a
+    floor, for the hems its removal cut off (`fit_design.floor_cut_hems`); None: no floor."""
     from torch_diffavatar.body.facing import body_facing_yaw
-    from torch_diffavatar.fit_design import first_hem_drape, hem_design
+    from torch_diffavatar.fit_design import first_hem_drape, floor_cut_hems, hem_design
     from torch_diffavatar.pattern import mesh_pattern
     from torch_diffavatar.pattern.design import changed_pattern
     from torch_diffavatar.sim.placement import a_pose_route, place_garment_turned
@@ -307,23 +311,34 @@ def dress_template(pattern, mesh, body, body_out, loops: dict, config, spacing: 
     except SimulationError as exc:
         print(f"diffavatar fit: the template's hem is not set from the scan ({exc})", file=sys.stderr)
         return dressed
-    design = hem_design(dressed.garment, x, dressed.boundaries, config.opening_length_bin)
+    cut = {} if floor_cut is None else floor_cut_hems(dressed.garment, x, dressed.boundaries, *floor_cut)
+    design = hem_design(dressed.garment, x, dressed.boundaries, config.opening_length_bin, cut)
     if design is None or not design.applied:
         return replace(dressed, design=design)
+    print(f"diffavatar fit: {_hem_design_note(design)}", file=sys.stderr)
+    changed = changed_pattern(pattern, design.hem_up, design.hem_widen, spacing=spacing)
+    return placed(changed, mesh_pattern(changed, spacing=spacing), design)
+
+
+def _hem_design_note(design: HemDesign) -> str:
+    """What `dress_template` changed of the template's hem (``design`` applied), in a sentence."""
 
     def where(up: float) -> str:
         return f"{abs(100 * up):.1f} cm {'above' if up > 0 else 'below'}"
 
+    widen = f"{100 * design.hem_widen:.1f} % longer loop"
+    if not design.loops:  # every hem cut off with the floor: their lengths alone
+        hems = " and ".join(design.floor_cut)
+        return (
+            f"the garment reaches the floor and its {hems} are not in the scan; just above the floor it "
+            f"traces a {widen} than the template's: the fit starts from the template with its hem so"
+        )
     waist = f", its waistband {where(design.waist_up)} the drape's," if design.waist_up else ""
     panels = f"{abs(100 * design.hem_up):.1f} cm {'shorter' if design.hem_up > 0 else 'longer'}"
-    print(
-        f"diffavatar fit: the scan's hem lies {where(design.hem_up + design.waist_up)} the template's first "
-        f"drape{waist} and traces a {100 * design.hem_widen:.1f} % longer loop: the fit starts from the "
-        f"template with its panels {panels} and its hem so",
-        file=sys.stderr,
+    return (
+        f"the scan's hem lies {where(design.hem_up + design.waist_up)} the template's first drape{waist} and "
+        f"traces a {widen}: the fit starts from the template with its panels {panels} and its hem so"
     )
-    changed = changed_pattern(pattern, design.hem_up, design.hem_widen, spacing=spacing)
-    return placed(changed, mesh_pattern(changed, spacing=spacing), design)
 
 
 def prepare(
@@ -365,6 +380,7 @@ def prepare(
     from torch_diffavatar.body.parts import vertex_parts
     from torch_diffavatar.pattern import mesh_pattern
     from torch_diffavatar.pattern.library import resolve_pattern
+    from torch_diffavatar.scan_intake import floor_margin
 
     t0 = time.perf_counter()
     scan, intake = load_fit_scan(scan_path, units=units, up=up) if loaded_scan is None else loaded_scan
@@ -385,7 +401,8 @@ def prepare(
     if mask.sum() < 50:
         raise InputError(f"{scan_path}: only {int(mask.sum())} garment points; cannot fit a garment")
     loops = scan_boundaries(scan.points, mask, body_verts.numpy(), faces, parts, seg_type)
-    dressed = dress_template(pattern, mesh, body, body_out, loops, config, spacing)
+    floor_cut = None if intake.floor is None else (scan.points[mask], floor_margin(intake.floor["sigma_m"]))
+    dressed = dress_template(pattern, mesh, body, body_out, loops, config, spacing, floor_cut)
     return {
         "garment": dressed.garment,
         "pattern": dressed.pattern,

@@ -314,6 +314,13 @@ def find_floor(
     )
 
 
+def floor_margin(sigma: float) -> float:
+    """How far above the floor [m] `remove_floor_plane` takes every point with it: 3 robust sigmas of the
+    floor's own scatter (``sigma`` [m]; the intake report's ``floor["sigma_m"]``), at least
+    `FLOOR_MARGIN_MIN`. Cloth lying on the floor within it (trousers piled there) goes too."""
+    return max(3.0 * sigma, FLOOR_MARGIN_MIN)
+
+
 def remove_floor_plane(scan: Scan, floor: Floor) -> tuple[Scan, int]:
     """Remove ``floor`` from ``scan`` and put it at y = 0 under the person (see the module docstring).
 
@@ -325,7 +332,7 @@ def remove_floor_plane(scan: Scan, floor: Floor) -> tuple[Scan, int]:
         (the scan without the floor, shifted vertically; the number of points removed).
     """
     above = floor.height(scan.points)
-    margin = max(3.0 * floor.sigma, FLOOR_MARGIN_MIN)
+    margin = floor_margin(floor.sigma)
     keep = above > margin
     band = keep & (above < FLOOR_BAND)
     legs = scan.points[(above >= FLOOR_BAND) & (above < 0.4)][:, [0, 2]]
