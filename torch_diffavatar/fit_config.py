@@ -192,7 +192,9 @@ class FitConfig:
             the scan's hem height (measured from the waistband, for a garment with one: it may sit on the
             hips) and widened to the loop the scan's hem traces (`fit_design`): a template
             5 cm too long made the fit lift its hem by shrinking the neck (a T-shirt's 6.2 cm; from the hem
-            set so, 1.6; docs/BENCHMARKS.md, "The hem from the scan before the fit"). False: the template
+            set so, 1.6; docs/BENCHMARKS.md, "The hem from the scan before the fit"). Hems that the
+            intake's floor removal cut off (trousers piled on the floor) are widened to the loop the legs
+            trace just above it, their height left (`fit_design.floor_cut_hems`). False: the template
             as it is.
         first_max_steps: frames at most of the first (sew and) drape [-].
         first_bend_scales: the first drape is sewn and draped once per entry, with the bending stiffness
