@@ -380,3 +380,31 @@ def test_a_neck_held_to_the_template_whatever_the_scan_shows():
     report = {"chamfer_final": 0.0, "boundary_chamfer_final": {}, "opening_lengths": lengths}
     coverage = {"sectors_seen": 4, "sectors": 8}
     assert not any("neck" in w for w in fit_report.scan_warnings(report, small, coverage))
+
+
+def test_hems_the_floor_cut_off_are_held_at_the_starts_length():
+    """Trousers piled on the floor show no hem; the set-up measured their legs above it and started the
+    pattern there (`fit_design.floor_cut_hems`), and the fit holds those hems at the start's length, neither
+    shorter nor longer, whatever ``opening_template_hold`` (unheld, a fit widened them 9.6 cm past it)."""
+    from dataclasses import replace
+
+    from helpers_fit import fit_config
+
+    from torch_diffavatar.fit_config import LossWeights
+    from torch_diffavatar.objective import FitObjective, ScanTarget
+    from torch_diffavatar.pattern import load_template, mesh_pattern
+
+    garment = mesh_pattern(load_template("pants"), spacing=0.08)
+    cfg = fit_config(weights=replace(LossWeights(), opening_length=1000.0))
+    assert cfg.opening_template_hold == "least"
+    points = garment.sim_positions().double()
+    cut = ("hem_left", "hem_right")
+    held = FitObjective(garment, ScanTarget(points, {}, held_openings=cut), cfg, dtype=torch.float64)
+    for name in cut:
+        loop = next(lp for lp in garment.boundary_loops if lp.name == name)
+        start = float(rest_loop_length(garment.vert_uv.double(), rest_loop_edges(garment, loop)))
+        k = held.opening_names.index(name)
+        assert float(held.opening_least[k]) == pytest.approx(start, rel=1e-9)
+        assert float(held.opening_most[k]) == pytest.approx(start, rel=1e-9)
+    free = FitObjective(garment, ScanTarget(points, {}), cfg, dtype=torch.float64)
+    assert not set(cut) & set(free.opening_names)

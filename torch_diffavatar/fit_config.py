@@ -193,9 +193,9 @@ class FitConfig:
             hips) and widened to the loop the scan's hem traces (`fit_design`): a template
             5 cm too long made the fit lift its hem by shrinking the neck (a T-shirt's 6.2 cm; from the hem
             set so, 1.6; docs/BENCHMARKS.md, "The hem from the scan before the fit"). Hems that the
-            intake's floor removal cut off (trousers piled on the floor) are widened to the loop the legs
-            trace just above it, their height left (`fit_design.floor_cut_hems`). False: the template
-            as it is.
+            intake's floor removal cut off (trousers piled on the floor) are widened to the loops the legs
+            trace above it and held there, their height left (`fit_design.floor_cut_hems`). False: the
+            template as it is.
         first_max_steps: frames at most of the first (sew and) drape [-].
         first_bend_scales: the first drape is sewn and draped once per entry, with the bending stiffness
             scaled by it, then each is settled at the fit's own stiffness; the one with the lowest loss

@@ -21,6 +21,7 @@ before the fit", "… from the waist down").
 from __future__ import annotations
 
 import math
+import statistics
 from dataclasses import asdict, dataclass, replace
 
 import torch
@@ -32,13 +33,14 @@ from torch_diffavatar.pattern.measurements import HEM_OPENINGS
 # a hem within this of the scan's height [m] and length [-] is left as the template has it
 HEM_UP_TOLERANCE = 0.01
 HEM_WIDEN_TOLERANCE = 0.02
-# the heights above a floor-cut garment's lowest scan point [m] whose points trace its hidden hems
-FLOOR_CUT_BAND = (0.01, 0.06)
+# the bands of heights above a floor-cut garment's lowest scan point [m] whose points trace its legs
+FLOOR_CUT_BANDS = ((0.01, 0.06), (0.06, 0.10), (0.10, 0.15), (0.15, 0.25))
 # a garment whose lowest scan points lie within this [m] of the intake's floor margin was cut off there
 FLOOR_CUT_SLACK = 0.005
-# a floor-cut band's points per bin of its trace at the least (`scan_loop_length`): the medians of a 5 cm
-# tall band of ten points jitter and lengthen it (a 320x240 capture's 330 points per leg: 76.6 / 80.7 cm
-# against a true hem of 68.8; at 30 per bin 69.3 / 67.3; the ring captures 401 and 501, 1,000-1,150 per
+# a floor-cut band's points per bin of its trace at the least (`scan_loop_length`; no reference curve: the
+# first drape's hem, crumpled in its pile, is no cross-section of a leg): the medians of a 5 cm tall band of
+# ten points jitter and lengthen it (a 320x240 capture's 330 points per leg 1-6 cm up: 76.6 / 80.7 cm
+# against a true hem of 68.8; at 30 per bin 69.3 / 67.3; the ring captures 401 and 501, 1,000-1,260 per
 # leg, 68.5-70.9 either way)
 FLOOR_CUT_PER_BIN = 30
 
@@ -74,7 +76,7 @@ def hem_design(
     drape_x: torch.Tensor,
     boundaries: dict[str, torch.Tensor],
     bin_length: float = 0.02,
-    floor_cut: dict[str, torch.Tensor] | None = None,
+    floor_cut: dict[str, float] | None = None,
 ) -> HemDesign | None:
     """The scan's hem against the template's first drape; None when the scan shows no hem of the garment.
 
@@ -83,10 +85,10 @@ def hem_design(
         drape_x: (Vs, 3) its first drape [m], +y up (the fit's frame).
         boundaries: the scan's openings (`ScanTarget.boundaries`: name -> (k, 3) points [m]).
         bin_length: `scan_loop_length`'s bin [m] (`FitConfig.opening_length_bin`).
-        floor_cut: hem loops the scan does not show, as the scan's garment points just above the floor
-            that cut them off (`floor_cut_hems`: name -> (k, 3) [m]): their lengths only.
+        floor_cut: the lengths [m] of the hem loops that the floor's removal cut off (`floor_cut_hems`):
+            they count in ``hem_widen``, the loops' heights in nothing.
     """
-    cut = {n: p for n, p in (floor_cut or {}).items() if len(p) > 0}
+    cut = floor_cut or {}
     loops = [lp for lp in garment.boundary_loops if lp.name in HEM_OPENINGS and lp.name in boundaries]
     loops = [lp for lp in loops if len(boundaries[lp.name]) > 0 and lp.name not in cut]
     cut_loops = [lp for lp in garment.boundary_loops if lp.name in cut]
@@ -100,10 +102,8 @@ def hem_design(
         hem_up = float(scan_y.median() - drape_y.median()) - waist_up
     traced, rest = 0.0, 0.0
     for lp in loops + cut_loops:
-        if lp.name in cut:  # no reference: the first drape's hem in its pile is no cross-section of a leg
-            length, _ = scan_loop_length(
-                cut[lp.name], bin_length=bin_length, points_per_bin=FLOOR_CUT_PER_BIN
-            )
+        if lp.name in cut:
+            length = cut[lp.name]
         else:
             length, _ = scan_loop_length(
                 boundaries[lp.name], bin_length=bin_length, reference=drape_x[lp.vertices]
@@ -123,16 +123,19 @@ def floor_cut_hems(
     boundaries: dict[str, torch.Tensor],
     garment_points,
     margin: float,
-    band: tuple[float, float] = FLOOR_CUT_BAND,
-) -> dict[str, torch.Tensor]:
-    """The scan's garment points just above the floor, by hem loop, for the hems that the intake's floor
-    removal cut off: trousers too long for their wearer pile on the floor, and the intake takes every point
-    up to ``margin`` above it (`scan_intake.floor_margin`), the pile and its hems with them. The scan then
-    shows no hem, or the rim of the cut, which says nothing of the hem's height (the first drape's hems lie
-    somewhere in its own pile). Above the pile a leg still hangs as wide as its hem: on the captured
-    trousers 401 its cross-sections 1.5-20 cm above the cut trace 66.4-68.5 cm, the true drape's 67.1-68.4,
-    the true hem 68.8 cm, where the fit without them ended at 64.2 (docs/BENCHMARKS.md, "Trousers piled on
-    the floor").
+    bin_length: float = 0.02,
+) -> dict[str, float]:
+    """The lengths of the hems that the intake's floor removal cut off, from the legs above the floor.
+
+    Trousers too long for their wearer pile on the floor, and the intake takes every point up to ``margin``
+    above it (`scan_intake.floor_margin`), the pile and its hems with them. The scan then shows no hem, or
+    the rim of the cut, which says nothing of the hem's height (the first drape's hems lie somewhere in
+    its own pile). A leg above the pile hangs about as wide as its hem: each hem's length is the median of
+    the loops its leg's scan points trace in the bands `FLOOR_CUT_BANDS` above the garment's lowest point,
+    each point going to the hem whose first drape lies nearest it horizontally. The median, because a tall
+    pile's top bulges in the lowest band (a 1.32 m body's trousers: 84 and 88 cm there against a true hem
+    of 68.8) and a leg bunched over it folds in (58 cm); on four ring captures the two legs' medians
+    came within 0.2-1.4 cm of the true hem on average (docs/BENCHMARKS.md, "Trousers piled on the floor").
 
     Args:
         garment: the placed template (`GarmentMesh`).
@@ -140,13 +143,13 @@ def floor_cut_hems(
         boundaries: the scan's openings (name -> (k, 3) points [m]).
         garment_points: (P, 3) the scan's garment points [m] (numpy or tensor).
         margin: the height above the floor up to which the intake removed the points [m].
-        band: heights above the garment's lowest scan point [m] whose points are taken.
+        bin_length: `scan_loop_length`'s bin [m] (at least `FLOOR_CUT_PER_BIN` points per bin).
 
     Returns:
-        name -> (k, 3) float64 points [m] of each hem loop cut off: not in ``boundaries`` or there only
-        within ``band`` of the lowest point; each band point goes to the hem whose first drape lies nearest
-        it horizontally. Empty when the garment's lowest scan point lies more than `FLOOR_CUT_SLACK` above
-        ``margin`` (the garment ends above the cut), or no hem was cut off.
+        name -> length [m] (nan when no band traces one) of each hem loop cut off: not in ``boundaries``,
+        or there only within the lowest band's top of the lowest point. Empty when the garment's lowest
+        scan point lies more than `FLOOR_CUT_SLACK` above ``margin`` (it ends above the cut), or no hem was
+        cut off.
     """
     points = torch.as_tensor(garment_points).double()
     if len(points) == 0:
@@ -157,16 +160,24 @@ def floor_cut_hems(
 
     def cut_off(name: str) -> bool:
         shown = boundaries.get(name)
-        return shown is None or len(shown) == 0 or float(shown[:, 1].double().median()) <= low + band[1]
+        top = low + FLOOR_CUT_BANDS[0][1]
+        return shown is None or len(shown) == 0 or float(shown[:, 1].double().median()) <= top
 
     missing = [lp for lp in garment.boundary_loops if lp.name in HEM_OPENINGS and cut_off(lp.name)]
     if not missing:
         return {}
-    height = points[:, 1] - low
-    near = points[(height >= band[0]) & (height <= band[1])]
     centres = torch.stack([drape_x[lp.vertices].double().mean(0)[[0, 2]] for lp in missing])
-    nearest = torch.cdist(near[:, [0, 2]], centres).argmin(1)
-    return {lp.name: near[nearest == k] for k, lp in enumerate(missing)}
+    nearest = torch.cdist(points[:, [0, 2]], centres).argmin(1)
+    height = points[:, 1] - low
+    lengths = {}
+    for k, lp in enumerate(missing):
+        traced = []
+        for bottom, top in FLOOR_CUT_BANDS:
+            band = points[(nearest == k) & (height >= bottom) & (height <= top)]
+            traced.append(scan_loop_length(band, bin_length=bin_length, points_per_bin=FLOOR_CUT_PER_BIN)[0])
+        traced = [t for t in traced if math.isfinite(t)]
+        lengths[lp.name] = statistics.median(traced) if traced else math.nan
+    return lengths
 
 
 def _waist_up(garment, drape_x: torch.Tensor, boundaries: dict[str, torch.Tensor]) -> float:

@@ -251,9 +251,10 @@ def garment_mask(
     return seg.labels, False
 
 
-def scan_target(scan, mask: np.ndarray, boundaries: dict, coverage: dict | None):
+def scan_target(scan, mask: np.ndarray, boundaries: dict, coverage: dict | None, held: tuple[str, ...] = ()):
     """The `ScanTarget` of a fit: the (N,) bool ``mask``'s points of ``scan`` as the garment, the others
-    as skin, the matched ``boundaries`` and the sides the scan sees (``coverage["seen"]``)."""
+    as skin, the matched ``boundaries``, the sides the scan sees (``coverage["seen"]``) and the openings
+    ``held`` at the start's length (`ScanTarget.held_openings`)."""
     from torch_diffavatar.objective import ScanTarget
 
     return ScanTarget(
@@ -261,6 +262,7 @@ def scan_target(scan, mask: np.ndarray, boundaries: dict, coverage: dict | None)
         boundaries=boundaries,
         body_points=torch.as_tensor(scan.points[~mask]),
         seen_sides=torch.tensor(coverage["seen"]) if coverage else None,
+        held_openings=held,
     )
 
 
@@ -311,13 +313,23 @@ def dress_template(
     except SimulationError as exc:
         print(f"diffavatar fit: the template's hem is not set from the scan ({exc})", file=sys.stderr)
         return dressed
-    cut = {} if floor_cut is None else floor_cut_hems(dressed.garment, x, dressed.boundaries, *floor_cut)
+    cut = (
+        {}
+        if floor_cut is None
+        else floor_cut_hems(dressed.garment, x, dressed.boundaries, *floor_cut, config.opening_length_bin)
+    )
     design = hem_design(dressed.garment, x, dressed.boundaries, config.opening_length_bin, cut)
     if design is None or not design.applied:
         return replace(dressed, design=design)
     print(f"diffavatar fit: {_hem_design_note(design)}", file=sys.stderr)
     changed = changed_pattern(pattern, design.hem_up, design.hem_widen, spacing=spacing)
     return placed(changed, mesh_pattern(changed, spacing=spacing), design)
+
+
+def _held(design: HemDesign | None) -> tuple[str, ...]:
+    """The hems that ``design`` measured on the legs above a floor that cut them off, held at the start's
+    length in the fit (`ScanTarget.held_openings`; the template's where the legs traced no wider)."""
+    return () if design is None else design.floor_cut
 
 
 def _hem_design_note(design: HemDesign) -> str:
@@ -330,8 +342,8 @@ def _hem_design_note(design: HemDesign) -> str:
     if not design.loops:  # every hem cut off with the floor: their lengths alone
         hems = " and ".join(design.floor_cut)
         return (
-            f"the garment reaches the floor and its {hems} are not in the scan; just above the floor it "
-            f"traces a {widen} than the template's: the fit starts from the template with its hem so"
+            f"the garment reaches the floor and its {hems} are not in the scan; above the floor its legs "
+            f"trace a {widen} than the template's: the fit starts from the template with its hem so"
         )
     waist = f", its waistband {where(design.waist_up)} the drape's," if design.waist_up else ""
     panels = f"{abs(100 * design.hem_up):.1f} cm {'shorter' if design.hem_up > 0 else 'longer'}"
@@ -407,7 +419,7 @@ def prepare(
         "garment": dressed.garment,
         "pattern": dressed.pattern,
         "hem_from_scan": None if dressed.design is None else dressed.design.as_dict(),
-        "target": scan_target(scan, mask, dressed.boundaries, intake.coverage),
+        "target": scan_target(scan, mask, dressed.boundaries, intake.coverage, _held(dressed.design)),
         "body_params": body.parameters_dict(),
         "sewing_fallback": dressed.fallback,
         "body_fit_chamfer_m": body_fit_chamfer_m,

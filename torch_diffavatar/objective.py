@@ -82,12 +82,16 @@ class ScanTarget:
         seen_sides: (S,) bool, the sides of the person the scan sees (`scan_intake.coverage`), or None
             (all: a full scan). With a side unseen, the garment on that side is not pulled toward the scan
             (`losses.seen_side_weights`).
+        held_openings: openings the scan does not show whose length the set-up measured otherwise and
+            gave the start pattern (hems the floor's removal cut off: `fit_design.floor_cut_hems`); the fit
+            holds each at the start's length, neither shorter nor longer.
     """
 
     garment_points: torch.Tensor
     boundaries: dict[str, torch.Tensor] = field(default_factory=dict)
     body_points: torch.Tensor | None = None
     seen_sides: torch.Tensor | None = None
+    held_openings: tuple[str, ...] = ()
 
     def __post_init__(self):
         g = self.garment_points
@@ -442,7 +446,10 @@ class FitObjective(nn.Module):
         least, most = [], []
         for loop in self.garment.boundary_loops:
             measured = loop.name in cfg.opening_length_names and loop.name in self.boundary_names
-            held = loop.name in cfg.opening_template_names
+            # a hem cut off with the floor: its start is all the set-up could measure of it (the fits of
+            # piled trousers moved such unheld hems by up to 9.6 cm); `getattr`: older set-ups' targets
+            cut = loop.name in getattr(target, "held_openings", ())
+            held = loop.name in cfg.opening_template_names or cut
             if not (measured or held):
                 continue
             length, seen = math.nan, math.nan
@@ -471,7 +478,7 @@ class FitObjective(nn.Module):
                 # the scan cannot measure these (a neck's trace 5.5 cm short to 4.2 cm long), and the fits
                 # moved them whatever the truth: shrank necks, and grew a dress's armholes by 2-4 cm onto the
                 # rims of holes under the arms (docs/BENCHMARKS.md, "Openings held at the template's")
-                most.append(bound if held and cfg.opening_template_hold == "exact" else math.inf)
+                most.append(bound if cut or (held and cfg.opening_template_hold == "exact") else math.inf)
         self.register_buffer("opening_least", torch.tensor(least, dtype=dtype).reshape(-1))
         self.register_buffer("opening_most", torch.tensor(most, dtype=dtype).reshape(-1))
         # each opening's panels and the template's split of it between them (`opening_split_loss`)
