@@ -518,8 +518,7 @@ class Fitter:
     # -- the run -------------------------------------------------------------------------------------------
 
     def _first_states(self, workers: int = 1) -> list[Start]:
-        """`fit_start.first_states` at the current parameters (sewings recorded in ``first_candidates``),
-        ``workers`` sewings at a time."""
+        """`fit_start.first_states` here, ``workers`` sewings at a time (recorded in ``first_candidates``)."""
         with torch.no_grad():
             variables = self.params()
         if self.start_state is None:
@@ -536,8 +535,7 @@ class Fitter:
 
         With ``resume``, continue from ``out_dir/checkpoint.pt`` when it exists, to the result of an
         uninterrupted run (one stopped during the race of first drapes too: `fit_race.opening`).
-        ``race_workers``: first sewings made and candidates of the race fitted at a time, in forked
-        processes (`fit_start.first_states`, `fit_race.race`).
+        ``race_workers``: first sewings and race candidates run at a time, in forked processes (`fit_race`).
         """
         total = self.config.iterations if iterations is None else iterations
         t0 = time.perf_counter()

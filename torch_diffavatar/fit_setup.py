@@ -289,7 +289,7 @@ def dress_template(
     is changed so (`pattern.design.changed_pattern`) and meshed and placed again. When that sewing fails,
     the template stays as it is (the fit's own first sewings may still succeed: `fit_start.first_states`).
     ``floor_cut``: (the scan's (P, 3) garment points [m], the intake's floor margin [m]) when the scan had a
-    floor, for the hems its removal cut off (`fit_design.floor_cut_hems`); None: no floor."""
+    floor, for the hems its removal cut off (`fit_design.floor_cut_hems`; `floor_cut_inputs`)."""
     from torch_diffavatar.body.facing import body_facing_yaw
     from torch_diffavatar.fit_design import first_hem_drape, floor_cut_hems, hem_design
     from torch_diffavatar.pattern import mesh_pattern
@@ -313,17 +313,23 @@ def dress_template(
     except SimulationError as exc:
         print(f"diffavatar fit: the template's hem is not set from the scan ({exc})", file=sys.stderr)
         return dressed
-    cut = (
-        {}
-        if floor_cut is None
-        else floor_cut_hems(dressed.garment, x, dressed.boundaries, *floor_cut, config.opening_length_bin)
-    )
+    cut = {}
+    if floor_cut is not None:
+        cut = floor_cut_hems(dressed.garment, x, dressed.boundaries, *floor_cut, config.opening_length_bin)
     design = hem_design(dressed.garment, x, dressed.boundaries, config.opening_length_bin, cut)
     if design is None or not design.applied:
         return replace(dressed, design=design)
     print(f"diffavatar fit: {_hem_design_note(design)}", file=sys.stderr)
     changed = changed_pattern(pattern, design.hem_up, design.hem_widen, spacing=spacing)
     return placed(changed, mesh_pattern(changed, spacing=spacing), design)
+
+
+def floor_cut_inputs(scan, mask: np.ndarray, intake) -> tuple | None:
+    """(the (N,) bool ``mask``'s points of ``scan``, the garment's [m]; how far above the floor the intake
+    removed every point [m], `scan_intake.floor_margin`) when the intake found a floor, else None."""
+    from torch_diffavatar.scan_intake import floor_margin
+
+    return None if intake.floor is None else (scan.points[mask], floor_margin(intake.floor["sigma_m"]))
 
 
 def _held(design: HemDesign | None) -> tuple[str, ...]:
@@ -376,8 +382,8 @@ def prepare(
     the scan's world frame) is the body to start from instead of fitting one to the scan.
 
     ``loaded_scan``: the scan through the intake already (`load_fit_scan`'s). ``workers``: the body fit's
-    (`initial_body`; the same set-up for any number). The pattern is meshed at
-    ``config.spacing``, or at ``config.arms_low_spacing`` when the body holds an arm low (`arms_spacing`).
+    (`initial_body`; the same set-up for any number). The pattern is meshed at ``config.spacing``, or at
+    ``config.arms_low_spacing`` when the body holds an arm low (`arms_spacing`).
 
     Returns:
         a dict with ``garment`` (placed `GarmentMesh`), ``pattern``, ``target`` (`ScanTarget`),
@@ -392,7 +398,6 @@ def prepare(
     from torch_diffavatar.body.parts import vertex_parts
     from torch_diffavatar.pattern import mesh_pattern
     from torch_diffavatar.pattern.library import resolve_pattern
-    from torch_diffavatar.scan_intake import floor_margin
 
     t0 = time.perf_counter()
     scan, intake = load_fit_scan(scan_path, units=units, up=up) if loaded_scan is None else loaded_scan
@@ -413,7 +418,7 @@ def prepare(
     if mask.sum() < 50:
         raise InputError(f"{scan_path}: only {int(mask.sum())} garment points; cannot fit a garment")
     loops = scan_boundaries(scan.points, mask, body_verts.numpy(), faces, parts, seg_type)
-    floor_cut = None if intake.floor is None else (scan.points[mask], floor_margin(intake.floor["sigma_m"]))
+    floor_cut = floor_cut_inputs(scan, mask, intake)
     dressed = dress_template(pattern, mesh, body, body_out, loops, config, spacing, floor_cut)
     return {
         "garment": dressed.garment,
