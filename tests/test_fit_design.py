@@ -205,8 +205,9 @@ def test_the_set_up_widens_trousers_piled_on_the_floor(anny_model, tmp_path, cap
     """Trousers 17 cm longer than the 1.32 m body's legs (the held-out capture seed 343's) pile on the floor,
     and a ring capture's intake takes the pile with the floor; the scan's openings take the rims of the cut
     for hems. The set-up starts from the legs' width above the pile (the median over the bands: the
-    lowest, the pile's top, traces 76-79 cm against the truth's 68.8), not from the rims' height (the
-    shipped code lengthened the panels by 10.8 cm from them) nor the template's hems (10 % narrower)."""
+    lowest, the pile's top, traces 76-79 cm against the truth's 68.8), not from the rims (the shipped code
+    lengthened the panels by 11.1 cm and widened the hems 29 % from them) nor the template's hems (10 %
+    narrower)."""
     from torch_diffavatar.capture import CaptureSettings
     from torch_diffavatar.captured_scans import capture_draped_scan
     from torch_diffavatar.fit import load_config
