@@ -310,26 +310,11 @@ def test_first_sewings_on_two_workers_are_those_made_one_after_another(
     """``workers=2``: every other first sewing is made (and evaluated) in a forked worker while the driver
     makes the one before it: the same states, losses, order and recorded failure (scale 3000: the seams do
     not close) as one after another. A worker lost (killed) leaves its sewing to the driver."""
-    from torch_diffavatar import fit_start
-    from torch_diffavatar.forked import ForkedCall, WorkerLost
+    from helpers_forked import counted_forks
 
     expected = _fitter(skirt_problem, None, SEWINGS)
     want = expected._first_states()
-    forks, lost = [], []
-
-    class Counted(ForkedCall):
-        def __init__(self, fn):
-            super().__init__(fn)
-            forks.append(self)
-
-        def result(self):
-            if not lose:
-                return super().result()
-            self._process.kill()
-            lost.append(self)
-            raise WorkerLost("killed")
-
-    monkeypatch.setattr(fit_start, "ForkedCall", Counted)
+    forks, lost = counted_forks(monkeypatch, lose)
     fitter = _fitter(skirt_problem, None, SEWINGS)
     got = fitter._first_states(workers=2)
     assert len(forks) == 2 and len(lost) == (2 if lose else 0)  # the sewings at 30 and 10

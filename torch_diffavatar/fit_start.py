@@ -19,7 +19,7 @@ import torch
 
 from torch_diffavatar.errors import SimulationError
 from torch_diffavatar.fit_config import drape_config, first_drape_config
-from torch_diffavatar.forked import ForkedCall, WorkerLost, can_fork
+from torch_diffavatar.forked import side_by_side
 from torch_diffavatar.objective import FitObjective, FitVariables, ObjectiveOutput
 from torch_diffavatar.sim.material import ClothMaterial
 from torch_diffavatar.sim.state import ClothState
@@ -87,7 +87,7 @@ def first_states(
         candidates: where each sewing's entry goes.
         start_state: the first warm start (e.g. a `sew_and_drape` result's state), or None to sew.
         sewing_fallback: `sew_and_drape`'s ``fallback`` (`sim.placement.a_pose_route` for a posed body).
-        workers: sewings made at a time, all but one in forked workers (`_sewn_side_by_side`; the same
+        workers: sewings made at a time, all but one in forked workers (`forked.side_by_side`; the same
             results on any number).
 
     Raises:
@@ -112,11 +112,15 @@ def first_states(
         state, _ = sew(pairs[0], entries[0], None)
         return [(math.nan, state, entries[0])]
     states = []
-    for first in range(0, len(pairs), max(workers, 1)):
-        chunk = list(range(first, min(first + max(workers, 1), len(pairs))))
-        for i, (state, loss) in zip(chunk, _sewn_side_by_side(sew, pairs, entries, chunk, evaluate)):
-            if state is not None and math.isfinite(loss):
-                states.append((loss, state, entries[i]))
+    sewings = side_by_side(functools.partial(_sewing, sew, evaluate), list(zip(pairs, entries)), workers)
+    for entry, sewing in zip(entries, sewings, strict=True):
+        entry.update(sewing["entry"])
+        loss = sewing.get("loss", math.nan)
+        if "error" not in entry:
+            # report.json is strict JSON: a non-finite loss is recorded as an error, not as NaN
+            entry.update({"loss": loss} if math.isfinite(loss) else {"error": f"loss {loss}"})
+        if math.isfinite(loss):
+            states.append((loss, ClothState(sewing["x"], sewing["v"]), entry))
     if not states:
         raise SimulationError(f"every first sewing of the template failed: {candidates}")
     return sorted(states, key=lambda ls: ls[0])
@@ -157,49 +161,17 @@ def _sewn(objective, variables, body_verts, stretch, sewing_fallback, pair, cand
     return state, (math.nan if evaluate is None else float(evaluate(state).loss))
 
 
-def _sewn_plain(sew, pair, entry: dict, evaluate, _counter=None) -> dict:
-    """``sew``'s (`_sewn`'s) result as a worker sends it: the state's tensors, the loss, the entry's notes."""
+def _sewing(sew, evaluate, pair_entry: tuple) -> dict:
+    """One first sewing by ``sew`` (`_sewn`) as plain data, as a worker sends it (`forked.side_by_side`): the
+    state's ``x`` and ``v``, the ``loss`` and the ``entry`` with its notes; a sewing that blew up, the entry
+    with its ``error``."""
+    pair, entry = pair_entry
     entry = dict(entry)
-    state, loss = sew(pair, entry, evaluate)
-    return {"x": state.x, "v": state.v, "loss": loss, "entry": entry}
-
-
-def _sewn_side_by_side(sew, pairs, entries: list[dict], chunk: list[int], evaluate) -> list:
-    """The sewings ``chunk`` (indices into ``pairs``), each as (state, loss): the first here while forked
-    workers (`forked.ForkedCall`, where `forked.can_fork`) sew the others, the same results as one after
-    another (the sewing, the drape and the evaluation are deterministic, and each starts from the same
-    parameters). Records each loss, or the error, in its entry of ``entries``; a failed sewing is (None,
-    NaN). A worker lost (killed, out of memory) has its sewing done here."""
-    calls = {}
-    if can_fork():
-        calls = {
-            i: ForkedCall(functools.partial(_sewn_plain, sew, pairs[i], entries[i], evaluate))
-            for i in chunk[1:]
-        }
-    out = []
     try:
-        for i in chunk:
-            try:
-                if i in calls:
-                    try:
-                        result = calls[i].result()
-                    except WorkerLost:
-                        result = _sewn_plain(sew, pairs[i], entries[i], evaluate)
-                    entries[i].update(result["entry"])
-                    state, loss = ClothState(result["x"], result["v"]), result["loss"]
-                else:
-                    state, loss = sew(pairs[i], entries[i], evaluate)
-            except SimulationError as exc:
-                entries[i]["error"] = str(exc)
-                out.append((None, math.nan))
-                continue
-            # report.json is strict JSON: a non-finite loss is recorded as an error, not as NaN
-            entries[i].update({"loss": loss} if math.isfinite(loss) else {"error": f"loss {loss}"})
-            out.append((state, loss))
-    finally:
-        for call in calls.values():
-            call.close()
-    return out
+        state, loss = sew(pair, entry, evaluate)
+    except SimulationError as exc:
+        return {"entry": entry | {"error": str(exc)}}
+    return {"x": state.x, "v": state.v, "loss": loss, "entry": entry}
 
 
 def first_drape(

@@ -1,5 +1,6 @@
 """Calls run in forked worker processes, for work that splits into independent runs (the body fit's
-starting directions, `body.fit`; the race of first drapes, `fit_race`): each worker is a copy of the driver
+starting directions, `body.fit`, and the first sewings, `fit_start`, through `side_by_side`; the race of
+first drapes, `fit_race`): each worker is a copy of the driver
 at the fork, its models included, so nothing is rebuilt or sent to it; only its result comes back, through
 a pipe, as a ``torch.save`` of plain data read with ``weights_only``.
 
@@ -12,6 +13,7 @@ leaves none running.
 from __future__ import annotations
 
 import ctypes
+import functools
 import io
 import multiprocessing as mp
 import multiprocessing.connection
@@ -142,6 +144,40 @@ def wait_all(calls: list[ForkedCall], bar: WorkersBar | None, poll_s: float = 0.
         pending = [c for c in pending if c not in ready]
         if bar is not None:
             bar.catch_up()
+
+
+def side_by_side(fn, items: list, workers: int) -> list:
+    """``fn(item)`` for each of ``items``, in order, up to ``workers`` at a time: the driver computes the
+    first of each round while forked copies of it (`ForkedCall`, where `can_fork`) compute the others;
+    returns the results in ``items``' order. ``fn`` must be deterministic and return data a worker can send
+    (`ForkedCall`), so that any number of workers gives the same results; a worker lost (killed, out of
+    memory) has its item computed by the driver. An exception of ``fn`` is raised (`ForkedCall.result`)."""
+    results = []
+    step = max(workers, 1)
+    for first in range(0, len(items), step):
+        chunk = items[first : first + step]
+        calls = [ForkedCall(functools.partial(_item, fn, item)) for item in chunk[1:]] if can_fork() else []
+        try:
+            results.append(fn(chunk[0]))
+            for k, item in enumerate(chunk[1:]):
+                results.append(_result_or_here(calls[k], fn, item) if calls else fn(item))
+        finally:
+            for call in calls:
+                call.close()
+    return results
+
+
+def _item(fn, item, _counter):
+    """In a worker: ``fn(item)`` (``_counter``: the worker's progress counter, unused)."""
+    return fn(item)
+
+
+def _result_or_here(call: ForkedCall, fn, item):
+    """``call``'s result, or ``fn(item)`` computed here when its worker was lost."""
+    try:
+        return call.result()
+    except WorkerLost:
+        return fn(item)
 
 
 def _work(fn, send, progress) -> None:

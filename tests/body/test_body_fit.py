@@ -237,34 +237,21 @@ def test_both_ways_round_side_by_side_fit_the_same_body(anny_model, monkeypatch)
     the driver runs the first (issue #32: the demo's set-up); the body, the yaw and every loss are those of
     one after another, bit for bit, and a worker lost (killed) leaves its direction to the driver."""
     from helpers_body import sampled_default_body
+    from helpers_forked import counted_forks
 
     import torch_diffavatar.body.fit as body_fit
-    from torch_diffavatar.forked import ForkedCall
 
     points = sampled_default_body(anny_model, count=3000).points
     config = body_fit.BodyFitConfig(placement_iters=3, pose_iters=2, final_rounds=1, final_iters=2)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # forking needs one intra-op thread (`forked.can_fork`)
-    forked, lost = [], []
-
-    class Counted(ForkedCall):
-        def __init__(self, fn):
-            super().__init__(fn)
-            forked.append(self)
-
-    class Lost(ForkedCall):
-        def result(self):
-            self._process.kill()
-            lost.append(self)
-            return super().result()
-
     try:
+        forked, _ = counted_forks(monkeypatch)
         results = {}
-        for name, call, workers in (("one after another", Counted, 1), ("side by side", Counted, 2)):
-            monkeypatch.setattr(body_fit, "ForkedCall", call)
+        for name, workers in (("one after another", 1), ("side by side", 2)):
             results[name] = body_fit.fit_body(points, anny_model=anny_model, config=config, workers=workers)
         assert len(forked) == 1  # the second direction, in a worker
-        monkeypatch.setattr(body_fit, "ForkedCall", Lost)
+        _, lost = counted_forks(monkeypatch, lose=True)
         results["worker lost"] = body_fit.fit_body(points, anny_model=anny_model, config=config, workers=2)
         assert len(lost) == 1
     finally:

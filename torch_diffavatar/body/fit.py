@@ -52,7 +52,7 @@ from torch_diffavatar.body.parts import PART_NAMES
 from torch_diffavatar.body.priors import joint_limit_penalty, pose_prior, self_penetration_penalty
 from torch_diffavatar.chamfer import nearest_indices
 from torch_diffavatar.errors import ScanError
-from torch_diffavatar.forked import ForkedCall, WorkerLost, can_fork
+from torch_diffavatar.forked import side_by_side
 from torch_diffavatar.geometry import closest_point_on_mesh
 
 SOLE_DEPTH = 0.01  # [m] a foot's vertices this close to its lowest in the rest pose: the sole, heel to toe
@@ -516,30 +516,15 @@ def _coarse(objective: _Objective, yaw: float, start: str, placement: list[dict]
 
 def _coarse_starts(objective: _Objective, yaws: list[float], placement, pose, workers: int) -> list[tuple]:
     """`_coarse` from the soles at each of ``yaws`` [deg], in order, up to ``workers`` at a time: the driver
-    fits one while forked copies of it fit the next (`forked.ForkedCall`, where `forked.can_fork`), with the
-    same results as one after another, since a start sets everything its stages train (`_initial_guess`).
-    A start whose worker is lost (killed, out of memory) is fitted by the driver."""
-    results = []
-    while len(results) < len(yaws):
-        done = len(results)
-        following = yaws[done + 1 : done + workers] if can_fork() else []
-        alone = functools.partial(_coarse_alone, objective, placement=placement, pose=pose)
-        calls = [ForkedCall(functools.partial(alone, y)) for y in following]
-        try:
-            results.append(_coarse(objective, yaws[done], "soles", placement, pose))
-            for call in calls:
-                try:
-                    results.append(tuple(call.result()))
-                except WorkerLost:
-                    break
-        finally:
-            for call in calls:
-                call.close()
-    return results
+    fits one while forked copies of it fit the next (`forked.side_by_side`), with the same results as one
+    after another, since a start sets everything its stages train (`_initial_guess`). A start whose worker
+    is lost (killed, out of memory) is fitted by the driver."""
+    coarse = functools.partial(_coarse_from, objective, placement=placement, pose=pose)
+    return [tuple(r) for r in side_by_side(coarse, list(yaws), workers)]
 
 
-def _coarse_alone(objective: _Objective, yaw: float, _progress, *, placement, pose) -> tuple:
-    """In a worker: `_coarse` from the soles at ``yaw`` (``_progress``: the worker's counter, unused)."""
+def _coarse_from(objective: _Objective, yaw: float, *, placement, pose) -> tuple:
+    """`_coarse` from the soles at ``yaw`` [deg] (in the driver or a worker: `_coarse_starts`)."""
     return _coarse(objective, yaw, "soles", placement, pose)
 
 
