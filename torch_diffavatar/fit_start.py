@@ -93,14 +93,13 @@ def first_states(
     Raises:
         SimulationError: the sewing or the drape blew up (of every candidate, when there are several).
     """
-    rest_uv, bend_stiffness = variables.rest_uv, variables.bend_stiffness
     body_verts = objective.body_or_fixed(variables.body_verts)
     stretch = None if variables.stretch is None else float(variables.stretch)
-    material = objective.material_at(float(bend_stiffness), stretch)  # the sewing's too: the fit's membrane
-    dtype = objective.template_uv.dtype
     if start_state is not None:
+        material = objective.material_at(float(variables.bend_stiffness), stretch)
+        dtype = objective.template_uv.dtype
         start = ClothState(start_state.x.to(dtype), start_state.v.to(dtype))
-        return [(math.nan, settled(objective, start, rest_uv, body_verts, material), {})]
+        return [(math.nan, settled(objective, start, variables.rest_uv, body_verts, material), {})]
     config = objective.config
     fit_bend_scales = config.first_fit_bend_scales if fit_bend_scales is None else fit_bend_scales
     stretches, bends = config.first_stretch_scales, config.first_bend_scales
