@@ -44,13 +44,16 @@ def _run(args: list[str], log: Path, check: bool = True) -> str | None:
     return done.stdout
 
 
-def make_capture(folder: Path, garment: str, seed: int, capture: str = "ring") -> Path:
+def make_capture(
+    folder: Path, garment: str, seed: int, capture: str = "ring", rig: tuple[str, ...] = ()
+) -> Path:
     """``folder/scan``: the capture of ``garment`` and ``seed`` (``capture``: ``ring`` or ``front``, the
-    `make-scan --capture` choices; random yaw, cm, Y down), made unless it is there."""
+    `make-scan --capture` choices; random yaw, cm, Y down; ``rig``: more of make-scan's capture options,
+    e.g. ``("--flying-pixels", "0.3")``), made unless it is there."""
     scan = folder / "scan"
     folder.mkdir(parents=True, exist_ok=True)
     if not (scan / "scan.ply").is_file():
-        capture = ["--capture", capture, "--yaw", "random", "--scan-units", "cm", "--scan-up", "-y"]
+        capture = ["--capture", capture, "--yaw", "random", "--scan-units", "cm", "--scan-up", "-y", *rig]
         _run(["make-scan", garment, "--out", str(scan), "--seed", str(seed), *capture], folder / "log.txt")
     return scan
 

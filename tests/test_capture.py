@@ -123,6 +123,64 @@ def test_strays_colours_and_ply_round_trip(tmp_path):
     np.testing.assert_array_equal(loaded.colors, captured.colors)
 
 
+def _quiet(**kw) -> CaptureSettings:
+    """One camera in front, no depth noise, floor or strays (``kw``: other settings)."""
+    base = dict(layout="front", camera_height=1.0, floor_size=0.0, stray_fraction=0.0)
+    return CaptureSettings(**(base | dict(noise_a=0.0, noise_b=0.0) | kw))
+
+
+def test_flying_pixels_lie_between_the_surfaces_at_a_silhouette():
+    """A column 1 m in front of a wall: with mixed pixels some returns at the column's silhouette lie
+    between the two surfaces, their colours between the two; without, none (and with the setting left at
+    its default the capture is the one made with it at 0: its random draws come only when it is on)."""
+    scene = [_column(radius=0.2), _wall(z=-1.0)]
+    plain = capture_scene(scene, _quiet(), np.random.default_rng(5))
+    mixed = capture_scene(scene, _quiet(flying_pixels=1.0), np.random.default_rng(5))
+    assert len(plain.points) == len(mixed.points)
+
+    def between(c):  # off the column (radius 0.2 about the y axis) and off the wall (z = -1)
+        radius = np.hypot(c.points[:, 0], c.points[:, 2])
+        return (radius > 0.23) & (c.points[:, 2] > -0.97)
+
+    assert between(plain).sum() == 0
+    flying = between(mixed)
+    assert 100 < flying.sum() < 0.05 * len(mixed.points)
+    blue = mixed.colors[flying].astype(float)  # the wall (40, 80, 160), the column (200, 150, 120)
+    assert (blue[:, 0] > 40 + 3 * 4).mean() > 0.9 and (blue[:, 0] < 200 - 3 * 4).mean() > 0.9
+    assert mixed.info["flying_pixels"] == 1.0
+    ref = capture_scene(scene, CaptureSettings(layout="front", floor_size=0.0), np.random.default_rng(6))
+    again = capture_scene(
+        scene, CaptureSettings(layout="front", floor_size=0.0, flying_pixels=0.0), np.random.default_rng(6)
+    )
+    np.testing.assert_array_equal(ref.points, again.points)
+
+
+def test_calibration_error_offsets_each_view_rigidly():
+    """A camera's points move by one rigid motion (its pose error); two cameras that see the same wall, each
+    off by its own, put it on two planes, and without the error on one."""
+    column = [_column()]
+    exact = capture_scene(column, _quiet(), np.random.default_rng(7))
+    off = capture_scene(column, _quiet(calibration_m=0.005, calibration_deg=0.2), np.random.default_rng(7))
+    moved = off.points - exact.points
+    assert 0.001 < np.abs(moved).max() < 0.1
+    affine = np.c_[exact.points, np.ones(len(exact.points))]
+    fit, *_ = np.linalg.lstsq(affine, off.points, rcond=None)  # off = exact @ A + t
+    np.testing.assert_allclose(affine @ fit, off.points, atol=1e-9)
+    rot = fit[:3]
+    np.testing.assert_allclose(rot.T @ rot, np.eye(3), atol=1e-9)  # a rotation: rigid
+    assert off.info["calibration_error"] == {"translation_m": 0.005, "rotation_deg": 0.2}
+
+    ring = dict(cameras=2, camera_height=1.0, floor_size=0.0, stray_fraction=0.0, noise_a=0.0, noise_b=0.0)
+    wall = [_wall(z=0.0)]
+    both = capture_scene(wall, CaptureSettings(**ring), np.random.default_rng(8))
+    shifted = capture_scene(wall, CaptureSettings(**ring, calibration_m=0.005), np.random.default_rng(8))
+    front = len(capture_scene(wall, _quiet(), np.random.default_rng(8)).points)  # the ring's first camera
+    assert np.abs(both.points[:, 2]).max() < 1e-9
+    planes = [shifted.points[:front, 2].mean(), shifted.points[front:, 2].mean()]
+    assert abs(planes[0] - planes[1]) > 5e-4
+    assert max(shifted.points[:front, 2].std(), shifted.points[front:, 2].std()) < 1e-9
+
+
 def test_coverage_of_front_and_ring():
     from torch_diffavatar.scan_intake import coverage
 
@@ -140,6 +198,9 @@ def test_bad_settings_are_one_line_errors():
         dict(units="inch"),
         dict(cameras=0),
         dict(noise_a=-1.0),
+        dict(flying_pixels=1.5),
+        dict(calibration_deg=-0.1),
+        dict(calibration_m=0.5),
     ):
         with pytest.raises(InputError):
             CaptureSettings(**bad).check()
@@ -158,8 +219,13 @@ def test_make_scan_capture_options():
     assert (s.layout, s.units, s.up, s.width, s.height) == ("ring", "cm", "-y", 640, 480)
     assert 0.0 <= s.yaw_deg < 360.0 and settings("--capture", "ring", "--yaw", "random").yaw_deg == s.yaw_deg
     assert settings() is None  # the sampled scan, as before
+    rig = settings("--capture", "ring", "--flying-pixels", "0.3", "--calibration-error", "2", "0.15")
+    assert (rig.flying_pixels, rig.calibration_m, rig.calibration_deg) == (0.3, 0.002, 0.15)
+    assert (s.flying_pixels, s.calibration_m, s.calibration_deg) == (0.0, 0.0, 0.0)
     for bad in (
         ("--yaw", "30"),
+        ("--flying-pixels", "0.3"),
+        ("--capture", "ring", "--calibration-error", "2", "45"),
         ("--capture", "front", "--yaw", "north"),
         ("--capture", "ring", "--resolution", "640"),
     ):

@@ -41,3 +41,10 @@ def test_the_table_bolds_each_missed_target_and_counts_each(seeds):
     assert "7.00 → **9.90**" in lines[3] and "**neck -2.1**, hem -0.4" in lines[4]
     assert "**the fit failed** (W/tshirt_4/log.txt)" in lines[5]
     assert text.endswith("Chamfer: 2 of 4; every opening within 2 cm: 2 of 4.")
+
+
+def test_rig_artefacts_become_make_scan_options(seeds):
+    assert seeds.rig_options(0.0, None) == ()
+    rig = ("--flying-pixels", "0.3", "--calibration-error", "2", "0.15")
+    assert seeds.rig_options(0.3, [2.0, 0.15]) == rig
+    assert seeds.rig_options(0.0, (5.0, 0.0)) == ("--calibration-error", "5", "0")

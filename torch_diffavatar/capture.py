@@ -15,9 +15,14 @@ produces all of that from meshes in our world frame (Y up, metres, floor at y = 
    Gaussian noise along the ray with sigma = ``noise_a + noise_b · d²`` (d the depth [m]); the default
    2 mm + 1.5 mm/m² (7.8 mm at 2 m) lies between Kinect v1 (Nguyen et al. 2012: 1.2 mm + 1.9 mm · (d −
    0.4 m)² / m²) and time-of-flight sensors;
-4. ``stray_fraction`` of the points are added uniformly in the box around the scene (flying pixels,
-   dust, a cable): label `STRAY_LABEL`;
-5. the whole capture turns by ``yaw_deg`` about the vertical axis through the origin, and is written in
+4. real rigs add what a single ideal camera does not (both off by default): **mixed pixels**
+   (``flying_pixels``: a share of the pixels at a depth jump return a depth between the two surfaces,
+   their colours mixed, as time-of-flight and stereo sensors do at silhouettes) and **calibration error**
+   (``calibration_m``, ``calibration_deg``: each camera's points placed with a pose that is off by a
+   random translation and rotation, so that the views overlap as slightly shifted surfaces);
+5. ``stray_fraction`` of the points are added uniformly in the box around the scene (dust, a cable):
+   label `STRAY_LABEL`;
+6. the whole capture turns by ``yaw_deg`` about the vertical axis through the origin, and is written in
    the asked ``units`` and ``up`` axis (the `scan.UNITS` and `scan.UP_AXES` of `scan.load_scan`: loading the
    file with the same options gives back the yawed scene in metres, Y up, floor at y = 0).
 
@@ -40,6 +45,8 @@ from torch_diffavatar.scan import UNITS, UP_AXES
 FLOOR_LABEL = -1
 STRAY_LABEL = -2
 FLOOR_COLOR = (128, 124, 118)
+# [m] a depth jump between neighbouring pixels beyond which a sensor may return a mixed depth (a silhouette)
+FLYING_JUMP = 0.05
 LAYOUTS = ("ring", "front")
 
 
@@ -133,6 +140,13 @@ class CaptureSettings:
         min_cos: returns with |cos(view ray, surface normal)| below this are dropped (grazing angles).
         color_noise: Gaussian noise of the colours [0..255 levels].
         stray_fraction: stray points added, as a fraction of the captured points.
+        flying_pixels: the share of the pixels beside a depth jump of more than `FLYING_JUMP` that return
+            a depth drawn uniformly between their own and their neighbour's (and the colours mixed alike),
+            labelled as their own pixel [0, 1].
+        calibration_m [m], calibration_deg [deg]: the standard deviations of each camera's pose error, a
+            translation per axis and a rotation about a random axis through the camera: its points are
+            placed by the registered pose while they were seen from the true one. Multi-camera rigs
+            calibrated with a target are typically off by a few mm and a few tenths of a degree.
         floor_size: side of the square floor around the person [m] (0: no floor). The default 1 m puts
             about half the points on the floor (measured: 51 % with a ring of 4 at 640×480), as in the
             real captures of issue #29 (46 %).
@@ -152,6 +166,9 @@ class CaptureSettings:
     min_cos: float = 0.15
     color_noise: float = 4.0
     stray_fraction: float = 0.002
+    flying_pixels: float = 0.0
+    calibration_m: float = 0.0
+    calibration_deg: float = 0.0
     floor_size: float = 1.0
     yaw_deg: float = 0.0
     units: str = "m"
@@ -169,11 +186,16 @@ class CaptureSettings:
             raise InputError(f"camera distance must lie in [1.5, 3] m, got {self.distance}")
         if not (16 <= self.width <= 4096 and 16 <= self.height <= 4096 and 10.0 <= self.fov_y_deg <= 120.0):
             raise InputError("image size must be 16..4096 px and the field of view 10..120 degrees")
-        for name in ("noise_a", "noise_b", "color_noise", "stray_fraction", "floor_size", "min_cos"):
+        for name in (
+            "noise_a", "noise_b", "color_noise", "stray_fraction", "floor_size", "min_cos", "flying_pixels",
+            "calibration_m", "calibration_deg",
+        ):  # fmt: skip
             if not getattr(self, name) >= 0:
                 raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.min_cos >= 1 or self.stray_fraction > 0.5:
             raise InputError("need min_cos < 1 and stray_fraction <= 0.5")
+        if self.flying_pixels > 1 or self.calibration_m > 0.1 or self.calibration_deg > 10:
+            raise InputError("need flying_pixels <= 1, calibration_m <= 0.1 and calibration_deg <= 10")
 
     def camera_list(self, centre: np.ndarray) -> list[DepthCamera]:
         """The cameras around ``centre`` (3,) [m] (the person's centre)."""
@@ -274,6 +296,8 @@ def _capture_view(meshes, cam: DepthCamera, s: CaptureSettings, centre: np.ndarr
         half = 0.5 * s.floor_size
         on &= (np.abs(foot[:, 0] - centre[0]) <= half) & (np.abs(foot[:, 2] - centre[2]) <= half) & (t < dist)
         dist[on], normal[on], label[on], color[on] = t[on], (0.0, 1.0, 0.0), FLOOR_LABEL, FLOOR_COLOR
+    if s.flying_pixels > 0:
+        dist, color = _mixed_pixels(dist, color, cam, s.flying_pixels, rng)
     seen = np.isfinite(dist)
     cos = np.abs((normal * rays).sum(1))
     keep = seen & (cos >= s.min_cos)
@@ -284,7 +308,46 @@ def _capture_view(meshes, cam: DepthCamera, s: CaptureSettings, centre: np.ndarr
     facing_away = (normal[keep] * rays[keep]).sum(1, keepdims=True) > 0
     normals = np.where(facing_away, -normal[keep], normal[keep])  # towards the camera
     colors = np.clip(color[keep] + rng.normal(0.0, s.color_noise, (len(points), 3)), 0, 255).astype(np.uint8)
+    if s.calibration_m > 0 or s.calibration_deg > 0:  # placed by the registered pose, seen from the true one
+        rot, shift = _pose_error(s, rng)
+        pos = np.asarray(cam.position, np.float64)
+        points, normals = (points - pos) @ rot.T + pos + shift, normals @ rot.T
     return points, normals, colors, label[keep]
+
+
+def _mixed_pixels(dist: np.ndarray, color: np.ndarray, cam: DepthCamera, share: float, rng) -> tuple:
+    """(H·W,) distances along the rays [m] and (H·W, 3) colours with ``share`` of the pixels beside a depth
+    jump (> `FLYING_JUMP`, both sides seen) moved a uniform fraction of the way to their neighbour's
+    distance, the colour mixed alike (a pixel beside several jumps mixes with the first found)."""
+    idx = np.arange(dist.size).reshape(cam.height, cam.width)
+    d = dist.reshape(cam.height, cam.width)
+    pairs = []
+    for dy, dx in ((0, 1), (1, 0)):
+        a, b = d[: d.shape[0] - dy, : d.shape[1] - dx], d[dy:, dx:]
+        with np.errstate(invalid="ignore"):  # inf - inf where neither sees anything
+            jump = np.isfinite(a) & np.isfinite(b) & (np.abs(a - b) > FLYING_JUMP)
+        p, q = idx[: d.shape[0] - dy, : d.shape[1] - dx][jump], idx[dy:, dx:][jump]
+        pairs += [np.stack([p, q], 1), np.stack([q, p], 1)]
+    pairs = np.concatenate(pairs)
+    pairs = pairs[np.unique(pairs[:, 0], return_index=True)[1]]
+    pairs = pairs[rng.random(len(pairs)) < share]
+    u = rng.random(len(pairs))
+    dist, color = dist.copy(), color.copy()
+    p, q = pairs[:, 0], pairs[:, 1]
+    dist[p] = dist[p] + u * (dist[q] - dist[p])
+    color[p] = (1.0 - u)[:, None] * color[p] + u[:, None] * color[q]
+    return dist, color
+
+
+def _pose_error(s: CaptureSettings, rng) -> tuple[np.ndarray, np.ndarray]:
+    """A camera's pose error: (3, 3) rotation (a normal angle of ``calibration_deg`` about a random axis)
+    and (3,) translation (normal, ``calibration_m`` per axis) [m]."""
+    from scipy.spatial.transform import Rotation
+
+    axis = rng.normal(size=3)
+    axis /= max(float(np.linalg.norm(axis)), 1e-12)
+    angle = math.radians(float(rng.normal(0.0, s.calibration_deg)))
+    return Rotation.from_rotvec(angle * axis).as_matrix(), rng.normal(0.0, s.calibration_m, 3)
 
 
 def rasterize(cam: DepthCamera, verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -344,6 +407,8 @@ def _capture_info(s: CaptureSettings, labels: np.ndarray) -> dict:
         "fov_y_deg": s.fov_y_deg,
         "depth_noise_m": {"a": s.noise_a, "b_per_m2": s.noise_b, "sigma": "a + b * depth^2"},
         "min_cos": s.min_cos,
+        "flying_pixels": s.flying_pixels,
+        "calibration_error": {"translation_m": s.calibration_m, "rotation_deg": s.calibration_deg},
         "yaw_deg": s.yaw_deg,
         "units": s.units,
         "up": s.up,

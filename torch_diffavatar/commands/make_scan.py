@@ -98,6 +98,21 @@ def _capture_args(p) -> None:
     )
     g.add_argument("--camera-distance", type=float, default=2.2, help="[m], 1.5..3 (default 2.2)")
     g.add_argument("--resolution", default="640x480", help="depth image WxH [px] (default 640x480)")
+    g.add_argument(
+        "--flying-pixels",
+        type=float,
+        default=0.0,
+        help="share of the pixels at a silhouette that return a depth between the two surfaces (default 0)",
+    )
+    g.add_argument(
+        "--calibration-error",
+        nargs=2,
+        type=float,
+        default=(0.0, 0.0),
+        metavar=("MM", "DEG"),
+        help="each camera's pose off by this translation [mm] and rotation [deg] (standard deviations; "
+        "default 0 0)",
+    )
 
 
 def _capture_settings(args):
@@ -115,6 +130,8 @@ def _capture_settings(args):
             ("--scan-up", args.scan_up, "y"),
             ("--camera-distance", args.camera_distance, 2.2),
             ("--resolution", args.resolution, "640x480"),
+            ("--flying-pixels", args.flying_pixels, 0.0),
+            ("--calibration-error", tuple(args.calibration_error), (0.0, 0.0)),
         )
         if value != default
     ]
@@ -141,6 +158,9 @@ def _capture_settings(args):
         yaw_deg=round(yaw, 3),
         units=args.scan_units,
         up=args.scan_up,
+        flying_pixels=args.flying_pixels,
+        calibration_m=1e-3 * args.calibration_error[0],
+        calibration_deg=args.calibration_error[1],
     )
     settings.check()
     return settings
