@@ -90,6 +90,19 @@ def test_isotropic_material_round_trips_exactly_under_both_conversions():
         nu.membrane_to_newton(1.0, 1.0, 0.1, keep="bulk")
 
 
+def test_uniaxial_stiffness_is_the_strip_s_and_newton_s_2d_young_modulus():
+    """`material.uniaxial_stiffness`: √(k_uu k_vv) without coupling; on Newton's isotropic membrane the 2D
+    Young's modulus 4μ(λ+μ)/(λ+2μ), as `membrane_conversion_loss` reports the strip's stiffness."""
+    from torch_diffavatar.sim.material import uniaxial_stiffness
+
+    assert uniaxial_stiffness(ClothMaterial()) == pytest.approx(np.sqrt(2.0e4 * 1.5e4))
+    mu, lam = 108.0, 1685.0
+    material = ClothMaterial(**nu.membrane_from_newton(mu, lam))
+    assert uniaxial_stiffness(material) == pytest.approx(4 * mu * (lam + mu) / (lam + 2 * mu))
+    loss = nu.membrane_conversion_loss(material, "shear")
+    assert uniaxial_stiffness(material) == pytest.approx(loss["uniaxial_u_ours_N_per_m"])
+
+
 def test_both_membranes_are_exported_with_what_they_lose(skirt_asset):
     data = json.loads((skirt_asset[0] / "material_newton.json").read_text())
     axial = np.sqrt(2.0e4 * 1.5e4)

@@ -43,6 +43,7 @@ def test_truth_is_complete_and_eval_reads_it(newton_skirt, tmp_path):
     write_truth_as_assets(scan, tmp_path / "fit", png_size=64)  # eval reads the Newton truth like ours
     out = evaluate_assets(tmp_path / "fit", folder)
     assert out["chamfer_truth_drape_m"] < 1e-4 and out["bending_stiffness_ratio"] == pytest.approx(1.0)
+    assert out["stretch_stiffness_ratio"] == pytest.approx(1.0)
 
 
 @pytest.mark.anny

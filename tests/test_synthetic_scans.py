@@ -111,6 +111,7 @@ def test_eval_of_the_truth_itself_is_exact(skirt_scan, tmp_path, capsys):
     assert out["pattern_outline_error_m"] < 1e-4 and out["pattern_outline_hausdorff_m"] < 1e-3
     assert out["chamfer_truth_drape_m"] < 1e-4
     assert out["bending_stiffness_ratio"] == pytest.approx(1.0)
+    assert out["stretch_stiffness_ratio"] == pytest.approx(1.0)
     assert abs(out["body_height_error_m"]) < 1e-6 and out["body_mean_vertex_error_m"] < 1e-6
     assert 0.001 < out["chamfer_scan_m"] < 0.01  # the noise (2 mm) and the scan's point spacing
     assert out["chamfer_scan_truth_m"] == pytest.approx(out["chamfer_scan_m"], rel=1e-6)  # the floor

@@ -14,7 +14,9 @@ material:
   ``{name: {"fitted_cm", "true_cm", "error_cm"}}`` (error = fitted − true) [cm], and
   ``garment_measurement_max_error_cm``, the largest absolute error [cm];
 * ``garment_area_m2``: the total panel area ``{"fitted_m2", "true_m2", "error_m2"}`` [m²];
-* ``bending_stiffness_ratio``: fitted / true bending stiffness [-] (1 is exact).
+* ``bending_stiffness_ratio``: fitted / true bending stiffness [-] (1 is exact);
+* ``stretch_stiffness_ratio`` (`evaluate_assets`): fitted / true stiffness of a strip pulled along one axis
+  with its width free (`sim.material.uniaxial_stiffness`, the geometric mean over the two axes) [-].
 
 `save_drape_comparison` draws the fit's first drape, its result and the true drape side by side, front
 and back (the command writes it as ``ASSETS_DIR/eval_drapes.png``).
@@ -166,10 +168,11 @@ def evaluate_assets(assets_dir, gt_dir) -> dict:
         ``garment_measurement_max_error_cm``, ``garment_area_m2``), ``seam_length_mismatch`` (fitted
         pattern, `seam_length_mismatch`), ``seam_length_mismatch_truth`` (the true pattern's: the
         mismatch a design has on purpose, ease), ``body_height_error_m`` (fitted − true),
-        ``body_mean_vertex_error_m``, ``bending_stiffness_ratio``, ``rest_quality`` and
-        ``draped_quality`` (min, mean), ``inverted_rest_triangles`` (from the fit's report); when the
-        folder holds the fit's first drape (``draped_initial.obj``), also ``chamfer_scan_initial_m`` and
-        ``chamfer_truth_drape_initial_m``, the same two distances before the fit.
+        ``body_mean_vertex_error_m``, ``bending_stiffness_ratio``, ``stretch_stiffness_ratio``,
+        ``rest_quality`` and ``draped_quality`` (min, mean), ``inverted_rest_triangles`` (from the fit's
+        report); when the folder holds the fit's first drape (``draped_initial.obj``), also
+        ``chamfer_scan_initial_m`` and ``chamfer_truth_drape_initial_m``, the same two distances before
+        the fit.
     """
     from torch_diffavatar.assets import material_from_dict
     from torch_diffavatar.chamfer import surface_chamfer_m
@@ -177,6 +180,7 @@ def evaluate_assets(assets_dir, gt_dir) -> dict:
     from torch_diffavatar.metrics import triangle_quality
     from torch_diffavatar.pattern.garmentcode import load_pattern
     from torch_diffavatar.scan import load_scan
+    from torch_diffavatar.sim.material import uniaxial_stiffness
 
     folder, gt = Path(assets_dir), Path(gt_dir)
     truth = gt / "truth"
@@ -212,6 +216,10 @@ def evaluate_assets(assets_dir, gt_dir) -> dict:
     out["chamfer_scan_truth_m"] = floor["symmetric"]
     true_pattern = load_pattern(truth / "pattern.json")
     out.update(compare_with_truth(folder, true_pattern, float(true_material.bend_stiffness)))
+    fitted_material = material_from_dict(
+        read_json_file(folder / "material.json", f"{folder}: no material.json")
+    )
+    out["stretch_stiffness_ratio"] = uniaxial_stiffness(fitted_material) / uniaxial_stiffness(true_material)
     out["seam_length_mismatch"] = seam_length_mismatch(load_pattern(folder / "pattern.json"))
     # the design's own (ease: GarmentCode's trousers take 24 mm more back than front at the crotch)
     out["seam_length_mismatch_truth"] = seam_length_mismatch(true_pattern)

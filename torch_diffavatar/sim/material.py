@@ -53,6 +53,18 @@ class ClothMaterial:
                 raise ValueError(f"ClothMaterial.{name} must be > 0, got {value[name]}")
 
 
+def uniaxial_stiffness(material: ClothMaterial) -> float:
+    """How stiff a strip of ``material`` is when pulled along one axis with its width free [N/m]: the
+    geometric mean over u and v of ``k − c²/k'`` (c = ν√(k_uu k_vv), the coupling; ``k`` when ν = 0).
+
+    What a hanging panel feels, and so what "stretch" compares between two materials; for Newton's
+    isotropic membrane in our units (`sim.newton_units.membrane_from_newton`) it is ``(λ+2μ)(1 − ν²)``.
+    """
+    kuu, kvv, nu = (_float(getattr(material, k)) for k in ("k_uu", "k_vv", "poisson"))
+    coupling_sq = nu * nu * kuu * kvv
+    return float(((kuu - coupling_sq / kvv) * (kvv - coupling_sq / kuu)) ** 0.5)
+
+
 def _float(value: float | torch.Tensor) -> float:
     return float(value.detach()) if isinstance(value, torch.Tensor) else float(value)
 
