@@ -176,6 +176,33 @@ def test_a_race_of_bending_stiffnesses_fits_each_from_its_own_and_resumes_exactl
         _config(**dict(STIFFNESSES, first_fit_bend_scales=[1, 1e5]))
 
 
+PAIRS = dict(
+    RACE,
+    first_bend_scales=[1],
+    first_stretch_scales=[1, 0.2],
+    first_fit_bend_scales=[4, 1],
+    first_race_pairs=True,
+)
+
+
+def test_a_race_of_pairs_sews_one_candidate_per_pair(skirt_problem, tmp_path):
+    """``first_race_pairs``: the membranes and bending stiffnesses paired entry by entry, two candidates (the
+    nominal membrane at 4× k_b, the soft one at 1×) where every combination makes four; the one kept starts
+    the fit from its own pair. Lists of different lengths are refused."""
+    result = _fitter(skirt_problem, tmp_path, PAIRS).run()
+    candidates = result.report["first_drape_candidates"]
+    pairs = [(c.get("stretch_scale", 1.0), c.get("fit_bend_scale", 1.0)) for c in candidates]
+    assert pairs == [(1.0, 4.0), (0.2, 1.0)]
+    assert all(math.isfinite(c["race_loss"]) for c in candidates)
+    kept = min(candidates, key=lambda c: c["race_loss"])
+    material = result.report["material"]
+    assert material["stretch_scale_initial"] == pytest.approx(kept.get("stretch_scale", 1.0), rel=1e-6)
+    start = _config().initial_bend_stiffness * kept.get("fit_bend_scale", 1.0)
+    assert material["bend_stiffness_initial"] == pytest.approx(start, rel=1e-6)
+    with pytest.raises(ValueError, match="same length"):
+        _config(**dict(PAIRS, first_fit_bend_scales=[4, 1, 2]))
+
+
 def test_an_older_checkpoint_from_inside_the_race_is_refused(skirt_problem, tmp_path):
     """Without its race's state a checkpoint written during the race holds one candidate only: resuming it
     would finish that candidate alone, so it is refused. One written after the race (saves 5, above) has no

@@ -216,6 +216,10 @@ class FitConfig:
             start) ended at 0.22-0.35x the truth and 10.6-15.9 mm from their true drapes; raced from 1x and
             3x, at 0.67-1.24x and 4.7-6.3 mm (docs/BENCHMARKS.md, "A race of bending stiffnesses").
             ``(1.0,)``: the fit starts at ``initial_bend_stiffness`` alone.
+        first_race_pairs: False: a sewing for every combination of ``first_stretch_scales`` and
+            ``first_fit_bend_scales``; True: the two lists (of one length) paired entry by entry, one sewing
+            per pair (the race's cost grows with its candidates: on two workers four take twice the time
+            of two).
         first_race_iterations: with several ``first_bend_scales``, the fit runs this many iterations from
             every candidate sewing and continues from the one whose lowest loss is the lowest [-]. A fold
             state and the pattern that suits it are found together, so the first drape's loss alone can
@@ -343,6 +347,7 @@ class FitConfig:
     first_bend_scales: tuple[float, ...] = (1.0,)
     first_stretch_scales: tuple[float, ...] = (1.0,)
     first_fit_bend_scales: tuple[float, ...] = (1.0,)
+    first_race_pairs: bool = False
     first_race_iterations: int = 0
     resew_at: tuple[int, ...] = ()
     max_scan_points: int = 4000
@@ -444,6 +449,12 @@ class FitConfig:
             raise ValueError(
                 "FitConfig.first_stretch_scales: several membranes need a race (first_race_iterations > 0): "
                 "the first drape's loss is taken at one membrane"
+            )
+        if self.first_race_pairs and len(self.first_stretch_scales) != len(self.first_fit_bend_scales):
+            raise ValueError(
+                "FitConfig.first_race_pairs: first_stretch_scales and first_fit_bend_scales are paired entry "
+                f"by entry and need the same length, got {len(self.first_stretch_scales)} and "
+                f"{len(self.first_fit_bend_scales)}"
             )
         if len(self.first_fit_bend_scales) > 1 and self.first_race_iterations == 0:
             raise ValueError(

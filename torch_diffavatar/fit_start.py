@@ -76,9 +76,10 @@ def first_states(
     sewn and draped once per ``first_bend_scales`` (the bending stiffness scaled by it for the sewing),
     ``first_stretch_scales`` (the membrane scaled by it: the entry's ``stretch_scale``) and
     ``fit_bend_scales`` (default ``first_fit_bend_scales``: the fit's bending stiffness scaled by it, for
-    the sewing and the settling: the entry's ``fit_bend_scale``); the race gives each candidate's fit its
-    entry's membrane and stiffness (`fit_race.candidate_material`). With one start the loss is NaN (not
-    evaluated). Each sewing's scales and loss (or error) are appended to ``candidates``.
+    the sewing and the settling: the entry's ``fit_bend_scale``), every combination or, with the config's
+    ``first_race_pairs`` and no ``fit_bend_scales`` given, paired entry by entry; the race gives each
+    candidate's fit its entry's membrane and stiffness (`fit_race.candidate_material`). With one start the
+    loss is NaN (not evaluated). Each sewing's scales and loss (or error) are appended to ``candidates``.
 
     Args:
         objective: the fit's objective (garment, config, material, body faces, the fixed body).
@@ -101,9 +102,13 @@ def first_states(
         start = ClothState(start_state.x.to(dtype), start_state.v.to(dtype))
         return [(math.nan, settled(objective, start, variables.rest_uv, body_verts, material), {})]
     config = objective.config
-    fit_bend_scales = config.first_fit_bend_scales if fit_bend_scales is None else fit_bend_scales
     stretches, bends = config.first_stretch_scales, config.first_bend_scales
-    pairs = [(b, m, k) for k in fit_bend_scales for m in stretches for b in bends]
+    if fit_bend_scales is None and config.first_race_pairs:
+        physics = list(zip(stretches, config.first_fit_bend_scales, strict=True))
+    else:
+        fit_bend_scales = config.first_fit_bend_scales if fit_bend_scales is None else fit_bend_scales
+        physics = [(m, k) for k in fit_bend_scales for m in stretches]
+    pairs = [(b, m, k) for m, k in physics for b in bends]
     entries = [_candidate_entry(*pair) for pair in pairs]
     candidates.extend(entries)
     sew = functools.partial(_sewn, objective, variables, body_verts, stretch, sewing_fallback)
