@@ -132,8 +132,9 @@ def test_the_openings_each_shipped_config_holds_are_openings_of_its_template(pat
 @pytest.mark.parametrize("path", sorted(CONFIG_DIR.glob("*.yaml")), ids=lambda p: p.stem)
 def test_the_dress_races_its_bending_stiffness_and_membrane_and_the_others_start_at_one(path):
     """The dress config starts its fit from two (membrane, bending stiffness) pairs and keeps the lower loss
-    after a short race (docs/BENCHMARKS.md, "A race of bending stiffnesses", "A race of membranes"); no
-    other config pays for one. The soft membrane lies inside the factor's bound."""
+    after a short race, the long sleeve sews each of its fold states at two membranes (docs/BENCHMARKS.md,
+    "A race of bending stiffnesses", "A race of membranes"); no other config pays for one. The soft
+    membrane lies inside the factor's bound."""
     config = load_config(path)
     if config.template == "dress":
         # two candidates: the nominal membrane at 3x k_b, one 50x softer at 1x
@@ -141,5 +142,9 @@ def test_the_dress_races_its_bending_stiffness_and_membrane_and_the_others_start
         assert config.first_stretch_scales == (1, 0.02) and config.first_fit_bend_scales == (3, 1)
         assert config.stretch_bound > 1 / 0.02
         assert config.lr_log_stretch == 0  # the race picks the membrane; the fit does not move it
+    elif config.template == "longsleeve":  # each sewing also at the soft membrane: six whole-fit candidates
+        assert config.first_stretch_scales == (1, 0.02) and not config.first_race_pairs
+        assert config.first_race_iterations == config.iterations and config.stretch_bound > 1 / 0.02
+        assert config.first_fit_bend_scales == (1.0,) and config.lr_log_stretch == 0
     else:
         assert config.first_fit_bend_scales == (1.0,) and config.first_stretch_scales == (1.0,)

@@ -15,8 +15,8 @@ material:
   ``garment_measurement_max_error_cm``, the largest absolute error [cm];
 * ``garment_area_m2``: the total panel area ``{"fitted_m2", "true_m2", "error_m2"}`` [m²];
 * ``bending_stiffness_ratio``: fitted / true bending stiffness [-] (1 is exact);
-* ``stretch_stiffness_ratio`` (`evaluate_assets`): fitted / true stiffness of a strip pulled along one axis
-  with its width free (`sim.material.uniaxial_stiffness`, the geometric mean over the two axes) [-].
+* ``stretch_stiffness_ratio`` (given the true material): fitted / true stiffness of a strip pulled along one
+  axis with its width free (`sim.material.uniaxial_stiffness`, the geometric mean over the two axes) [-].
 
 `save_drape_comparison` draws the fit's first drape, its result and the true drape side by side, front
 and back (the command writes it as ``ASSETS_DIR/eval_drapes.png``).
@@ -32,7 +32,9 @@ from torch_diffavatar.atomic_file import atomic_path
 from torch_diffavatar.errors import InputError, read_json_file
 
 
-def compare_with_truth(assets_dir, truth_pattern, truth_bend_stiffness: float | None = None) -> dict:
+def compare_with_truth(
+    assets_dir, truth_pattern, truth_bend_stiffness: float | None = None, truth_material=None
+) -> dict:
     """Measures of the assets in ``assets_dir`` against the truth (see the module docstring).
 
     Args:
@@ -40,6 +42,8 @@ def compare_with_truth(assets_dir, truth_pattern, truth_bend_stiffness: float | 
         truth_pattern: the true pattern: a `Pattern` or a GarmentCode JSON path, with the template's
             panel names.
         truth_bend_stiffness: the true bending stiffness [N·m], or None to skip the ratio.
+        truth_material: the true `ClothMaterial`, or None; given, both ratios (bending and stretch) come
+            from it.
 
     Raises:
         InputError: a file is missing, or the patterns' panels differ.
@@ -63,14 +67,19 @@ def compare_with_truth(assets_dir, truth_pattern, truth_bend_stiffness: float | 
         "pattern_outline_errors": errors,
     }
     out.update(garment_measurement_errors(fitted, truth))
+    if truth_material is not None:
+        truth_bend_stiffness = float(truth_material.bend_stiffness)
     if truth_bend_stiffness is not None:
         from torch_diffavatar.assets import material_from_dict
+        from torch_diffavatar.sim.material import uniaxial_stiffness
 
         material_path = folder / "material.json"
         if not material_path.is_file():
             raise InputError(f"{material_path} is missing: is {folder} the output folder of a fit?")
         material = material_from_dict(read_json_file(material_path, f"{material_path}: missing"))
         out["bending_stiffness_ratio"] = float(material.bend_stiffness) / float(truth_bend_stiffness)
+        if truth_material is not None:
+            out["stretch_stiffness_ratio"] = uniaxial_stiffness(material) / uniaxial_stiffness(truth_material)
     return out
 
 
@@ -168,11 +177,10 @@ def evaluate_assets(assets_dir, gt_dir) -> dict:
         ``garment_measurement_max_error_cm``, ``garment_area_m2``), ``seam_length_mismatch`` (fitted
         pattern, `seam_length_mismatch`), ``seam_length_mismatch_truth`` (the true pattern's: the
         mismatch a design has on purpose, ease), ``body_height_error_m`` (fitted − true),
-        ``body_mean_vertex_error_m``, ``bending_stiffness_ratio``, ``stretch_stiffness_ratio``,
-        ``rest_quality`` and ``draped_quality`` (min, mean), ``inverted_rest_triangles`` (from the fit's
-        report); when the folder holds the fit's first drape (``draped_initial.obj``), also
-        ``chamfer_scan_initial_m`` and ``chamfer_truth_drape_initial_m``, the same two distances before
-        the fit.
+        ``body_mean_vertex_error_m``, ``bending_stiffness_ratio`` and ``stretch_stiffness_ratio``,
+        ``rest_quality``, ``draped_quality`` (min, mean), ``inverted_rest_triangles`` (the fit's report);
+        when the folder holds the fit's first drape (``draped_initial.obj``), also ``chamfer_scan_initial_m``
+        and ``chamfer_truth_drape_initial_m``, the same two distances before the fit.
     """
     from torch_diffavatar.assets import material_from_dict
     from torch_diffavatar.chamfer import surface_chamfer_m
@@ -180,7 +188,6 @@ def evaluate_assets(assets_dir, gt_dir) -> dict:
     from torch_diffavatar.metrics import triangle_quality
     from torch_diffavatar.pattern.garmentcode import load_pattern
     from torch_diffavatar.scan import load_scan
-    from torch_diffavatar.sim.material import uniaxial_stiffness
 
     folder, gt = Path(assets_dir), Path(gt_dir)
     truth = gt / "truth"
@@ -215,11 +222,7 @@ def evaluate_assets(assets_dir, gt_dir) -> dict:
     floor = surface_chamfer_m(true_drape.verts, true_drape.faces, garment_points)
     out["chamfer_scan_truth_m"] = floor["symmetric"]
     true_pattern = load_pattern(truth / "pattern.json")
-    out.update(compare_with_truth(folder, true_pattern, float(true_material.bend_stiffness)))
-    fitted_material = material_from_dict(
-        read_json_file(folder / "material.json", f"{folder}: no material.json")
-    )
-    out["stretch_stiffness_ratio"] = uniaxial_stiffness(fitted_material) / uniaxial_stiffness(true_material)
+    out.update(compare_with_truth(folder, true_pattern, truth_material=true_material))
     out["seam_length_mismatch"] = seam_length_mismatch(load_pattern(folder / "pattern.json"))
     # the design's own (ease: GarmentCode's trousers take 24 mm more back than front at the crotch)
     out["seam_length_mismatch_truth"] = seam_length_mismatch(true_pattern)
