@@ -221,7 +221,13 @@ def main(argv=None) -> int:
     )
     p.add_argument("--max-frames", type=int, default=400, help="frames at most at 60 frames/s (default 400)")
     p.add_argument("--substeps", type=int, default=10, help="VBD steps per frame (default 10)")
-    p.add_argument("--iterations", type=int, default=5, help="VBD iterations per step (default 5)")
+    p.add_argument(
+        "--iterations",
+        type=int,
+        default=NewtonDrapeConfig.iterations,
+        help=f"VBD iterations per step (default {NewtonDrapeConfig.iterations}: fewer leave the drape "
+        "hanging longer than its pattern, sim_newton.NewtonDrapeConfig)",
+    )
     p.add_argument("--out", help="write Newton's drape here as OBJ (draped.obj layout, vt = pattern)")
     p.add_argument("--json", action="store_true", help="print one JSON line")
     args = p.parse_args(argv)

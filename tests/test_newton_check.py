@@ -152,7 +152,7 @@ def test_newton_drapes_the_exported_asset_near_ours(draped_skirt_asset, seams):
     from torch_diffavatar.sim_newton import NewtonDrapeConfig
 
     check = load_script("newton_check")
-    config = NewtonDrapeConfig(max_frames=60, min_frames=10)  # brief: a check, not a settle
+    config = NewtonDrapeConfig(max_frames=60, min_frames=10, iterations=10)  # brief: a check, not a settle
     r = check.check_assets(draped_skirt_asset, seams=seams, config=config, samples=5000)
     x = r["x"]
     assert torch.isfinite(x).all() and r["held_vertices"] > 0 and x.shape == (r["draped_vertices"], 3)

@@ -12,7 +12,12 @@ pytest.importorskip("newton")
 
 from torch_diffavatar.evaluation import evaluate_assets  # noqa: E402
 from torch_diffavatar.opening_lengths import rest_loop_edges, rest_loop_length  # noqa: E402
-from torch_diffavatar.sim_newton import BEND_FACTOR_RANGE, FRICTION_RANGE, STRETCH_FACTOR_RANGE  # noqa: E402
+from torch_diffavatar.sim_newton import (  # noqa: E402
+    BEND_FACTOR_RANGE,
+    FRICTION_RANGE,
+    STRETCH_FACTOR_RANGE,
+    NewtonDrapeConfig,
+)
 from torch_diffavatar.synthetic_scans import make_draped_scan, write_scan  # noqa: E402
 
 SCAN = dict(seed=1, spacing=0.05, garment_points=2000, body_points=1000)
@@ -53,13 +58,17 @@ def test_newton_drape_rests_outside_the_body_and_differs_from_ours(newton_skirt)
     info = newton.info["newton"]
     assert info["drape"]["converged"] and info["drape"]["mean_speed_m_per_s"] < 0.01
     assert info["drape"]["penetrating_count"] <= 0.01 * len(newton.cloth_x)
+    assert info["steps"] == {"substeps_per_frame": 10, "iterations_per_step": NewtonDrapeConfig().iterations}
     # another physics: not our drape (same pattern, body and start)
-    assert info["chamfer_to_ours_drape_m"] > 0.005
-    strain = info["edge_strain"]
-    assert strain["newton"]["mean_abs"] > 2 * strain["ours"]["mean_abs"]
+    assert info["chamfer_to_ours_drape_m"] > 0.002
     # a worn skirt: the waist held lower by the drop, nothing slid to the floor
     assert newton.cloth_x[:, 1].min() > 0.1
     assert newton.cloth_x[:, 1].max() == pytest.approx(ours.cloth_x[:, 1].max() - 0.03, abs=0.03)
+    # VBD converged: cloth as barely extensible as ours hangs as long as its pattern, the hem as low as ours
+    # (by the drop); at 10 iterations per step, 8 mm lower (a 2 cm dress 4.7 cm lower: `sim_newton`)
+    assert newton.cloth_x[:, 1].min() == pytest.approx(ours.cloth_x[:, 1].min() - 0.03, abs=0.004)
+    strain = info["edge_strain"]
+    assert strain["newton"]["mean_abs"] < 2 * strain["ours"]["mean_abs"]
     # and its waistband as long as its pattern makes it (pinned on the body surface, it took the body's
     # girth there: 4.5-14 % short on the suite's skirts and trousers)
     (waist,) = [lp for lp in newton.garment.boundary_loops if lp.name == "waist"]

@@ -11,6 +11,7 @@ import torch
 
 from torch_diffavatar import sim_newton as sn
 from torch_diffavatar.cli import main
+from torch_diffavatar.errors import InputError
 from torch_diffavatar.geometry import triangle_green_strain
 from torch_diffavatar.sim.constraints import membrane_stiffness
 from torch_diffavatar.sim.material import ClothMaterial
@@ -114,6 +115,22 @@ def test_newton_scan_without_newton_says_how_to_install(monkeypatch, tmp_path, c
 def test_waist_drop_needs_newton(tmp_path, capsys):
     code = main(["make-scan", "skirt", "--out", str(tmp_path / "s"), "--waist-drop", "0.05"])
     assert code != 0 and "waist_drop" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("extra", [[], ["--simulator", "newton"]])
+def test_newton_iterations_need_newton_and_a_count(tmp_path, capsys, extra):
+    args = ["make-scan", "skirt", "--out", str(tmp_path / "s"), "--newton-iterations", "0", *extra]
+    code = main(args if extra else args[:-1] + ["40"])  # without newton: a valid count, still refused
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "--newton-iterations needs --simulator newton" in err[0]
+    assert not (tmp_path / "s").exists()
+
+
+def test_newton_config_needs_newton():
+    from torch_diffavatar.synthetic_scans import make_draped_scan
+
+    with pytest.raises(InputError, match="newton_config needs simulator='newton'"):  # before any work
+        make_draped_scan("skirt", anny_model=object(), newton_config=sn.NewtonDrapeConfig(iterations=40))
 
 
 def test_lowered_cloth_stays_above_the_floor():

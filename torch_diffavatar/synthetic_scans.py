@@ -117,6 +117,7 @@ def make_draped_scan(
     simulator: str = "ours",
     waist_drop: float | None = None,
     floor: bool = True,
+    newton_config=None,
 ) -> DrapedScan:
     """Drape a changed template on an Anny body and sample it like a real scan (see the module docstring).
 
@@ -133,11 +134,10 @@ def make_draped_scan(
         garment_points, body_points: samples on the cloth and on the uncovered skin (before holes). A
             real scanner gives far more; the cloth's 40k (about one per 4 mm on a dress) keep the scan ↔
             drape Chamfer's own floor from the point spacing near the noise (14k: a 6 mm floor).
-        simulator: ``"ours"`` or ``"newton"``; waist_drop [m]: `_newton_truth` (and the module docstring).
+        simulator: ``"ours"`` or ``"newton"``; waist_drop [m], newton_config (how VBD steps): `_final_drape`.
         floor: our drape and sewing on a floor at the soles (`DrapeConfig.floor`; else `below_floor_note`).
         noise: Gaussian noise sigma [m]. hole_fraction: fraction of the points cut away in round holes.
-        underarm_holes: also cut a 7 cm hole under each arm. missing_bottom: drop points below this
-            height [m] (0: keep all).
+        underarm_holes: a 7 cm hole under each arm too. missing_bottom: none under this height [m] (0: off).
 
     Raises:
         SimulationError: the drape failed (the message says why). InputError: bad settings / no Newton.
@@ -146,7 +146,7 @@ def make_draped_scan(
     from torch_diffavatar.pattern.library import resolve_pattern
 
     capture = _Capture(garment_points, body_points, noise, hole_fraction, underarm_holes, missing_bottom)
-    _check_settings(spacing, bend_stiffness, simulator, waist_drop, capture)
+    _check_settings(spacing, bend_stiffness, simulator, waist_drop, capture, newton_config)
     t0 = time.perf_counter()
     rng, gen = np.random.default_rng(seed), torch.Generator().manual_seed(seed)
     anny_model = load_anny(dtype=torch.float32) if anny_model is None else anny_model
@@ -154,7 +154,7 @@ def make_draped_scan(
     pattern = changed_pattern(resolve_pattern(template), hem_up, hem_widen)
     garment, result = _drape_on_body(pattern, body, out, spacing, bend_stiffness, floor)
     result.x, material, newton_info = _final_drape(
-        simulator, garment, result, out, body, seed, bend_stiffness, waist_drop
+        simulator, garment, result, out, body, seed, bend_stiffness, waist_drop, newton_config
     )
     cloth, cloth_faces = result.x.double().numpy(), garment.sim_faces.numpy()
     bv, bf, bn = out.vertices[0].double().numpy(), body.faces.numpy(), normals.double().numpy()
@@ -195,7 +195,14 @@ def below_floor_note(info: dict) -> str | None:
     )
 
 
-def _check_settings(spacing: float, bend_stiffness: float, simulator: str, waist_drop: float | None, capture):
+def _check_settings(
+    spacing: float,
+    bend_stiffness: float,
+    simulator: str,
+    waist_drop: float | None,
+    capture,
+    newton_config=None,
+):
     """InputError for a bad setting of `make_draped_scan` (``capture``: its `_Capture`), or Newton missing
     (checked before any work)."""
     capture.check()
@@ -208,6 +215,8 @@ def _check_settings(spacing: float, bend_stiffness: float, simulator: str, waist
         raise InputError(
             f"waist_drop needs simulator='newton' and 0 <= waist_drop <= 0.3 m, got {waist_drop}"
         )
+    if newton_config is not None and simulator != "newton":
+        raise InputError(f"newton_config needs simulator='newton', got simulator={simulator!r}")
     if simulator == "newton":
         from torch_diffavatar.sim_newton import import_newton
 
@@ -222,13 +231,22 @@ def _material_summary(material) -> dict:
 
 
 def _final_drape(
-    simulator: str, garment, result, out, body, seed: int, bend_stiffness: float, waist_drop: float | None
+    simulator: str,
+    garment,
+    result,
+    out,
+    body,
+    seed: int,
+    bend_stiffness: float,
+    waist_drop: float | None,
+    newton_config=None,
 ):
     """The truth's final drape. ``"ours"``: our drape ``result`` of ``garment`` as it is, with our material
     of stiffness ``bend_stiffness`` [N·m]. ``"newton"``: it settled again on the `BodyModel` ``body``
     (``out``: its output) by Newton's VBD with a random material about ``bend_stiffness`` (`sim_newton`),
     drawn from ``seed`` + `NEWTON_SEED_OFFSET`; ``waist_drop`` [m]: how much lower a waist-held garment
-    sits (None: random in `WAIST_DROP_RANGE`; 0 for other garments).
+    sits (None: random in `WAIST_DROP_RANGE`; 0 for other garments); ``newton_config``: how Newton's VBD
+    steps (None: `sim_newton.NewtonDrapeConfig`'s defaults).
 
     Returns:
         (Vs, 3) float32 drape [m], the true `ClothMaterial` (our units), the extra ``truth.json`` keys.
@@ -241,6 +259,7 @@ def _final_drape(
     from torch_diffavatar.chamfer import sample_surface, surface_chamfer_m
 
     rng = np.random.default_rng(seed + NEWTON_SEED_OFFSET)
+    config = sn.NewtonDrapeConfig() if newton_config is None else newton_config
     body_verts, body_faces = out.vertices[0], body.faces
     model, uv = result.model, garment.vert_uv
     material, factors = sn.draw_material(rng, bend_stiffness)
@@ -253,8 +272,9 @@ def _final_drape(
     # the waistband pinned where the lowered drape has it, as long as the pattern makes it (`sim_newton`)
     targets = x0[held.cpu()].numpy() if len(held) else None
     drape = sn.newton_drape(
-        model, uv, x0, body_verts, body_faces, newton_material, attach_vertices=held, attach_targets=targets
-    )
+        model, uv, x0, body_verts, body_faces, newton_material, config,
+        attach_vertices=held, attach_targets=targets,
+    )  # fmt: skip
     strain_newton = sn.pattern_edge_strain(drape.x, model, uv)
     strain_ours = sn.pattern_edge_strain(result.x, model, uv)
     faces = garment.sim_faces
@@ -267,6 +287,7 @@ def _final_drape(
         "conversion": "torch_diffavatar.sim_newton: k_uu = k_vv = tri_ka + 2 tri_ke, k_uv = tri_ke, "
         "poisson = tri_ka / (tri_ka + 2 tri_ke); bend_stiffness = edge_ke |e| / (3|e|^2/(A1+A2))",
         "solver": "SolverVBD (stable Neo-Hookean membrane, dihedral bending, penalty contact + friction)",
+        "steps": {"substeps_per_frame": config.substeps, "iterations_per_step": config.iterations},
         "draws": factors,
         "waist_drop_m": waist_drop,
         "waist_pinned_vertices": int(len(held)),

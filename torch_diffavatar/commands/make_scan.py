@@ -65,6 +65,13 @@ def register(subparsers) -> None:
         "random in [0, 0.08] from --seed; 0 for other garments)",
     )
     p.add_argument(
+        "--newton-iterations",
+        type=int,
+        default=None,
+        help="with --simulator newton: VBD iterations per step (default: sim_newton.NewtonDrapeConfig's, "
+        "which bring the drape to rest where more do not move it; the truths before it took 10)",
+    )
+    p.add_argument(
         "--no-floor",
         action="store_true",
         help="drape without a floor at the soles: a garment longer than the legs hangs through it instead "
@@ -199,6 +206,20 @@ def _parse_pose(text: str, seed: int) -> torch.Tensor | None:
     return pose_from_bones(bones, f"--pose {text}")[None]
 
 
+def _newton_config(args):
+    """`sim_newton.NewtonDrapeConfig` of ``--newton-iterations`` (None: not given)."""
+    if args.newton_iterations is None:
+        return None
+    if args.simulator != "newton" or args.newton_iterations < 1:
+        raise InputError(
+            f"--newton-iterations needs --simulator newton and at least 1, got {args.newton_iterations} "
+            f"with --simulator {args.simulator}"
+        )
+    from torch_diffavatar.sim_newton import NewtonDrapeConfig
+
+    return NewtonDrapeConfig(iterations=args.newton_iterations)
+
+
 def _make_scan_command(args) -> dict:
     settings = _capture_settings(args)  # bad capture options fail before the drape
     check_out_folder(args.out)
@@ -220,6 +241,7 @@ def _make_scan_command(args) -> dict:
         simulator=args.simulator,
         waist_drop=args.waist_drop,
         floor=not args.no_floor,
+        newton_config=_newton_config(args),
     )
     captured = None
     if settings is not None:
