@@ -148,3 +148,12 @@ def test_the_dress_races_its_bending_stiffness_and_membrane_and_the_others_start
         assert config.first_fit_bend_scales == (1.0,) and config.lr_log_stretch == 0
     else:
         assert config.first_fit_bend_scales == (1.0,) and config.first_stretch_scales == (1.0,)
+
+
+@pytest.mark.parametrize("path", sorted(CONFIG_DIR.glob("*.yaml")), ids=lambda p: p.stem)
+def test_the_waist_held_garments_fit_their_waists_height(path):
+    """Skirts and trousers are worn where the body and the scan put them: a fit that holds the waist at the
+    template's height grows the legs down to a pair worn low (Newton's trousers of seed 0, 4.1 cm low: 4.4 cm
+    long; docs/BENCHMARKS.md, "Trousers worn low: the waist's height fitted")."""
+    config = load_config(path)
+    assert (config.lr_waist_shift > 0) == (config.template in ("skirt", "pants")), config.lr_waist_shift
