@@ -49,7 +49,7 @@ drapes' waistbands were 4.5-14.2 % shorter than their patterns', and the fits sh
 to match, by up to 20 cm (docs/BENCHMARKS.md, "Newton's waistbands as long as their patterns").
 
 Limitations: no self-collision (as ours); stiff cloth does not settle at the affordable substeps (see
-`STRETCH_FACTOR_RANGE`); Warp's CPU kernels run on one core (a 2 cm dress settles in 6-8 minutes here at
+`STRETCH_FACTOR_RANGE`); Warp's CPU kernels run on one core (a 2 cm dress settles in 5-14 minutes here at
 `NewtonDrapeConfig`'s 120 iterations per step), and the first use compiles Warp's kernels (~30 s, cached
 in ~/.cache/warp).
 """
@@ -157,7 +157,7 @@ class NewtonDrapeConfig:
             drape at 10 / 40 / 80 / 120 iterations, against 240 (continued from 120): its lowest point 50 /
             16 / 7.1 / 3.6 mm lower, 40 / 12 / 6.4 / 3.4 mm apart on average, its edges strained 1.79 /
             0.54 / 0.31 / 0.23 % (mean |·|; 240: 0.15 %, ours 0.21 %); at 240 it hangs 1-3 mm higher than
-            ours. 120 rests in 30-40 frames (6-8 min on one core here; 10 took 147 frames, 3 min). The
+            ours. 120 rests in 30-62 frames (5-14 min on one core here; 10 took 30-174, 1-8 min). The
             truths made at 10 before (docs/BENCHMARKS.md, "Newton's drapes at rest in their iterations")
             hung 2-5 cm longer than their patterns do, and the fits lengthened the patterns to match.
         max_frames: frames at most; min_frames: frames always run.

@@ -9,6 +9,7 @@ import torch
 
 from torch_diffavatar.commands.out_paths import check_out_folder
 from torch_diffavatar.errors import InputError, read_json_file
+from torch_diffavatar.sim_newton import NewtonDrapeConfig
 from torch_diffavatar.synthetic_scans import (
     POSE_SEED_OFFSET,
     SIMULATORS,
@@ -68,8 +69,8 @@ def register(subparsers) -> None:
         "--newton-iterations",
         type=int,
         default=None,
-        help="with --simulator newton: VBD iterations per step (default: sim_newton.NewtonDrapeConfig's, "
-        "which bring the drape to rest where more do not move it; the truths before it took 10)",
+        help=f"with --simulator newton: VBD iterations per step (default {NewtonDrapeConfig.iterations}: a "
+        "few mm from where more would bring the drape; at 10, the default before, it hung cm longer)",
     )
     p.add_argument(
         "--no-floor",
@@ -215,8 +216,6 @@ def _newton_config(args):
             f"--newton-iterations needs --simulator newton and at least 1, got {args.newton_iterations} "
             f"with --simulator {args.simulator}"
         )
-    from torch_diffavatar.sim_newton import NewtonDrapeConfig
-
     return NewtonDrapeConfig(iterations=args.newton_iterations)
 
 
