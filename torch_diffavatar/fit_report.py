@@ -182,10 +182,12 @@ def opening_lengths(objective: FitObjective, first_uv: torch.Tensor, final_uv: t
     the scan's points trace it (``scan``: a lower bound, `torch_diffavatar.opening_lengths`; None where
     they trace none) and the share of the loop they show (``seen``, 0-1: its angular bins with points;
     None where not asked), the least the fit held it to (``least``: on a partial scan no less than the
-    template's), the most (``most``: ``least`` again for the openings held ``"exact"``, None for the
-    others; ``held``: whether the term was on, ``weights.opening_length`` > 0), and as the pattern's rest
-    edges give it at the first (``initial``) and at the resulting rest coordinates ``first_uv``,
-    ``final_uv`` (V, 2) [m] (``final``): opening name -> those eight."""
+    template's; ``held_to``: the openings whose traces gave it, its mirror's for a mirrored pair's
+    worse-seen one, `opening_lengths.mirrored_lengths`), the most (``most``: ``least`` again for the
+    openings held ``"exact"``, None for the others; ``held``: whether the term was on,
+    ``weights.opening_length`` > 0), and as the pattern's rest edges give it at the first (``initial``)
+    and at the resulting rest coordinates ``first_uv``, ``final_uv`` (V, 2) [m] (``final``): opening
+    name -> those nine."""
     out = {}
     on = bool(objective.weight_opening_length > 0)
     held = zip(
@@ -193,12 +195,14 @@ def opening_lengths(objective: FitObjective, first_uv: torch.Tensor, final_uv: t
         objective.opening_traced,
         objective.opening_seen,
         objective.opening_edges,
+        objective.opening_held_to,
         strict=True,
     )
-    for k, (name, traced, seen, edges) in enumerate(held):
+    for k, (name, traced, seen, edges, held_to) in enumerate(held):
         out[name] = {
             "scan": traced if math.isfinite(traced) else None,
             "seen": float(seen) if math.isfinite(seen) else None,
+            "held_to": list(held_to),
             "template": name in objective.config.opening_template_names,
             "least": float(objective.opening_least[k]),
             "most": float(objective.opening_most[k]) if math.isfinite(objective.opening_most[k]) else None,
@@ -292,11 +296,15 @@ def gapped_opening_warnings(held: dict) -> list[str]:
     the scan's points trace is a lower bound, and the fitted opening follows it, short by whatever the
     hidden part holds. Measured on ring captures of 20 tops (docs/BENCHMARKS.md, "End to end on ten
     seeds"): the 7 hems traced whole were fitted within 0.8 cm of the truth; of the 13 with a gap (a fold
-    lifted by a hand, out of the cameras' view), 9 were fitted 3.0-9.3 cm short."""
+    lifted by a hand, out of the cameras' view), 9 were fitted 3.0-9.3 cm short. An opening held to its
+    mirror's trace (``held_to``) is not named: its own gap does not count."""
     gapped = [
         (n, v)
         for n, v in held.items()
-        if v.get("held", True) and v["scan"] is not None and v.get("seen", 1) < 1
+        if v.get("held", True)
+        and v["scan"] is not None
+        and v.get("seen", 1) < 1
+        and n in v.get("held_to", [n])
     ]
     if not gapped:
         return []

@@ -44,6 +44,7 @@ from torch_diffavatar.losses import (
     template_edge_inverse,
 )
 from torch_diffavatar.opening_lengths import (
+    mirrored_lengths,
     opening_length_loss,
     opening_split_loss,
     rest_loop_edges,
@@ -435,34 +436,35 @@ class FitObjective(nn.Module):
         `scan_loop_length` with the placed garment's opening its reference; nan where they trace none or
         are not asked), ``opening_seen`` (K floats: the share of the loop's angular bins that hold scan
         points; nan where not asked), ``opening_edges`` (their rest edges, `rest_loop_edges`) and the buffer
-        ``opening_least`` (K,) [m], the traced lengths less ``config.opening_length_tolerance``; on a
+        ``opening_least`` (K,) [m], the traced lengths less ``config.opening_length_tolerance`` (with the
+        mirrored panels tied, a mirrored pair's both at the better-seen one's, `mirrored_lengths`; whose
+        traces: ``opening_held_to``, K lists of names, empty where none); on a
         partial scan (``seen_sides``), and for the template's openings, no less than the template's
         either; the buffer ``opening_most`` (K,) [m]: ``opening_least`` for the template's openings held
         ``"exact"``, inf for the others. ``opening_panels`` and ``opening_shares``: the panel of each rest
         edge and the template's split of each opening between its panels (`rest_loop_shares`)."""
         cfg = self.config
         self.opening_names, self.opening_traced, self.opening_seen, self.opening_edges = [], [], [], []
-        placed = self.garment.sim_positions().detach().double()
+        self.opening_held_to = []
+        traced = self._traced_openings(target)
+        # a pattern with its mirrored panels tied has one length for a mirrored pair (not for a hem cut off
+        # with the floor, held at its start)
+        cut_off = set(getattr(target, "held_openings", ()))
+        pairs = {name: v for name, v in traced.items() if name not in cut_off}
+        held_to = mirrored_lengths(pairs) if cfg.cage and cfg.tie_mirrored else {}
         least, most = [], []
         for loop in self.garment.boundary_loops:
-            measured = loop.name in cfg.opening_length_names and loop.name in self.boundary_names
+            measured = loop.name in traced
             # a hem cut off with the floor: its start is all the set-up could measure of it (the fits of
             # piled trousers widened such unheld hems 8.2 cm past it); `getattr`: older set-ups' targets
             cut = loop.name in getattr(target, "held_openings", ())
             held = loop.name in cfg.opening_template_names or cut
             if not (measured or held):
                 continue
-            length, seen = math.nan, math.nan
-            if measured:
-                # the placed garment's own opening: where the scan shows the loop in part (a hole over a
-                # hem), its curve bridges the gap
-                length, seen = scan_loop_length(
-                    target.boundaries[loop.name],
-                    bin_length=cfg.opening_length_bin,
-                    reference=placed[loop.vertices],
-                )
+            length, seen = traced.get(loop.name, (math.nan, math.nan))
+            hold, names = held_to.get(loop.name, (length, [loop.name]))
             edges = rest_loop_edges(self.garment, loop)
-            bound = length * (1.0 - cfg.opening_length_tolerance)
+            bound = hold * (1.0 - cfg.opening_length_tolerance)
             if self.seen_sides is not None or held:
                 # A scan from one side shows half a hem at most, and the fits narrowed what it did not show
                 # (a front-only dress's hem 28.7 cm short, the template's 12.5): what the scan cannot show,
@@ -474,6 +476,7 @@ class FitObjective(nn.Module):
                 self.opening_traced.append(length)
                 self.opening_seen.append(seen)
                 self.opening_edges.append(edges)
+                self.opening_held_to.append(names if math.isfinite(hold) else [])
                 least.append(bound)
                 # the scan cannot measure these (a neck's trace 5.5 cm short to 4.2 cm long), and the fits
                 # moved them whatever the truth: shrank necks, and grew a dress's armholes by 2-4 cm onto the
@@ -487,6 +490,21 @@ class FitObjective(nn.Module):
             rest_loop_shares(self.template_uv, e, p)
             for e, p in zip(self.opening_edges, self.opening_panels, strict=True)
         ]
+
+    def _traced_openings(self, target: ScanTarget) -> dict[str, tuple[float, float]]:
+        """Opening name -> ``(length [m], seen [0, 1])`` as the scan's points trace it (`scan_loop_length`),
+        for the openings of ``config.opening_length_names`` that the scan shows: the placed garment's own
+        opening bridges the gaps where the scan shows the loop in part (a hole over a hem)."""
+        placed = self.garment.sim_positions().detach().double()
+        return {
+            loop.name: scan_loop_length(
+                target.boundaries[loop.name],
+                bin_length=self.config.opening_length_bin,
+                reference=placed[loop.vertices],
+            )
+            for loop in self.garment.boundary_loops
+            if loop.name in self.config.opening_length_names and loop.name in self.boundary_names
+        }
 
     # -- the pieces ----------------------------------------------------------------------------------------
 
