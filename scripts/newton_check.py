@@ -232,9 +232,17 @@ def main(argv=None) -> int:
     p.add_argument("--json", action="store_true", help="print one JSON line")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
-    config = NewtonDrapeConfig(
-        max_frames=args.max_frames, substeps=args.substeps, iterations=args.iterations, seam_ke=args.seam_ke
-    )
+    try:
+        config = NewtonDrapeConfig(
+            max_frames=args.max_frames,
+            min_frames=min(NewtonDrapeConfig.min_frames, args.max_frames),
+            substeps=args.substeps,
+            iterations=args.iterations,
+            seam_ke=args.seam_ke,
+        )
+    except ValueError as exc:  # a setting out of range: one line, before Newton loads
+        print(f"newton_check: {exc}", file=sys.stderr)
+        return 2
     try:
         result = check_assets(args.assets, membrane=args.membrane, seams=args.seams, config=config)
     except (InputError, SimulationError) as exc:

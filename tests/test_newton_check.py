@@ -144,6 +144,15 @@ def draped_skirt_asset(anny_model, tmp_path_factory):
     return folder
 
 
+@pytest.mark.parametrize("args", [["--iterations", "0"], ["--max-frames", "0"], ["--substeps", "-1"]])
+def test_check_refuses_drape_settings_out_of_range(skirt_asset, capsys, args):
+    code = load_script("newton_check").main([str(skirt_asset[0]), *args])
+    (err,) = capsys.readouterr().err.strip().splitlines()
+    assert (
+        code == 2 and err.startswith("newton_check: NewtonDrapeConfig.") and "must be an integer >= 1" in err
+    )
+
+
 @requires_newton
 @pytest.mark.anny
 @pytest.mark.slow

@@ -133,6 +133,25 @@ def test_newton_config_needs_newton():
         make_draped_scan("skirt", anny_model=object(), newton_config=sn.NewtonDrapeConfig(iterations=40))
 
 
+@pytest.mark.parametrize(
+    "setting, message",
+    [
+        ({"iterations": 0}, "iterations must be an integer >= 1, got 0"),
+        ({"substeps": 2.5}, "substeps must be an integer >= 1, got 2.5"),
+        ({"min_frames": 500}, "min_frames 500 > max_frames 400"),
+        ({"fps": 0.0}, "fps must be a finite number > 0, got 0.0"),
+        ({"contact_gap": float("nan")}, "contact_gap must be a finite number >= 0, got nan"),
+        ({"velocity_scale": 1.5}, r"velocity_scale must be in \(0, 1\], got 1.5"),
+        ({"seam_ke": "1e4"}, "seam_ke must be a finite number >= 0, got '1e4'"),
+    ],
+)
+def test_newton_config_refuses_settings_out_of_range(setting, message):
+    # refused where it is made, not minutes into a drape
+    with pytest.raises(ValueError, match=f"^NewtonDrapeConfig.{message}$"):
+        sn.NewtonDrapeConfig(**setting)
+    assert sn.NewtonDrapeConfig(iterations=1, min_frames=0, velocity_scale=1.0).iterations == 1
+
+
 def test_lowered_cloth_stays_above_the_floor():
     """`lower_onto_body` moves the cloth down by the drop but never below the floor (the body's lowest point
     plus the thickness), cloth that starts under it included: Newton's floor met trouser legs 8 cm under

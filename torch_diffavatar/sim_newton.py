@@ -56,6 +56,7 @@ in ~/.cache/warp).
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
@@ -192,6 +193,26 @@ class NewtonDrapeConfig:
     contact_gap: float = 0.02
     blow_up_speed: float = 20.0
     seam_ke: float = 1.0e4
+
+    def __post_init__(self):
+        """ValueError naming the first setting out of its range (a drape with it would hang, never end, or
+        blow up minutes in)."""
+        counts = {"substeps": 1, "iterations": 1, "max_frames": 1, "min_frames": 0, "settle_frames": 1}
+        for name, least in counts.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < least:
+                raise ValueError(f"NewtonDrapeConfig.{name} must be an integer >= {least}, got {value!r}")
+        if self.min_frames > self.max_frames:
+            raise ValueError(f"NewtonDrapeConfig.min_frames {self.min_frames} > max_frames {self.max_frames}")
+        positive = ("fps", "speed_tol", "max_speed_tol", "blow_up_speed")
+        for name in positive + ("contact_ke", "contact_kd", "contact_gap", "seam_ke", "velocity_scale"):
+            value = getattr(self, name)
+            number = isinstance(value, int | float) and not isinstance(value, bool)
+            if not number or not math.isfinite(value) or value < 0 or (name in positive and value == 0):
+                least = "> 0" if name in positive else ">= 0"
+                raise ValueError(f"NewtonDrapeConfig.{name} must be a finite number {least}, got {value!r}")
+        if not 0.0 < self.velocity_scale <= 1.0:
+            raise ValueError(f"NewtonDrapeConfig.velocity_scale must be in (0, 1], got {self.velocity_scale}")
 
 
 @dataclass
