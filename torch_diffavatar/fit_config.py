@@ -253,7 +253,9 @@ class FitConfig:
         opening_length_names: the openings (`GarmentMesh.boundary_loops` names) that
             ``weights.opening_length`` holds no shorter than the scan's points of them trace: the hems
             by default; a trouser config adds its ``waist`` (its waistband lies on the body, a ring the
-            scan traces well: on a Newton-made pair the fit narrowed it by 11 cm without).
+            scan traces well: on a Newton-made pair the fit narrowed it by 11 cm without). With the cage's
+            ``tie_mirrored``, a mirrored pair (``hem_left`` / ``hem_right``) is held to the better-seen
+            one's trace (`opening_lengths.mirrored_lengths`).
         opening_template_names: openings that ``weights.opening_length`` holds to the template's length
             (as ``opening_template_hold`` says; and whose split between the panels ``weights.opening_split``
             holds), whatever the scan shows: openings the scan cannot measure. The tops' necks: the scan's
