@@ -447,17 +447,16 @@ class FitObjective(nn.Module):
         self.opening_names, self.opening_traced, self.opening_seen, self.opening_edges = [], [], [], []
         self.opening_held_to = []
         traced = self._traced_openings(target)
-        # a pattern with its mirrored panels tied has one length for a mirrored pair (not for a hem cut off
-        # with the floor, held at its start)
+        # hems cut off with the floor: their start is all the set-up could measure of them (the fits of piled
+        # trousers widened such unheld hems 8.2 cm past it); `getattr`: older set-ups' targets
         cut_off = set(getattr(target, "held_openings", ()))
+        # a pattern with its mirrored panels tied has one length for a mirrored pair (not for a cut-off hem)
         pairs = {name: v for name, v in traced.items() if name not in cut_off}
         held_to = mirrored_lengths(pairs) if cfg.cage and cfg.tie_mirrored else {}
         least, most = [], []
         for loop in self.garment.boundary_loops:
             measured = loop.name in traced
-            # a hem cut off with the floor: its start is all the set-up could measure of it (the fits of
-            # piled trousers widened such unheld hems 8.2 cm past it); `getattr`: older set-ups' targets
-            cut = loop.name in getattr(target, "held_openings", ())
+            cut = loop.name in cut_off
             held = loop.name in cfg.opening_template_names or cut
             if not (measured or held):
                 continue
